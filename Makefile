@@ -1,0 +1,34 @@
+# kohpymc: two commands on a fresh machine (Python 3.11 + make).
+PYTHON ?= python3.11
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test test-slow lint format clean
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[dev]"
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m kohpymc.examples.beam
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -m slow
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check kohpymc tests
+	$(VENV)/bin/ruff format --check kohpymc tests
+
+format: $(STAMP)
+	$(VENV)/bin/ruff format kohpymc tests
+	$(VENV)/bin/ruff check --fix kohpymc tests
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,61 @@
+"""kohpymc: Bayesian calibration of physics models with model discrepancy on PyMC.
+
+Kennedy–O'Hagan form ``y_D = G(x; θ) + δ(x) + ε`` with the discrepancy priors of
+Ling, Mullins & Mahadevan, "Selection of model discrepancy priors in Bayesian
+calibration".
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from kohpymc.calibration import build_model, calibrate, predict
+from kohpymc.data import CalibrationData, pooled_replicate_sd
+from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems, sampler_diagnostics
+from kohpymc.discrepancy import (
+    ConstantBias,
+    DecayingVariance,
+    Discrepancy,
+    GaussianProcess,
+    IIDGaussian,
+    InputDependentGaussian,
+    LinearBasis,
+    NoDiscrepancy,
+    NonStationaryGP,
+    ParametricFunction,
+)
+from kohpymc.physics import PhysicsModel, PhysicsModelError
+from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
+
+try:
+    __version__ = version("kohpymc")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0.0.0"
+
+__all__ = [
+    "PhysicsModel",
+    "PhysicsModelError",
+    "CalibrationData",
+    "pooled_replicate_sd",
+    "Prior",
+    "Uniform",
+    "Normal",
+    "LogNormal",
+    "HalfNormal",
+    "Custom",
+    "Discrepancy",
+    "NoDiscrepancy",
+    "ConstantBias",
+    "IIDGaussian",
+    "InputDependentGaussian",
+    "GaussianProcess",
+    "NonStationaryGP",
+    "DecayingVariance",
+    "LinearBasis",
+    "ParametricFunction",
+    "build_model",
+    "calibrate",
+    "predict",
+    "sampler_diagnostics",
+    "convergence_problems",
+    "SamplerTroubleWarning",
+    "__version__",
+]

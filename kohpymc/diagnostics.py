@@ -1,0 +1,125 @@
+"""Sampler diagnostics reported with every result: r̂, ESS and divergences.
+
+Sampler trouble is never swallowed: :func:`convergence_problems` lists it in plain
+words, :func:`kohpymc.calibration.calibrate` stores that list in the InferenceData
+attributes (``idata.attrs["sampler_problems"]``) and issues a
+:class:`SamplerTroubleWarning`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import arviz as az
+import numpy as np
+import pandas as pd
+
+__all__ = [
+    "SamplerTroubleWarning",
+    "sampler_diagnostics",
+    "convergence_problems",
+    "RHAT_MAX",
+    "ESS_MIN",
+]
+
+#: r̂ above this is reported as non-convergence (Vehtari et al. 2021).
+RHAT_MAX = 1.01
+#: bulk or tail ESS below this (in total) is reported as too few effective draws.
+ESS_MIN = 400
+
+
+class SamplerTroubleWarning(UserWarning):
+    """Issued when r̂, ESS or divergences indicate an unreliable posterior."""
+
+
+def n_divergences(idata: az.InferenceData) -> int | None:
+    """Number of divergent transitions after tuning, or None if the sampler has none.
+
+    Examples
+    --------
+    >>> import arviz as az
+    >>> n_divergences(az.load_arviz_data("centered_eight")) >= 0  # doctest: +SKIP
+    True
+    """
+    stats = getattr(idata, "sample_stats", None)
+    if stats is None or "diverging" not in stats:
+        return None
+    return int(np.asarray(stats["diverging"]).sum())
+
+
+def sampler_diagnostics(
+    idata: az.InferenceData, var_names: Sequence[str] | None = None
+) -> pd.DataFrame:
+    """Per-parameter posterior summary with r̂, ESS bulk/tail and the divergence count.
+
+    Parameters
+    ----------
+    idata : arviz.InferenceData
+        A calibration result.
+    var_names : sequence of str, optional
+        Variables to report; default all posterior variables.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``mean, sd, q05, q95, r_hat, ess_bulk, ess_tail``; the total number of
+        divergences is in ``df.attrs["divergences"]``.
+
+    Examples
+    --------
+    >>> import arviz as az, numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> idata = az.from_dict(posterior={"E": rng.normal(size=(2, 500))})
+    >>> sampler_diagnostics(idata).loc["E", "r_hat"] < 1.01
+    True
+    """
+    summary = az.summary(
+        idata,
+        var_names=list(var_names) if var_names else None,
+        kind="all",
+        round_to="none",
+        stat_funcs={
+            "q05": lambda v: np.quantile(v, 0.05),
+            "q95": lambda v: np.quantile(v, 0.95),
+        },
+        extend=True,
+    )
+    out = summary[["mean", "sd", "q05", "q95", "r_hat", "ess_bulk", "ess_tail"]].copy()
+    out.attrs["divergences"] = n_divergences(idata)
+    return out
+
+
+def convergence_problems(
+    idata: az.InferenceData,
+    var_names: Sequence[str] | None = None,
+    *,
+    rhat_max: float = RHAT_MAX,
+    ess_min: float = ESS_MIN,
+) -> list[str]:
+    """Plain-language list of sampler problems (empty when none).
+
+    Examples
+    --------
+    >>> import arviz as az, numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> bad = az.from_dict(posterior={"E": np.stack([rng.normal(size=300),
+    ...                                               rng.normal(5, 1, size=300)])})
+    >>> convergence_problems(bad)[0].startswith("r_hat")
+    True
+    """
+    table = sampler_diagnostics(idata, var_names)
+    problems = []
+    worst_rhat = table["r_hat"].max()
+    if np.isnan(worst_rhat) or worst_rhat > rhat_max:
+        names = table.index[~(table["r_hat"] <= rhat_max)].tolist()
+        problems.append(f"r_hat > {rhat_max} for {names} (max {worst_rhat:.3f})")
+    low = table.index[(table["ess_bulk"] < ess_min) | (table["ess_tail"] < ess_min)].tolist()
+    if low:
+        problems.append(
+            f"ESS below {ess_min:g} for {low} "
+            f"(min bulk {table['ess_bulk'].min():.0f}, min tail {table['ess_tail'].min():.0f})"
+        )
+    div = table.attrs.get("divergences")
+    if div:
+        problems.append(f"{div} divergent transition(s) after tuning")
+    return problems

@@ -1,0 +1,1 @@
+"""Importable worked examples (the paper's beam, ...)."""

@@ -1,0 +1,131 @@
+import numpy as np
+import pytensor
+import pytensor.tensor as pt
+import pytest
+
+from kohpymc import PhysicsModel, PhysicsModelError, Uniform
+
+RNG_SEED = 314
+
+
+def decay_numpy(inputs, params):
+    t, x = inputs["t"], inputs["x"]
+    return params["a"] * np.exp(-params["k"] * t) + params["c"] * x**2
+
+
+def decay_jacobian(inputs, params):
+    t, x = inputs["t"], inputs["x"]
+    e = np.exp(-params["k"] * t)
+    return np.column_stack([e, -params["a"] * t * e, x**2])
+
+
+def decay_pytensor(inputs, params):
+    return params["a"] * pt.exp(-params["k"] * inputs["t"]) + params["c"] * inputs["x"] ** 2
+
+
+PRIORS = {"a": Uniform(0, 5), "k": Uniform(0, 3), "c": Uniform(-1, 1)}
+T = np.linspace(0, 4, 9)
+X = np.linspace(-1, 1, 9)
+XMAT = np.column_stack([T, X])
+THETA = np.array([2.0, 0.7, 0.3])
+
+
+def _models():
+    return {
+        "fd_central": PhysicsModel(decay_numpy, PRIORS, inputs=["t", "x"]),
+        "fd_forward": PhysicsModel(decay_numpy, PRIORS, inputs=["t", "x"], fd_scheme="forward"),
+        "jacobian": PhysicsModel(decay_numpy, PRIORS, inputs=["t", "x"], jacobian=decay_jacobian),
+        "pytensor": PhysicsModel(decay_pytensor, PRIORS, inputs=["t", "x"], backend="pytensor"),
+    }
+
+
+@pytest.mark.parametrize("kind", ["fd_central", "jacobian", "pytensor"])
+def test_op_gradient_passes_verify_grad(kind):
+    physics = _models()[kind]
+    pytensor.gradient.verify_grad(
+        lambda th: physics.tensor(th, pt.as_tensor_variable(XMAT)),
+        [THETA],
+        rng=np.random.default_rng(RNG_SEED),
+    )
+
+
+def test_numpy_op_gradient_equals_pytensor_autodiff():
+    theta = pt.vector("theta")
+    weights = np.random.default_rng(RNG_SEED).normal(size=T.size)
+    grads = {}
+    for kind in ("jacobian", "fd_central", "pytensor"):
+        out = _models()[kind].tensor(theta, pt.as_tensor_variable(XMAT))
+        grads[kind] = pytensor.function([theta], pt.grad(pt.dot(out, weights), theta))(THETA)
+    np.testing.assert_allclose(grads["jacobian"], grads["pytensor"], rtol=1e-12)
+    # central differences: truncation O(h^2) with h ~ 6e-6 * scale, rounding ~ eps / h
+    np.testing.assert_allclose(grads["fd_central"], grads["pytensor"], rtol=1e-7, atol=1e-8)
+
+
+def test_forward_differences_are_first_order_accurate():
+    exact = decay_jacobian({"t": T, "x": X}, dict(zip("akc", THETA, strict=True)))
+    fwd = _models()["fd_forward"].jacobian_matrix({"t": T, "x": X}, THETA)
+    # error ~ sqrt(eps) * scale * |d2G| ≈ 1.5e-8 * 5 * O(10)
+    np.testing.assert_allclose(fwd, exact, atol=5e-6)
+
+
+def test_finite_difference_cost_matches_scheme():
+    for kind, calls in (("fd_central", 2 * 3), ("fd_forward", 3 + 1)):
+        physics = _models()[kind]
+        before = physics.n_calls
+        physics.jacobian_matrix({"t": T, "x": X}, THETA)
+        assert physics.n_calls - before == calls
+
+
+def test_pytensor_backend_evaluates_like_numpy():
+    inputs = {"t": T, "x": X}
+    np.testing.assert_allclose(
+        _models()["pytensor"].evaluate(inputs, THETA),
+        decay_numpy(inputs, dict(zip("akc", THETA, strict=True))),
+    )
+
+
+def test_error_names_parameter_values_when_function_raises():
+    def broken(inputs, params):
+        if params["a"] > 1:
+            raise ZeroDivisionError("boom")
+        return inputs["t"]
+
+    physics = PhysicsModel(broken, PRIORS, inputs=["t", "x"])
+    with pytest.raises(PhysicsModelError, match=r"raised ZeroDivisionError: boom.*a=2\b"):
+        physics.evaluate({"t": T, "x": X}, THETA)
+
+
+def test_error_on_nan_and_wrong_shape():
+    nan_model = PhysicsModel(lambda i, p: i["t"] * np.nan, PRIORS, inputs=["t", "x"])
+    with pytest.raises(PhysicsModelError, match=r"non-finite.*k=0.7"):
+        nan_model.evaluate({"t": T, "x": X}, THETA)
+    short = PhysicsModel(lambda i, p: i["t"][:3], PRIORS, inputs=["t", "x"])
+    with pytest.raises(PhysicsModelError, match=r"shape \(3,\), expected \(9,\).*a=2"):
+        short.evaluate({"t": T, "x": X}, THETA)
+
+
+def test_nan_inside_graph_raises_with_values():
+    physics = PhysicsModel(lambda i, p: np.log(p["c"]) + i["t"], PRIORS, inputs=["t", "x"])
+    f = pytensor.function([], physics.tensor(pt.as_tensor([2.0, 0.7, -0.5]), XMAT))
+    with pytest.raises(PhysicsModelError, match=r"c=-0.5"):
+        f()
+
+
+def test_missing_inputs_named():
+    physics = _models()["jacobian"]
+    with pytest.raises(KeyError, match=r"missing \['x'\]"):
+        physics.evaluate({"t": T}, THETA)
+
+
+def test_bad_jacobian_shape_reported():
+    physics = PhysicsModel(decay_numpy, PRIORS, inputs=["t", "x"],
+                           jacobian=lambda i, p: np.ones((2, 2)))
+    with pytest.raises(PhysicsModelError, match=r"jacobian.*shape \(2, 2\), expected \(9, 3\)"):
+        physics.jacobian_matrix({"t": T, "x": X}, THETA)
+
+
+def test_declaration_errors():
+    with pytest.raises(ValueError, match="both as input and parameter"):
+        PhysicsModel(decay_numpy, {"t": Uniform(0, 1)}, inputs=["t"])
+    with pytest.raises(ValueError, match="lower"):
+        PhysicsModel(decay_numpy, {"a": {"prior": "uniform", "lower": 2, "upper": 1}}, inputs=["t"])

@@ -1,0 +1,55 @@
+import math
+
+import pymc as pm
+import pytest
+
+from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Uniform, as_prior
+
+
+def test_uniform_rejects_lower_not_below_upper():
+    with pytest.raises(ValueError, match="lower=3.*upper=3"):
+        Uniform(3, 3)
+    with pytest.raises(ValueError, match="lower"):
+        Uniform(5, 1)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_arguments_rejected(bad):
+    with pytest.raises(ValueError, match="finite"):
+        Normal(bad, 1.0)
+
+
+def test_scale_parameters_must_be_positive():
+    for make in (lambda: Normal(0, 0), lambda: LogNormal(0, -1), lambda: HalfNormal(0)):
+        with pytest.raises(ValueError, match="sigma"):
+            make()
+
+
+def test_means_match_closed_forms():
+    assert Uniform(50, 300).mean() == 175
+    assert Normal(2, 3).mean() == 2
+    assert math.isclose(LogNormal(1.0, 0.5).mean(), math.exp(1.0 + 0.125))
+    assert math.isclose(HalfNormal(2.0).mean(), 2.0 * math.sqrt(2 / math.pi))
+
+
+def test_support():
+    assert Uniform(0, 1).in_support(0.5) and not Uniform(0, 1).in_support(1.5)
+    assert not HalfNormal(1).in_support(-0.1)
+    assert Normal(0, 1).in_support(-1e9)
+
+
+def test_as_prior_from_toml_style_dict_names_parameter():
+    prior = as_prior({"prior": "uniform", "lower": 50, "upper": 300}, name="E")
+    assert prior.kind == "uniform"
+    with pytest.raises(ValueError, match="'E'.*unknown prior"):
+        as_prior({"prior": "weibull"}, name="E")
+    with pytest.raises(ValueError, match="'E'"):
+        as_prior({"prior": "uniform", "lower": 3, "upper": 1}, name="E")
+
+
+def test_custom_prior_creates_the_given_distribution():
+    prior = Custom(lambda name, **kw: pm.Gamma(name, alpha=2.0, beta=0.01, **kw), mean=200)
+    with pm.Model() as model:
+        prior.create("E")
+    assert model["E"].owner.op.name == "gamma"
+    assert prior.mean() == 200

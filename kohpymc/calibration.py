@@ -132,8 +132,8 @@ def build_model(
     >>> from kohpymc.examples import beam
     >>> from kohpymc.discrepancy import ConstantBias
     >>> model = build_model(beam.physics_model(), beam.generate_data(seed=1), ConstantBias())
-    >>> sorted(model.named_vars)[:3]
-    ['E', 'delta', 'y']
+    >>> sorted(model.named_vars)
+    ['E', 'delta', 'delta_white', 'y']
     """
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     if not isinstance(discrepancy, Discrepancy):

@@ -1,12 +1,12 @@
-"""Measured data: named inputs, observed output, replicates, known noise, splits.
+r"""Measured data: named inputs, observed output, replicates, known noise, splits.
 
 The measurement-noise standard deviation can be given, or estimated from replicate
 measurements with the pooled within-group variance of the paper's Eq. (28):
 
 .. math::
 
-    \\sigma_{obs}^2 = \\frac{1}{n_1 (n_2 - 1)} \\sum_{j=1}^{n_1} \\sum_{i=1}^{n_2}
-        \\Big[D^i_{t_j} - \\frac{1}{n_2} \\sum_{i=1}^{n_2} D^i_{t_j}\\Big]^2
+    \sigma_{obs}^2 = \frac{1}{n_1 (n_2 - 1)} \sum_{j=1}^{n_1} \sum_{i=1}^{n_2}
+        \Big[D^i_{t_j} - \frac{1}{n_2} \sum_{i=1}^{n_2} D^i_{t_j}\Big]^2
 
 (``n_1`` settings, ``n_2`` replicates each).  With unequal group sizes the divisor
 becomes ``Σ_g (n_g - 1)``, which reduces to ``n_1 (n_2 - 1)`` for a balanced design.
@@ -139,15 +139,15 @@ class CalibrationData:
             else:
                 labels = np.asarray(replicates, dtype=object).reshape(-1)
                 if labels.size != y.size:
-                    raise ValueError(
-                        f"replicates{where}: {labels.size} labels for {y.size} rows"
-                    )
+                    raise ValueError(f"replicates{where}: {labels.size} labels for {y.size} rows")
                 self.replicates = labels
         self.noise_sd_estimated = False
         if noise_sd is not None:
             noise_sd = float(noise_sd)
             if not (np.isfinite(noise_sd) and noise_sd > 0):
-                raise ValueError(f"noise_sd{where} must be a positive finite number, got {noise_sd}")
+                raise ValueError(
+                    f"noise_sd{where} must be a positive finite number, got {noise_sd}"
+                )
         elif self.replicates is not None:
             noise_sd = pooled_replicate_sd(y, self.replicates)
             self.noise_sd_estimated = True
@@ -182,7 +182,7 @@ class CalibrationData:
         noise_sd: float | None = None,
         replicates: str | None = None,
     ) -> CalibrationData:
-        """Read a CSV file with one column per input and one for the output.
+        r"""Read a CSV file with one column per input and one for the output.
 
         ``replicates`` is a column name of group labels, or ``"inputs"``.
 
@@ -190,7 +190,7 @@ class CalibrationData:
         --------
         >>> import io, tempfile, os
         >>> path = os.path.join(tempfile.mkdtemp(), "d.csv")
-        >>> _ = open(path, "w").write("x,y\\n1,2\\n2,4\\n")
+        >>> _ = open(path, "w").write("x,y\n1,2\n2,4\n")
         >>> CalibrationData.from_csv(path, inputs=["x"], output="y").n
         2
         """
@@ -200,7 +200,11 @@ class CalibrationData:
         except FileNotFoundError as err:
             raise FileNotFoundError(f"data file not found: {source}") from err
         return cls.from_dataframe(
-            frame, inputs=inputs, output=output, noise_sd=noise_sd, replicates=replicates,
+            frame,
+            inputs=inputs,
+            output=output,
+            noise_sd=noise_sd,
+            replicates=replicates,
             source=source,
         )
 
@@ -225,14 +229,20 @@ class CalibrationData:
         ('x',)
         """
         where = f" in {source}" if source else ""
-        wanted = list(inputs) + [output] + ([replicates] if replicates not in (None, "inputs") else [])
+        wanted = (
+            list(inputs) + [output] + ([replicates] if replicates not in (None, "inputs") else [])
+        )
         missing = [c for c in wanted if c not in frame.columns]
         if missing:
             raise KeyError(f"column(s) {missing} not found{where}; columns: {list(frame.columns)}")
         labels = frame[replicates].to_numpy() if replicates not in (None, "inputs") else replicates
         return cls(
-            frame[list(inputs)], frame[output].to_numpy(), noise_sd=noise_sd,
-            replicates=labels, output_name=output, source=source,
+            frame[list(inputs)],
+            frame[output].to_numpy(),
+            noise_sd=noise_sd,
+            replicates=labels,
+            output_name=output,
+            source=source,
         )
 
     # ------------------------------------------------------------------ accessors

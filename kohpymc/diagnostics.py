@@ -70,7 +70,7 @@ def sampler_diagnostics(
     >>> import arviz as az, numpy as np
     >>> rng = np.random.default_rng(0)
     >>> idata = az.from_dict(posterior={"E": rng.normal(size=(2, 500))})
-    >>> sampler_diagnostics(idata).loc["E", "r_hat"] < 1.01
+    >>> bool(sampler_diagnostics(idata).loc["E", "r_hat"] < 1.01)
     True
     """
     summary = az.summary(

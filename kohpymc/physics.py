@@ -332,8 +332,10 @@ class PhysicsModel:
 
     # --------------------------------------------------------------- pytensor side
     def tensor(self, theta: pt.TensorVariable, X: pt.TensorVariable) -> pt.TensorVariable:
-        """Symbolic ``G(X; θ)``: ``theta`` is a vector in parameter order, ``X`` an
-        ``(n, d)`` matrix with columns in input order.
+        """Symbolic ``G(X; θ)``.
+
+        ``theta`` is a vector in parameter order, ``X`` an ``(n, d)`` matrix with columns
+        in input order.
 
         Examples
         --------

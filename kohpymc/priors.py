@@ -179,9 +179,7 @@ def HalfNormal(sigma: float) -> Prior:  # noqa: N802
     return Prior("halfnormal", args)
 
 
-def Custom(
-    factory: Callable[..., Any], *, mean: float = 0.0, scale: float = 1.0
-) -> Prior:  # noqa: N802
+def Custom(factory: Callable[..., Any], *, mean: float = 0.0, scale: float = 1.0) -> Prior:  # noqa: N802
     """Any PyMC distribution as a prior.
 
     Parameters

@@ -61,14 +61,18 @@ def test_replicates_estimate_recovers_noise_sd():
 
 
 def test_given_noise_sd_wins_over_replicates():
-    data = CalibrationData({"t": [0, 0, 1, 1]}, [1.0, 1.2, 2.0, 2.4], noise_sd=0.5,
-                           replicates="inputs")
+    data = CalibrationData(
+        {"t": [0, 0, 1, 1]}, [1.0, 1.2, 2.0, 2.4], noise_sd=0.5, replicates="inputs"
+    )
     assert data.noise_sd == 0.5 and not data.noise_sd_estimated
 
 
 def test_splits():
-    data = CalibrationData(pd.DataFrame({"x": np.arange(6.0), "P": [2.5] * 3 + [3.5] * 3}),
-                           np.arange(6.0), noise_sd=0.1)
+    data = CalibrationData(
+        pd.DataFrame({"x": np.arange(6.0), "P": [2.5] * 3 + [3.5] * 3}),
+        np.arange(6.0),
+        noise_sd=0.1,
+    )
     cal, val = data.split_by_range("P", upper=3.0)
     assert cal.n == 3 and val.n == 3
     assert set(val.inputs["P"]) == {3.5}

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pymc as pm
+import pytensor
 import pytensor.tensor as pt
 import pytest
 from scipy import integrate, optimize, stats
@@ -31,9 +32,14 @@ FORMULATIONS = {
     "M2": lambda: IIDGaussian(),
     "M3": lambda: InputDependentGaussian(mean=["x"]),
     "M3-param": lambda: InputDependentGaussian(
-        mean=ParametricFunction(lambda v, p: p["a"] * pt.exp(-p["b"] * v["x"] / 400.0),
-                                {"a": Normal(0, 5), "b": Normal(0, 1)}, inputs=["x"]),
-        log_variance=["x", "P"], link="softplus"),
+        mean=ParametricFunction(
+            lambda v, p: p["a"] * pt.exp(-p["b"] * v["x"] / 400.0),
+            {"a": Normal(0, 5), "b": Normal(0, 1)},
+            inputs=["x"],
+        ),
+        log_variance=["x", "P"],
+        link="softplus",
+    ),
     "M4": lambda: GaussianProcess(["x"]),
     "M4-xP": lambda: GaussianProcess(["x", "P"]),
     "M5": lambda: NonStationaryGP(["x"], time="x"),
@@ -43,6 +49,13 @@ FORMULATIONS = {
 @pytest.fixture(scope="module")
 def two_load_data():
     return beam.generate_data((2.5, 3.0), n_points=8, seed=SEED)
+
+
+def _deterministic(model, name):
+    """A deterministic as a function of a point of the value variables (as in the trace)."""
+    (out,) = model.replace_rvs_by_values([model[name]])
+    fn = pytensor.function(model.value_vars, out, on_unused_input="ignore")
+    return lambda point: fn(*[point[v.name] for v in model.value_vars])
 
 
 @pytest.mark.parametrize("label", list(FORMULATIONS))
@@ -61,8 +74,9 @@ def test_contract_logp_gradient_and_predictions(label, beam_physics, two_load_da
     import arviz as az
 
     new = beam.generate_data((3.5,), n_points=5, seed=SEED)
-    pred = predict(az.InferenceData(posterior=fake), beam_physics, two_load_data, disc, new,
-                   random_seed=SEED)
+    pred = predict(
+        az.InferenceData(posterior=fake), beam_physics, two_load_data, disc, new, random_seed=SEED
+    )
     for var in ("physics", "discrepancy", "y_model", "y_pred"):
         da = pred.predictions[var]
         assert da.dims == ("chain", "draw", "pred") and da.shape[-1] == 5
@@ -109,9 +123,7 @@ def test_marginalized_gp_matches_grid_integration(beam_physics, two_load_data):
     for key in ("E_interval__", "delta_ls_log__", "delta_eta_log__"):
         ppoint[key] = point[key]
     # locate the conditional mode of the coefficients, then integrate on a wide grid
-    coef = marg.compile_fn(
-        marg["delta_mean"], inputs=marg.value_vars, on_unused_input="ignore"
-    )(point)
+    coef = _deterministic(marg, "delta_mean")(point)
     half_width = 80.0  # the conditional sds here are ~8 and ~4: the grid spans > 10 sd
     g0 = np.linspace(coef[0] - half_width, coef[0] + half_width, 241)
     g1 = np.linspace(coef[1] - half_width, coef[1] + half_width, 241)
@@ -130,10 +142,9 @@ def test_whitened_coefficients_have_the_exact_conditional(beam_physics, two_load
     disc = InputDependentGaussian(mean=["x"])
     model = build_model(beam_physics, two_load_data, disc)
     point = model.initial_point()
-    f = model.compile_fn(model["delta_mean"])
+    f = _deterministic(model, "delta_mean")
     rng = np.random.default_rng(SEED)
-    draws = np.array([f({**point, "delta_mean_white": rng.normal(size=2)})
-                      for _ in range(4000)])
+    draws = np.array([f({**point, "delta_mean_white": rng.normal(size=2)}) for _ in range(4000)])
     plain = build_model(beam_physics, two_load_data, disc, marginalize=False)
     lp = plain.compile_logp(vars=[plain["y"], plain["delta_mean"]])
     pp = plain.initial_point()
@@ -148,8 +159,12 @@ def test_whitened_coefficients_have_the_exact_conditional(beam_physics, two_load
     for i in range(2):
         for j in range(2):
             ei, ej = np.eye(2)[i] * h, np.eye(2)[j] * h
-            H[i, j] = (neg(mode + ei + ej) - neg(mode + ei - ej) - neg(mode - ei + ej)
-                       + neg(mode - ei - ej)) / (4 * h * h)
+            H[i, j] = (
+                neg(mode + ei + ej)
+                - neg(mode + ei - ej)
+                - neg(mode - ei + ej)
+                + neg(mode - ei - ej)
+            ) / (4 * h * h)
     exact_cov = np.linalg.inv(H)
     se = np.sqrt(np.diag(exact_cov) / draws.shape[0])
     assert np.all(np.abs(draws.mean(axis=0) - mode) < 4 * se)
@@ -173,9 +188,9 @@ def test_nonstationary_kernel_is_spd_and_reduces_to_stationary():
     # the added term is w1 exp(-w2 t) exactly where t == t', zero elsewhere
     extra = K5 - K4
     same_t = X[:, 0][:, None] == X[:, 0][None, :]
-    np.testing.assert_allclose(extra[same_t],
-                               np.broadcast_to(0.7 * np.exp(-0.3 * X[:, 0])[:, None],
-                                               same_t.shape)[same_t])
+    np.testing.assert_allclose(
+        extra[same_t], np.broadcast_to(0.7 * np.exp(-0.3 * X[:, 0])[:, None], same_t.shape)[same_t]
+    )
     assert np.all(extra[~same_t] == 0)
     assert extra[4, 5] > 0  # Eq. (14) couples rows that share t
 

@@ -118,8 +118,9 @@ def test_missing_inputs_named():
 
 
 def test_bad_jacobian_shape_reported():
-    physics = PhysicsModel(decay_numpy, PRIORS, inputs=["t", "x"],
-                           jacobian=lambda i, p: np.ones((2, 2)))
+    physics = PhysicsModel(
+        decay_numpy, PRIORS, inputs=["t", "x"], jacobian=lambda i, p: np.ones((2, 2))
+    )
     with pytest.raises(PhysicsModelError, match=r"jacobian.*shape \(2, 2\), expected \(9, 3\)"):
         physics.jacobian_matrix({"t": T, "x": X}, THETA)
 

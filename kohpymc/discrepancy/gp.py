@@ -179,4 +179,3 @@ class GaussianProcess(Discrepancy):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(inputs={list(self.gp_inputs)}, mean={self.mean})"
-

@@ -79,6 +79,3 @@ class InputDependentGaussian(IndependentDiscrepancy):
 
     def __repr__(self) -> str:
         return f"InputDependentGaussian(mean={self.mean}, log_variance={self.log_variance})"
-
-
-

@@ -59,10 +59,12 @@ class DecayingVariance(pm.gp.cov.Covariance):
         self.w2 = pt.as_tensor_variable(w2)
 
     def diag(self, X):
+        """``w1 exp(-w2 t)`` on the diagonal."""
         X, _ = self._slice(X, None)
         return self.w1 * pt.exp(-self.w2 * X[:, 0])
 
     def full(self, X, Xs=None):
+        """The matrix ``w1 exp(-w2 t) 1[t = t']`` between the rows of X and Xs."""
         X, Xs = self._slice(X, Xs)
         t = X[:, 0]
         ts = t if Xs is None else Xs[:, 0]

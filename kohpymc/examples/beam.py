@@ -220,7 +220,12 @@ def _main(argv: Sequence[str] | None = None) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SamplerTroubleWarning)
             idata = calibrate(
-                physics, data, disc, draws=args.draws, tune=args.tune, chains=args.chains,
+                physics,
+                data,
+                disc,
+                draws=args.draws,
+                tune=args.tune,
+                chains=args.chains,
                 random_seed=args.seed,
             )
         table = sampler_diagnostics(idata, ["E"])
@@ -245,8 +250,20 @@ def _main(argv: Sequence[str] | None = None) -> int:
                 print(f"  warning: {w.message}")
     frame = pd.DataFrame(rows).set_index("formulation")
     with pd.option_context("display.width", 160, "display.max_columns", 20):
-        print(frame.round({"E mean": 1, "E sd": 1, "5%": 1, "95%": 1, "r_hat": 3,
-                           "ess_bulk": 0, "ess_tail": 0, "seconds": 1}).to_string())
+        print(
+            frame.round(
+                {
+                    "E mean": 1,
+                    "E sd": 1,
+                    "5%": 1,
+                    "95%": 1,
+                    "r_hat": 3,
+                    "ess_bulk": 0,
+                    "ess_tail": 0,
+                    "seconds": 1,
+                }
+            ).to_string()
+        )
     return 0
 
 

@@ -1,0 +1,202 @@
+"""Calibration end to end: convergence at the defaults, the paper's bias, recovery,
+predictions, InferenceData layout, gradient-free sampling and error reporting."""
+
+import json
+import warnings
+
+import arviz as az
+import numpy as np
+import pytest
+
+from kohpymc import (
+    CalibrationData,
+    NonStationaryGP,
+    PhysicsModel,
+    PhysicsModelError,
+    SamplerTroubleWarning,
+    Uniform,
+    calibrate,
+    predict,
+    sampler_diagnostics,
+)
+from kohpymc.examples import beam
+
+SEED = 4242
+
+
+@pytest.mark.parametrize("label", ["M0", "M1", "M2", "M3", "M4"])
+def test_beam_formulations_converge_at_defaults(label, beam_calibrations):
+    idata = beam_calibrations(label)
+    table = sampler_diagnostics(idata)
+    assert table.attrs["divergences"] == 0
+    assert table["r_hat"].max() <= 1.01, table
+    assert json.loads(idata.attrs["sampler_problems"]) == [] or all(
+        "ESS" not in p for p in json.loads(idata.attrs["sampler_problems"])
+    )
+
+
+def _interval(idata, prob=0.90):
+    lo, hi = np.quantile(idata.posterior["E"].values, [(1 - prob) / 2, (1 + prob) / 2])
+    return lo, hi
+
+
+def test_no_discrepancy_biases_young_modulus(beam_calibrations):
+    lo, hi = _interval(beam_calibrations("M0"))
+    assert not lo <= beam.TRUE_E <= hi  # the paper's Fig. 4: M0 is far from 200 GPa
+    assert hi < beam.TRUE_E
+
+
+@pytest.mark.parametrize("label", ["M3", "M4"])
+def test_input_dependent_discrepancies_cover_true_modulus(label, beam_calibrations):
+    lo, hi = _interval(beam_calibrations(label))
+    assert lo <= beam.TRUE_E <= hi
+
+
+def test_inference_data_layout_and_netcdf_roundtrip(beam_calibrations, beam_data, tmp_path):
+    idata = beam_calibrations("M3")
+    for group in ("posterior", "sample_stats", "log_likelihood", "observed_data"):
+        assert group in idata.groups()
+    ll = idata.log_likelihood["y"]
+    assert ll.dims == ("chain", "draw", "obs")  # pointwise even with marginalized mean
+    obs = idata.observed_data["y"]
+    np.testing.assert_allclose(obs["x"].values, beam_data.inputs["x"])
+    np.testing.assert_allclose(obs["P"].values, 2.5)
+    assert idata.posterior["delta_mean"].dims[-1] == "delta_mean_term"
+    assert list(idata.posterior["delta_mean_term"].values) == ["1", "x"]
+    assert idata.attrs["formulation"] == "M3"
+    path = tmp_path / "m3.nc"
+    idata.to_netcdf(str(path))
+    back = az.from_netcdf(str(path))
+    np.testing.assert_array_equal(back.posterior["E"].values, idata.posterior["E"].values)
+    np.testing.assert_allclose(back.observed_data["x"].values, beam_data.inputs["x"])
+
+
+def test_pointwise_loglik_of_marginalized_model_matches_direct(beam_calibrations, beam_data):
+    """log N(y_i | G_i + B_i c, σ_obs² + σ_δ²(x_i)) at stored draws, computed in numpy."""
+    idata = beam_calibrations("M3")
+    post = idata.posterior.isel(chain=0, draw=slice(0, 5))
+    x = beam_data.inputs["x"]
+    z = (x - x.mean()) / x.std()
+    from scipy import stats
+
+    for d in range(5):
+        E = float(post["E"][d])
+        c = post["delta_mean"][d].values
+        g = post["delta_logvar"][d].values
+        G = beam.euler_bernoulli(beam_data.inputs, {"E": E})
+        sd = np.sqrt(beam_data.noise_sd**2 + np.exp(g[0] + g[1] * z))
+        ref = stats.norm(G + c[0] + c[1] * z, sd).logpdf(beam_data.y)
+        got = idata.log_likelihood["y"].isel(chain=0, draw=d).values
+        np.testing.assert_allclose(got, ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("label", ["M0", "M4"])
+def test_predictions_at_validation_load(
+    label, beam_calibrations, beam_physics, beam_data, beam_validation
+):
+    idata = beam_calibrations(label)
+    disc = beam.formulations()[label]
+    pred = predict(idata, beam_physics, beam_data, disc, beam_validation, random_seed=SEED)
+    n_chain, n_draw = idata.posterior.sizes["chain"], idata.posterior.sizes["draw"]
+    for var in ("physics", "discrepancy", "y_model", "y_pred"):
+        assert pred.predictions[var].shape == (n_chain, n_draw, beam_validation.n)
+        assert pred.predictions[var].dims == ("chain", "draw", "pred")
+    np.testing.assert_allclose(pred.predictions["x"].values, beam_validation.inputs["x"])
+    np.testing.assert_allclose(pred.predictions["P"].values, 3.5)
+    spread_model = pred.predictions["y_model"].std(("chain", "draw")).values
+    spread_pred = pred.predictions["y_pred"].std(("chain", "draw")).values
+    # y_pred = y_model + N(0, σ_obs²): variances add
+    np.testing.assert_allclose(
+        spread_pred**2, spread_model**2 + beam_validation.noise_sd**2, rtol=0.08
+    )
+
+
+def _eb_data(E, bias=0.0, seed=SEED):
+    rng = np.random.default_rng(seed)
+    x = np.linspace(20, 400, 20)
+    inputs = {"x": x, "P": np.full(20, 2.5)}
+    y = beam.euler_bernoulli(inputs, {"E": E}) + bias + rng.normal(0, np.sqrt(0.1), 20)
+    return CalibrationData(inputs, y, noise_sd=np.sqrt(0.1), output_name="u")
+
+
+def test_recovery_when_the_model_is_right(beam_physics):
+    """Data from Euler-Bernoulli itself (E = 150): M0 and M1 recover E within 3 sd, M1 the
+    bias (1.0) within 3 sd; an unknown noise sd is recovered too."""
+    from kohpymc import ConstantBias
+
+    data = _eb_data(150.0, bias=1.0)
+    idata = calibrate(beam_physics, data, ConstantBias(), random_seed=SEED, warn=False)
+    for name, truth in (("E", 150.0), ("delta", 1.0)):
+        draws = idata.posterior[name].values
+        assert abs(draws.mean() - truth) <= 3 * draws.std()
+    free = CalibrationData(data.inputs, data.y - 1.0)
+    idata0 = calibrate(beam_physics, free, random_seed=SEED, warn=False)
+    for name, truth in (("E", 150.0), ("sigma_obs", np.sqrt(0.1))):
+        draws = idata0.posterior[name].values
+        assert abs(draws.mean() - truth) <= 3 * draws.std()
+
+
+def test_gradient_free_smc_agrees_with_nuts():
+    """SMC needs no gradient: a model without Jacobian, sampled by SMC, matches NUTS."""
+    physics = beam.physics_model(jacobian=False)
+    data = _eb_data(150.0, seed=SEED + 1)
+    smc = calibrate(physics, data, method="smc", draws=1000, chains=2, random_seed=SEED)
+    nuts = calibrate(physics, data, random_seed=SEED, warn=False)
+    e_smc, e_nuts = smc.posterior["E"].values, nuts.posterior["E"].values
+    assert abs(e_smc.mean() - e_nuts.mean()) <= 0.25 * e_nuts.std()
+    assert e_smc.std() == pytest.approx(e_nuts.std(), rel=0.15)
+    assert "log_likelihood" in smc.groups()
+
+
+def test_sampler_trouble_is_reported_not_swallowed(beam_physics, beam_data):
+    with pytest.warns(SamplerTroubleWarning, match="ESS"):
+        idata = calibrate(beam_physics, beam_data, draws=15, tune=10, chains=2, random_seed=SEED)
+    assert json.loads(idata.attrs["sampler_problems"])
+
+
+def test_bad_physics_fails_before_sampling_with_parameter_values(beam_data):
+    physics = PhysicsModel(lambda i, p: i["x"] * np.nan, {"E": Uniform(50, 300)}, inputs=["x", "P"])
+    with pytest.raises(PhysicsModelError, match="E=175"):
+        calibrate(physics, beam_data, draws=10, tune=10)
+    wrong = PhysicsModel(beam.euler_bernoulli, {"E": Uniform(50, 300)}, inputs=["x", "load"])
+    with pytest.raises(KeyError, match=r"\['load'\].*data inputs are \['x', 'P'\]"):
+        calibrate(wrong, beam_data, draws=10, tune=10)
+
+
+def _time_series(seed=SEED):
+    """y = 2 exp(-0.3 t) + smooth δ + heteroscedastic δ (variance 0.4 exp(-0.5 t)) + noise."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 10.0, 40)
+    smooth = 0.15 * np.sin(0.6 * t)
+    y = (
+        2.0 * np.exp(-0.3 * t)
+        + smooth
+        + rng.normal(0, np.sqrt(0.4 * np.exp(-0.5 * t)))
+        + rng.normal(0, 0.05, t.size)
+    )
+    physics = PhysicsModel(
+        lambda i, p: p["a"] * np.exp(-p["k"] * i["t"]),
+        {"a": Uniform(0.5, 4.0), "k": Uniform(0.05, 1.0)},
+        inputs=["t"],
+        jacobian=lambda i, p: np.column_stack(
+            [np.exp(-p["k"] * i["t"]), -p["a"] * i["t"] * np.exp(-p["k"] * i["t"])]
+        ),
+    )
+    return physics, CalibrationData({"t": t}, y, noise_sd=0.05)
+
+
+def test_nonstationary_gp_on_time_series_with_shrinking_noise():
+    physics, data = _time_series()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SamplerTroubleWarning)
+        idata = calibrate(
+            physics, data, NonStationaryGP(["t"], time="t", mean=[]), random_seed=SEED
+        )
+    table = sampler_diagnostics(idata)
+    assert table.attrs["divergences"] == 0
+    assert table["r_hat"].max() <= 1.01
+    w2 = idata.posterior["delta_w2"].values
+    assert np.quantile(w2, 0.05) > 0.05  # the decay is detected
+    for name, truth in (("a", 2.0), ("k", 0.3)):
+        draws = idata.posterior[name].values
+        assert abs(draws.mean() - truth) <= 3 * draws.std()

@@ -207,7 +207,7 @@ def calibrate(
     tune: int = 1000,
     chains: int = 4,
     cores: int | None = None,
-    target_accept: float = 0.9,
+    target_accept: float | None = None,
     random_seed: int | None = None,
     nuts_sampler: Literal["pymc", "nutpie", "numpyro", "blackjax"] = "pymc",
     method: Literal["nuts", "smc"] = "nuts",
@@ -222,8 +222,11 @@ def calibrate(
     ----------
     physics, data, discrepancy :
         As in :func:`build_model`.
-    draws, tune, chains, cores, target_accept, random_seed, nuts_sampler :
+    draws, tune, chains, cores, random_seed, nuts_sampler :
         Passed to :func:`pymc.sample`.
+    target_accept : float, optional
+        NUTS target acceptance; default the formulation's ``default_target_accept``
+        (0.9, or 0.95 for the GP formulations).
     method : {"nuts", "smc"}
         ``"smc"`` uses :func:`pymc.sample_smc`, which needs no gradient (for black-box
         models whose finite-difference gradient is unusable).
@@ -263,7 +266,7 @@ def calibrate(
                 tune=tune,
                 chains=chains,
                 cores=cores,
-                target_accept=target_accept,
+                target_accept=target_accept or discrepancy.default_target_accept,
                 random_seed=random_seed,
                 nuts_sampler=nuts_sampler,
                 progressbar=progressbar,

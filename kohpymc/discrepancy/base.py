@@ -103,6 +103,8 @@ class Discrepancy(ABC):
     description: ClassVar[str] = ""
     #: True when δ is independent across rows given its parameters (pointwise likelihood)
     independent_rows: ClassVar[bool] = False
+    #: NUTS target acceptance used when the caller gives none
+    default_target_accept: ClassVar[float] = 0.9
 
     @property
     def inputs(self) -> tuple[str, ...]:

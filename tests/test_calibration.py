@@ -200,3 +200,17 @@ def test_nonstationary_gp_on_time_series_with_shrinking_noise():
     for name, truth in (("a", 2.0), ("k", 0.3)):
         draws = idata.posterior[name].values
         assert abs(draws.mean() - truth) <= 3 * draws.std()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("data_seed", [1, 2, 3])
+@pytest.mark.parametrize("label", ["M0", "M1", "M2", "M3", "M4"])
+def test_beam_convergence_over_data_seeds(label, data_seed, beam_physics):
+    """The defaults converge on other draws of the beam data too (slow: 15 calibrations)."""
+    data = beam.generate_data((2.5,), seed=data_seed)
+    idata = calibrate(
+        beam_physics, data, beam.formulations()[label], random_seed=data_seed, warn=False
+    )
+    table = sampler_diagnostics(idata)
+    assert table.attrs["divergences"] == 0
+    assert table["r_hat"].max() <= 1.01

@@ -364,25 +364,42 @@ class PhysicsModel:
         )
 
 
-class _PhysicsOp(Op):
-    """``G(X; θ)`` as a PyTensor Op: inputs ``theta`` (p,), ``X`` (n, d); output (n,)."""
+class _PhysicsOpBase(Op):
+    """Shared plumbing: inputs ``theta`` (p,) and ``X`` (n, d), gradient only in θ."""
 
     __props__ = ("physics",)
+    output_ndim = 1
 
     def __init__(self, physics: PhysicsModel) -> None:
         self.physics = physics
-        self.jacobian_op = _PhysicsJacobianOp(physics)
 
     def make_node(self, theta, X):
         theta = pt.as_tensor_variable(theta)
         X = pt.as_tensor_variable(X)
-        return Apply(self, [theta, X], [pt.vector(dtype="float64")])
+        out = pt.vector if self.output_ndim == 1 else pt.matrix
+        return Apply(self, [theta, X], [out(dtype="float64")])
 
-    def perform(self, node, inputs, outputs):
-        theta, X = inputs
+    def _unpack(self, theta, X) -> tuple[dict[str, np.ndarray], dict[str, float]]:
         physics = self.physics
         arrays = {k: np.asarray(X[:, j]) for j, k in enumerate(physics.inputs)}
         params = dict(zip(physics.parameters, np.asarray(theta, float).tolist(), strict=True))
+        return arrays, params
+
+    def connection_pattern(self, node):
+        return [[True], [False]]
+
+
+class _PhysicsOp(_PhysicsOpBase):
+    """``G(X; θ)`` as a PyTensor Op: output (n,); gradient ``g @ ∂G/∂θ``."""
+
+    def __init__(self, physics: PhysicsModel) -> None:
+        super().__init__(physics)
+        self.jacobian_op = _PhysicsJacobianOp(physics)
+
+    def perform(self, node, inputs, outputs):
+        theta, X = inputs
+        arrays, params = self._unpack(theta, X)
+        physics = self.physics
         out = physics._call(arrays, X.shape[0], params)
         if not np.all(np.isfinite(out)):
             if physics.on_nonfinite == "raise":
@@ -399,38 +416,22 @@ class _PhysicsOp(Op):
         (g,) = output_grads
         return [pt.dot(g, self.jacobian_op(theta, X)), disconnected_type()]
 
-    def connection_pattern(self, node):
-        return [[True], [False]]
-
     def infer_shape(self, fgraph, node, shapes):
         return [(shapes[1][0],)]
 
 
-class _PhysicsJacobianOp(Op):
-    """``∂G/∂θ`` as an Op: inputs ``theta`` (p,), ``X`` (n, d); output (n, p)."""
+class _PhysicsJacobianOp(_PhysicsOpBase):
+    """``∂G/∂θ`` as an Op: output (n, p), from the user's Jacobian or finite differences."""
 
-    __props__ = ("physics",)
-
-    def __init__(self, physics: PhysicsModel) -> None:
-        self.physics = physics
-
-    def make_node(self, theta, X):
-        theta = pt.as_tensor_variable(theta)
-        X = pt.as_tensor_variable(X)
-        return Apply(self, [theta, X], [pt.matrix(dtype="float64")])
+    output_ndim = 2
 
     def perform(self, node, inputs, outputs):
         theta, X = inputs
-        physics = self.physics
-        arrays = {k: np.asarray(X[:, j]) for j, k in enumerate(physics.inputs)}
-        params = dict(zip(physics.parameters, np.asarray(theta, float).tolist(), strict=True))
-        outputs[0][0] = physics._jacobian_numpy(arrays, X.shape[0], params)
+        arrays, params = self._unpack(theta, X)
+        outputs[0][0] = self.physics._jacobian_numpy(arrays, X.shape[0], params)
 
     def grad(self, inputs, output_grads):  # pragma: no cover - second derivatives unused
         raise NotImplementedError("second derivatives of a black-box physics model")
-
-    def connection_pattern(self, node):
-        return [[True], [False]]
 
     def infer_shape(self, fgraph, node, shapes):
         return [(shapes[1][0], shapes[0][0])]

@@ -7,7 +7,7 @@ calibration".
 
 from importlib.metadata import PackageNotFoundError, version
 
-from kohpymc.calibration import build_model, calibrate, predict
+from kohpymc.calibration import calibrate, predict
 from kohpymc.data import CalibrationData, pooled_replicate_sd
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems, sampler_diagnostics
 from kohpymc.discrepancy import (
@@ -22,6 +22,7 @@ from kohpymc.discrepancy import (
     NonStationaryGP,
     ParametricFunction,
 )
+from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
 

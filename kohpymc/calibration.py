@@ -2,7 +2,7 @@
 
 ``y_D = G(x; θ) + δ(x) + ε`` (paper Eqs. 1–2) with ``ε ~ N(0, σ_obs²)``.
 
-* :func:`build_model` returns the PyMC model (inspect or extend it).
+* :func:`kohpymc.model.build_model` returns the PyMC model (inspect or extend it).
 * :func:`calibrate` builds and samples it (NUTS, or SMC for gradient-free runs) and
   returns an InferenceData with posterior, sample_stats, log_likelihood,
   observed_data and the data's input values as coordinates of the ``obs`` dimension.
@@ -21,173 +21,17 @@ from typing import Any, Literal
 
 import arviz as az
 import numpy as np
-import pandas as pd
 import pymc as pm
-import pytensor.tensor as pt
 
 from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
-from kohpymc.discrepancy.base import Discrepancy, ModelContext
+from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.discrepancy.none import NoDiscrepancy
+from kohpymc.model import OBS_DIM, PRED_DIM, build_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
-from kohpymc.priors import HalfNormal, Prior, as_prior
+from kohpymc.priors import Prior
 
-__all__ = ["build_model", "calibrate", "predict"]
-
-OBS_DIM = "obs"
-PRED_DIM = "pred"
-
-
-def _model_inputs(physics: PhysicsModel, discrepancy: Discrepancy, data: CalibrationData):
-    names = tuple(dict.fromkeys(physics.inputs + tuple(discrepancy.inputs)))
-    missing = [k for k in names if k not in data.inputs]
-    if missing:
-        where = f" ({data.source})" if data.source else ""
-        raise KeyError(
-            f"input name(s) {missing} used by the physics model {physics.name!r} or the "
-            f"{discrepancy.label or type(discrepancy).__name__} discrepancy are not in the "
-            f"data{where}; data inputs are {list(data.input_names)}"
-        )
-    return names
-
-
-def _scales(X: np.ndarray, names: tuple[str, ...]):
-    center, scale, span = {}, {}, {}
-    for j, name in enumerate(names):
-        col = X[:, j]
-        sd = float(np.std(col))
-        rng = float(np.ptp(col))
-        fallback = max(abs(float(np.mean(col))), 1.0)
-        center[name] = float(np.mean(col))
-        scale[name] = sd if sd > 0 else fallback
-        span[name] = rng if rng > 0 else fallback
-    return center, scale, span
-
-
-def _new_matrix(new_inputs: Any, names: tuple[str, ...]) -> np.ndarray:
-    if isinstance(new_inputs, CalibrationData):
-        new_inputs = new_inputs.inputs
-    if isinstance(new_inputs, pd.DataFrame):
-        new_inputs = {str(c): new_inputs[c].to_numpy() for c in new_inputs.columns}
-    if not isinstance(new_inputs, Mapping):
-        raise TypeError("new_inputs must be a DataFrame, a mapping name -> array or data")
-    missing = [k for k in names if k not in new_inputs]
-    if missing:
-        raise KeyError(f"new_inputs lacks input(s) {missing}; needed {list(names)}")
-    cols = [np.asarray(new_inputs[k], dtype=float).reshape(-1) for k in names]
-    sizes = {k: c.size for k, c in zip(names, cols, strict=True)}
-    if len(set(sizes.values())) != 1:
-        raise ValueError(f"new_inputs columns have unequal lengths {sizes}")
-    if cols[0].size == 0:
-        raise ValueError("new_inputs is empty")
-    X = np.column_stack(cols)
-    if not np.all(np.isfinite(X)):
-        raise ValueError("new_inputs contains NaN/inf")
-    return X
-
-
-def _check_physics(physics: PhysicsModel, data: CalibrationData) -> None:
-    """Run the model once at the prior mean so failures surface before sampling."""
-    point = physics.prior_mean()
-    physics.evaluate({k: data.inputs[k] for k in physics.inputs}, point)
-
-
-def build_model(
-    physics: PhysicsModel,
-    data: CalibrationData,
-    discrepancy: Discrepancy | None = None,
-    *,
-    new_inputs: Any = None,
-    noise_sd_prior: Prior | dict[str, Any] | None = None,
-    marginalize: bool = True,
-) -> pm.Model:
-    """Build the PyMC model of ``y_D = G(x; θ) + δ(x) + ε`` for one formulation.
-
-    Parameters
-    ----------
-    physics : PhysicsModel
-        The physics model and its parameter priors.
-    data : CalibrationData
-        Calibration data; its ``noise_sd`` (given or from replicates) fixes σ_obs,
-        otherwise σ_obs is a parameter ``"sigma_obs"``.
-    discrepancy : Discrepancy, optional
-        One of the formulations M0–M5; default :class:`NoDiscrepancy`.
-    new_inputs : DataFrame, mapping or CalibrationData, optional
-        Also add prediction variables ``physics``, ``discrepancy``, ``y_model``,
-        ``y_pred`` (dim ``"pred"``) at these inputs.
-    noise_sd_prior : Prior, optional
-        Prior of σ_obs when it is unknown; default ``HalfNormal(sd(y))``.
-    marginalize : bool
-        Integrate linear discrepancy-mean coefficients with normal priors out of the
-        likelihood and recover them per draw (default); ``False`` samples them.
-
-    Returns
-    -------
-    pymc.Model
-        Physics parameters are named as declared; the observed variable is ``"y"``
-        with dim ``"obs"``.
-
-    Examples
-    --------
-    >>> from kohpymc.examples import beam
-    >>> from kohpymc.discrepancy import ConstantBias
-    >>> model = build_model(beam.physics_model(), beam.generate_data(seed=1), ConstantBias())
-    >>> sorted(model.named_vars)
-    ['E', 'delta', 'delta_white', 'y']
-    """
-    discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
-    if not isinstance(discrepancy, Discrepancy):
-        raise TypeError(f"discrepancy must be a Discrepancy, got {type(discrepancy).__name__}")
-    names = _model_inputs(physics, discrepancy, data)
-    _check_physics(physics, data)
-    X = data.matrix(names)
-    center, scale, span = _scales(X, names)
-    y_sd = float(np.std(data.y))
-    y_scale = y_sd if y_sd > 0 else max(float(np.max(np.abs(data.y))), 1.0)
-    n_phys = len(physics.inputs)
-    coords = {OBS_DIM: np.arange(data.n)}
-    with pm.Model(coords=coords) as model:
-        thetas = [prior.create(name) for name, prior in physics.parameters.items()]
-        theta = pt.stack([pt.as_tensor_variable(t, dtype="float64") for t in thetas])
-
-        def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
-            return physics.tensor(theta, Xt[:, :n_phys])
-
-        if data.noise_sd is not None:
-            noise_sd = pt.as_tensor_variable(np.float64(data.noise_sd))
-        else:
-            prior = as_prior(noise_sd_prior, name="sigma_obs") if noise_sd_prior else None
-            noise_sd = (prior or HalfNormal(y_scale)).create("sigma_obs")
-        ctx = ModelContext(
-            input_names=names,
-            X=X,
-            y=data.y,
-            G=physics_mean(pt.as_tensor_variable(X)),
-            physics_mean=physics_mean,
-            noise_sd=noise_sd,
-            y_scale=y_scale,
-            center=center,
-            scale=scale,
-            span=span,
-            obs_dim=OBS_DIM,
-            marginalize=marginalize,
-        )
-        predictor = discrepancy.build(ctx)
-        if new_inputs is not None:
-            Xn_values = _new_matrix(new_inputs, names)
-            model.add_coord(PRED_DIM, np.arange(Xn_values.shape[0]))
-            Xn = pt.as_tensor_variable(Xn_values)
-            G_new = pm.Deterministic("physics", physics_mean(Xn), dims=PRED_DIM)
-            y_model = pm.Deterministic("y_model", predictor(Xn, G_new), dims=PRED_DIM)
-            pm.Deterministic("discrepancy", y_model - G_new, dims=PRED_DIM)
-            pm.Normal("y_pred", mu=y_model, sigma=noise_sd, dims=PRED_DIM)
-    model.kohpymc = {  # type: ignore[attr-defined]
-        "input_names": names,
-        "formulation": discrepancy.label,
-        "center": center,
-        "scale": scale,
-    }
-    return model
+__all__ = ["calibrate", "predict"]
 
 
 def _attach_input_coords(idata: az.InferenceData, dim: str, inputs: Mapping[str, np.ndarray]):
@@ -369,7 +213,7 @@ def predict(
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     model = build_model(physics, data, discrepancy, new_inputs=new_inputs)
     names = model.kohpymc["input_names"]  # type: ignore[attr-defined]
-    Xn = _new_matrix(new_inputs, names)
+    Xn = new_input_matrix(new_inputs, names)
     with model:
         pred = pm.sample_posterior_predictive(
             idata,

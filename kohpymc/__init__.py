@@ -22,6 +22,13 @@ from kohpymc.discrepancy import (
     NonStationaryGP,
     ParametricFunction,
 )
+from kohpymc.identifiability import (
+    IdentifiabilityReport,
+    IdentifiabilityWarning,
+    check_formulation,
+    fisher_information_check,
+    taylor_check,
+)
 from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
@@ -56,6 +63,11 @@ __all__ = [
     "calibrate",
     "predict",
     "sampler_diagnostics",
+    "taylor_check",
+    "check_formulation",
+    "fisher_information_check",
+    "IdentifiabilityReport",
+    "IdentifiabilityWarning",
     "convergence_problems",
     "SamplerTroubleWarning",
     "__version__",

@@ -27,6 +27,7 @@ from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.discrepancy.none import NoDiscrepancy
+from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
 from kohpymc.model import OBS_DIM, PRED_DIM, build_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
@@ -58,6 +59,7 @@ def calibrate(
     progressbar: bool = False,
     noise_sd_prior: Prior | dict[str, Any] | None = None,
     warn: bool = True,
+    check_identifiability: bool = True,
     **sample_kwargs: Any,
 ) -> az.InferenceData:
     """Calibrate a physics model under one discrepancy formulation.
@@ -81,6 +83,12 @@ def calibrate(
     warn : bool
         Issue a :class:`~kohpymc.diagnostics.SamplerTroubleWarning` on problems; they
         are stored in ``idata.attrs["sampler_problems"]`` either way.
+    check_identifiability : bool
+        Before sampling, run the Taylor check of the physics plus discrepancy mean
+        (:func:`kohpymc.identifiability.check_formulation`) at the prior centre; a rank
+        deficit gives an :class:`~kohpymc.identifiability.IdentifiabilityWarning` naming
+        the confounded combination.  The report is stored as JSON in
+        ``idata.attrs["identifiability"]``.
     **sample_kwargs :
         Any other keyword for :func:`pymc.sample` / :func:`pymc.sample_smc`.
 
@@ -102,6 +110,25 @@ def calibrate(
     """
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     model = build_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
+    identifiability = None
+    if check_identifiability:
+        try:
+            report = check_formulation(physics, data, discrepancy)
+        except ValueError as err:
+            warnings.warn(
+                f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=2
+            )
+        else:
+            identifiability = json.dumps(report.to_dict())
+            if not report.identifiable:
+                warnings.warn(
+                    f"{discrepancy.label} with {physics.name!r} is not identifiable at the "
+                    f"prior centre (rank {report.rank} of {len(report.names)}): "
+                    + "; ".join(report.confounded())
+                    + " (pass check_identifiability=False to skip this check)",
+                    IdentifiabilityWarning,
+                    stacklevel=2,
+                )
     start = time.perf_counter()
     with model:
         if method == "nuts":
@@ -158,6 +185,8 @@ def calibrate(
             "sampler_problems": json.dumps(problems),
         }
     )
+    if identifiability is not None:
+        idata.attrs["identifiability"] = identifiability
     if problems and warn:
         warnings.warn(
             f"{discrepancy.label} calibration of {physics.name!r}: " + "; ".join(problems),

@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from kohpymc.model import build_model
+
 __all__ = [
     "IdentifiabilityReport",
     "IdentifiabilityWarning",
@@ -43,6 +45,8 @@ __all__ = [
     "algorithm1",
     "sensitivity_matrix",
     "taylor_check",
+    "check_formulation",
+    "fisher_information_check",
 ]
 
 #: singular values below RTOL · σ_max of the column-scaled matrix count as zero
@@ -285,15 +289,16 @@ def analyse_matrix(
     rank = int(np.sum(s_full > rtol * s_full[0])) if s_full[0] > 0 else 0
     cond = float(s_full[0] / s_full[-1]) if s_full[-1] > rtol * s_full[0] else float("inf")
     null = vt[rank:].T  # (p, p - rank) in scaled coordinates
+    support = sorted(set(np.flatnonzero(np.any(np.abs(null) > 1e-6, axis=1)).tolist()))
+    circuits = _minimal_dependent_sets(A, support, rtol, max_sets) if support else []
+    # one sparse null direction per minimal set (the SVD null basis is an arbitrary rotation)
     directions = []
-    support: set[int] = set()
-    for k in range(null.shape[1]):
-        v = null[:, k] / scale  # back to original parameter units
-        v = v / np.max(np.abs(v))
-        keep = np.flatnonzero(np.abs(null[:, k]) > 1e-6)
-        support.update(keep.tolist())
-        directions.append({names[j]: float(v[j]) for j in keep})
-    circuits = _minimal_dependent_sets(A, sorted(support), rtol, max_sets) if support else []
+    for circuit in circuits:
+        cols = list(circuit)
+        _, _, vt_c = np.linalg.svd(scaled[:, cols])
+        v = vt_c[-1] / scale[cols]
+        v = v / v[np.argmax(np.abs(v))]
+        directions.append({names[j]: float(c) for j, c in zip(cols, v, strict=True)})
     return IdentifiabilityReport(
         names=names,
         matrix=A,
@@ -370,19 +375,12 @@ def sensitivity_matrix(
 
 
 def _denser_design(inputs: Mapping[str, Any], factor: int, seed: int) -> dict[str, np.ndarray]:
+    """A seeded random design ``factor`` times larger, uniform over each input's range."""
     arrays = {k: np.asarray(v, dtype=float).reshape(-1) for k, v in inputs.items()}
     n = next(iter(arrays.values())).size
     rng = np.random.default_rng(seed)
     m = max(factor * n, n + 10)
-    out = {}
-    for k, v in arrays.items():
-        lo, hi = float(v.min()), float(v.max())
-        uniq = np.unique(v)
-        if uniq.size <= 3:  # categorical-looking settings: keep their values
-            out[k] = rng.choice(uniq, size=m)
-        else:
-            out[k] = rng.uniform(lo, hi, size=m)
-    return out
+    return {k: rng.uniform(v.min(), v.max(), size=m) for k, v in arrays.items()}
 
 
 def taylor_check(
@@ -442,4 +440,261 @@ def taylor_check(
     if not report.identifiable and denser:
         A2, _ = sensitivity_matrix(models, _denser_design(inputs, denser, seed), point)
         report.structural = _rank(A2, rtol) < len(names)
+    return report
+
+
+# ---------------------------------------------------------------------------------------
+# Checks of a calibration formulation, from its PyMC model
+
+
+def _likelihood_parts(model):
+    """``(mu, cov_or_sd, is_mv)`` of the observed ``y`` of a kohpymc model."""
+    y = model["y"]
+    node = y.owner
+    op_name = type(node.op).__name__
+    mu, second = node.inputs[2], node.inputs[3]
+    # MvNormal broadcasts mu against cov with `second(cov[..., -1], mu)`: look through it
+    from pytensor.scalar.basic import Second
+    from pytensor.tensor.elemwise import Elemwise
+
+    while (
+        mu.owner is not None
+        and isinstance(mu.owner.op, Elemwise)
+        and isinstance(mu.owner.op.scalar_op, Second)
+    ):
+        mu = mu.owner.inputs[1]
+    return mu, second, op_name.startswith("MvNormal")
+
+
+def _free_names(model, rvs) -> list[tuple[Any, str, int | None]]:
+    """Flattened (rv, label, index) per scalar entry of the given free RVs."""
+    out = []
+    for rv in rvs:
+        dims = model.named_vars_to_dims.get(rv.name)
+        size = int(np.prod(model.initial_point()[model.rvs_to_values[rv].name].shape))
+        if size == 1 and not dims:
+            out.append((rv, rv.name, None))
+        else:
+            labels = list(model.coords[dims[0]]) if dims else list(range(size))
+            out.extend((rv, f"{rv.name}[{labels[k]}]", k) for k in range(size))
+    return out
+
+
+def _natural_point(model, point: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
+    """Values of every free RV (natural scale) at ``point`` (default: prior centre)."""
+    import pytensor
+
+    start = model.initial_point()
+    natural = model.replace_rvs_by_values(model.free_RVs)
+    fn = pytensor.function(model.value_vars, natural, on_unused_input="ignore")
+    values = fn(*[start[v.name] for v in model.value_vars])
+    out = {
+        rv.name: np.asarray(v, dtype=float) for rv, v in zip(model.free_RVs, values, strict=True)
+    }
+    for key, val in (point or {}).items():
+        base = key.split("[")[0]
+        if base not in out:
+            raise KeyError(f"expansion point names {key!r}, not a parameter of the model")
+        out[base] = np.asarray(val, dtype=float).reshape(out[base].shape)
+    return out
+
+
+def _check_support(model, values: Mapping[str, np.ndarray]) -> None:
+    """Raise when a value lies outside its prior's support (zero prior density)."""
+    import pytensor
+
+    for rv in model.free_RVs:
+        value = values[rv.name]
+        logp = pm_logp(rv, value)
+        lp = pytensor.function([], logp)()
+        if not np.all(np.isfinite(lp)):
+            raise ValueError(
+                f"expansion point {rv.name}={value.tolist()} is outside the support of its prior"
+            )
+
+
+def pm_logp(rv, value):
+    """Elementwise prior log density of ``rv`` at ``value``."""
+    import pymc as pm
+
+    return pm.logp(rv, value)
+
+
+def _jacobians(model, exprs, rvs, values):
+    """Evaluate ``d expr / d rv`` (natural scale) for each expression."""
+    import pytensor
+    import pytensor.tensor as pt
+
+    inputs = {
+        rv: pt.tensor(name=f"{rv.name}_nat", shape=values[rv.name].shape, dtype="float64")
+        for rv in model.free_RVs
+    }
+    replaced = pytensor.clone_replace(list(exprs), replace=dict(inputs))
+    results = []
+    args = [values[rv.name] for rv in model.free_RVs]
+    for expr in replaced:
+        cols = [
+            pt.jacobian(pt.flatten(expr), inputs[rv], disconnected_inputs="ignore").reshape(
+                (expr.size, -1)
+            )
+            for rv in rvs
+        ]
+        jac = pt.concatenate(cols, axis=1)
+        fn = pytensor.function(
+            list(inputs.values()), [pt.flatten(expr), jac], on_unused_input="ignore"
+        )
+        results.append(fn(*args))
+    return results
+
+
+def _design_point(model, point):
+    import pymc as pm
+
+    if isinstance(point, str):
+        if point != "map":
+            raise ValueError(f"point must be a mapping, 'map' or None, got {point!r}")
+        with model:
+            found = pm.find_MAP(progressbar=False)
+        return {rv.name: np.asarray(found[rv.name], dtype=float) for rv in model.free_RVs}
+    values = _natural_point(model, point)
+    _check_support(model, values)
+    return values
+
+
+def check_formulation(
+    physics: Any,
+    data: Any,
+    discrepancy: Any = None,
+    *,
+    point: Mapping[str, Any] | str | None = None,
+    rtol: float = RTOL,
+) -> IdentifiabilityReport:
+    """Taylor check of ``G + m`` for a formulation: physics and discrepancy-mean parameters.
+
+    ``A = ∂μ/∂ψ`` where ``μ`` is the mean of the formulation's likelihood at the data
+    inputs (``G + μ_δ`` for M1–M3, ``G + m`` for the GPs) and ψ the physics parameters
+    plus the discrepancy-mean coefficients, on their natural scale.  Derivatives come
+    from the model graph: the physics model's Jacobian / finite differences for numpy
+    models, autodiff otherwise.
+
+    Parameters
+    ----------
+    physics, data, discrepancy :
+        As for :func:`kohpymc.calibrate`.
+    point : mapping, "map" or None
+        Expansion point: parameter name -> value (others at the prior centre), ``"map"``
+        for the MAP estimate, default the prior centre (the paper's prior mean).
+
+    Examples
+    --------
+    >>> from kohpymc import InputDependentGaussian
+    >>> from kohpymc.examples import beam
+    >>> report = check_formulation(beam.physics_model(), beam.generate_data(),
+    ...                            InputDependentGaussian(mean=["x"]))
+    >>> report.identifiable
+    True
+    """
+    model = build_model(physics, data, discrepancy, marginalize=False)
+    mu, _, _ = _likelihood_parts(model)
+    values = _design_point(model, point)
+    import pytensor.graph as pg
+
+    ancestors = set(pg.ancestors([mu]))
+    rvs = [rv for rv in model.free_RVs if rv in ancestors]
+    entries = _free_names(model, rvs)
+    if len(entries) > data.n:
+        raise ValueError(
+            f"design has {data.n} points for {len(entries)} mean parameters: the rank check "
+            "needs at least as many points as parameters"
+        )
+    ((mu_val, A),) = _jacobians(model, [mu], rvs, values)
+    if not np.all(np.isfinite(mu_val)):
+        raise ValueError("the model mean is non-finite at the expansion point")
+    flat_point = {}
+    for rv, label, k in entries:
+        v = values[rv.name]
+        flat_point[label] = float(v if k is None else v.reshape(-1)[k])
+    return analyse_matrix(A, [e[1] for e in entries], rtol=rtol, point=flat_point)
+
+
+def fisher_information_check(
+    physics: Any,
+    data: Any,
+    discrepancy: Any = None,
+    *,
+    point: Mapping[str, Any] | str | None = None,
+    rtol: float = 1e-6,
+) -> IdentifiabilityReport:
+    """Rank and conditioning of the expected Fisher information of the full likelihood.
+
+    For ``y ~ N(μ(ψ), Σ(ψ))`` over *all* parameters ψ (physics, discrepancy mean,
+    variance and GP covariance parameters, σ_obs when calibrated):
+
+    ``I_ij = ∂_i μᵀ Σ⁻¹ ∂_j μ + ½ tr(Σ⁻¹ ∂_iΣ Σ⁻¹ ∂_jΣ)``.
+
+    The report analyses ``R = Λ^{1/2} Vᵀ`` (``I = V Λ Vᵀ``, so ``RᵀR = I``); its rank is
+    that of ``I`` and its null directions are the parameter combinations the likelihood
+    cannot resolve, e.g. a GP amplitude and the noise variance when the length scale is
+    far below the data spacing.  ``rtol`` applies to singular values of the column-scaled
+    ``R`` (square roots of eigenvalues), so 1e-6 means 1e-12 on ``I``.
+
+    Examples
+    --------
+    >>> from kohpymc import GaussianProcess
+    >>> from kohpymc.examples import beam
+    >>> report = fisher_information_check(beam.physics_model(), beam.generate_data(),
+    ...                                   GaussianProcess(["x"]))
+    >>> report.kind
+    'fisher'
+    """
+    if data.n > 2000:
+        raise ValueError(f"the dense Fisher information needs n <= 2000 rows, got {data.n}")
+    model = build_model(physics, data, discrepancy, marginalize=False)
+    mu, second, is_mv = _likelihood_parts(model)
+    values = _design_point(model, point)
+    rvs = list(model.free_RVs)
+    entries = _free_names(model, rvs)
+    (mu_val, J), (s_val, dS) = _jacobians(model, [mu, second], rvs, values)
+    n = data.n
+    p = len(entries)
+    if is_mv:
+        cov = s_val.reshape(n, n)
+        dcov = dS.reshape(n, n, p)
+    else:
+        sd = np.broadcast_to(s_val, (n,)) if s_val.size == 1 else s_val
+        dsd = np.broadcast_to(dS, (n, p)) if dS.shape[0] == 1 else dS
+        cov = np.diag(sd**2)
+        dcov = np.zeros((n, n, p))
+        idx = np.arange(n)
+        dcov[idx, idx, :] = 2.0 * sd[:, None] * dsd
+    J = np.broadcast_to(J, (n, p)) if J.shape[0] == 1 else J
+    chol = np.linalg.cholesky(cov)
+    cinv_J = np.linalg.solve(chol.T, np.linalg.solve(chol, J))
+    info = J.T @ cinv_J
+    cinv_dS = [np.linalg.solve(chol.T, np.linalg.solve(chol, dcov[:, :, k])) for k in range(p)]
+    for i in range(p):
+        for j in range(i, p):
+            t = 0.5 * np.sum(cinv_dS[i] * cinv_dS[j].T)
+            info[i, j] += t
+            if i != j:
+                info[j, i] += t
+    info = 0.5 * (info + info.T)
+    # correlation scaling sqrt(I_ii); parameters with no information stay exactly zero
+    diag = np.sqrt(np.clip(np.diag(info), 0.0, None))
+    informative = diag > rtol * max(diag.max(), 1e-300)
+    d = np.where(informative, diag, 1.0)
+    scaled = info / np.outer(d, d)
+    scaled[~informative, :] = 0.0
+    scaled[:, ~informative] = 0.0
+    lam, vec = np.linalg.eigh(scaled)
+    root = np.sqrt(np.clip(lam, 0.0, None))[:, None] * vec.T
+    root[:, ~informative] = 0.0
+    flat_point = {}
+    for rv, label, k in entries:
+        v = values[rv.name]
+        flat_point[label] = float(v if k is None else v.reshape(-1)[k])
+    report = analyse_matrix(
+        root, [e[1] for e in entries], rtol=rtol, point=flat_point, kind="fisher"
+    )
+    report.matrix = info
     return report

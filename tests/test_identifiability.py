@@ -1,0 +1,249 @@
+import warnings
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from kohpymc import (
+    CalibrationData,
+    Custom,
+    GaussianProcess,
+    IdentifiabilityWarning,
+    InputDependentGaussian,
+    Normal,
+    ParametricFunction,
+    PhysicsModel,
+    PhysicsModelError,
+    Uniform,
+    calibrate,
+    check_formulation,
+    fisher_information_check,
+    taylor_check,
+)
+from kohpymc.examples import beam
+from kohpymc.identifiability import algorithm1, analyse_matrix
+
+SEED = 17
+X_PAPER = np.array([-1.0, 2.0, 3.5, 4.0, 6.0])
+# the matrix A printed in the paper, Section 4
+A_PAPER = np.array(
+    [
+        [-1.0, 1.0, 1.0, -1.0],
+        [2.0, 4.0, 1.0, 2.0],
+        [3.5, 12.25, 1.0, 3.5],
+        [4.0, 16.0, 1.0, 4.0],
+        [6.0, 36.0, 1.0, 6.0],
+    ]
+)
+
+
+def toy_models(with_slope=True):
+    g = PhysicsModel(
+        lambda i, p: p["theta1"] * i["x"] + p["theta2"] * i["x"] ** 2,
+        {"theta1": Normal(0, 5), "theta2": Normal(0, 5)},
+        inputs=["x"],
+    )
+    if with_slope:
+        m = PhysicsModel(
+            lambda i, p: p["phi1"] + p["phi2"] * i["x"],
+            {"phi1": Normal(0, 5), "phi2": Normal(0, 5)},
+            inputs=["x"],
+        )
+    else:
+        m = PhysicsModel(
+            lambda i, p: p["phi1"] + 0.0 * i["x"], {"phi1": Normal(0, 5)}, inputs=["x"]
+        )
+    return [g, m]
+
+
+def test_paper_toy_example_reproduced():
+    point = {"theta1": 2.0, "theta2": 0.5, "phi1": 4.0, "phi2": 1.5}
+    report = taylor_check(toy_models(), {"x": X_PAPER}, point)
+    np.testing.assert_allclose(report.matrix, A_PAPER, atol=1e-8)
+    assert report.rank == 3 and len(report.names) == 4
+    assert report.non_identifiable_sets == [["theta1", "phi2"]]
+    assert report.structural is True
+    assert "theta1 + phi2" in " ".join(report.confounded())
+    # Algorithm 1 keeps one identifiable set of r_A = 3 columns, all mutually independent
+    kept = algorithm1(A_PAPER)
+    assert len(kept) == 3 and np.linalg.matrix_rank(A_PAPER[:, kept]) == 3
+    point.pop("phi2")
+    assert taylor_check(toy_models(with_slope=False), {"x": X_PAPER}, point).identifiable
+
+
+def _cubic():
+    return PhysicsModel(
+        lambda i, p: (
+            p["phi1"]
+            + p["phi2"] * i["x"]
+            + p["phi3"] * i["x"] ** 2
+            + p["phi4"] * i["x"] ** 3
+            + 0.0 * i["P"]
+        ),
+        {f"phi{k}": Normal(0, 1) for k in range(1, 5)},
+        inputs=["x", "P"],
+    )
+
+
+def test_beam_with_cubic_mean_confounds_E_phi3_phi4():
+    data = beam.generate_data(seed=SEED)
+    report = taylor_check([beam.physics_model(), _cubic()], data.inputs)
+    assert report.rank == 4 and len(report.names) == 5
+    assert report.non_identifiable_sets == [["E", "phi3", "phi4"]]
+    assert report.structural is True
+    linear = PhysicsModel(
+        lambda i, p: p["phi1"] + p["phi2"] * i["x"] + 0.0 * i["P"],
+        {"phi1": Normal(0, 1), "phi2": Normal(0, 1)},
+        inputs=["x", "P"],
+    )
+    assert taylor_check([beam.physics_model(), linear], data.inputs).identifiable
+
+
+def test_column_scaling_prevents_a_fake_rank_drop():
+    x = np.linspace(1, 2, 6)
+    A = np.column_stack([1e-18 * x, x**2])
+    assert np.linalg.matrix_rank(A) == 1  # the naive check is fooled
+    assert analyse_matrix(A, ["tiny", "big"]).rank == 2
+
+
+def test_practical_deficit_disappears_on_denser_design():
+    quad = PhysicsModel(
+        lambda i, p: p["a"] + p["b"] * i["x"] + p["c"] * i["x"] ** 2,
+        {"a": Normal(0, 1), "b": Normal(0, 1), "c": Normal(0, 1)},
+        inputs=["x"],
+    )
+    report = taylor_check(quad, {"x": [0.0, 1.0, 1.0, 0.0]})
+    assert report.rank == 2 and report.structural is False
+    assert "practical" in str(report)
+
+
+def test_local_non_identifiability_over_several_points():
+    prod = PhysicsModel(
+        lambda i, p: p["a"] * p["b"] * i["x"] + p["b"] * i["x"] ** 2,
+        {"a": Normal(1, 1), "b": Normal(1, 1)},
+        inputs=["x"],
+    )
+    reports = taylor_check(prod, {"x": np.linspace(0, 1, 8)}, [{"a": 1, "b": 0}, {"a": 1, "b": 1}])
+    assert [r.identifiable for r in reports] == [False, True]
+    assert reports[0].non_identifiable_sets == [["a"]]
+
+
+def test_bad_inputs_are_clear_errors():
+    g, m = toy_models()
+    with pytest.raises(ValueError, match="2 points for 4 parameters"):
+        taylor_check([g, m], {"x": [1.0, 2.0]}, {"theta1": 1, "theta2": 1, "phi1": 1, "phi2": 1})
+    bounded = PhysicsModel(lambda i, p: p["k"] * i["x"], {"k": Uniform(0, 1)}, inputs=["x"])
+    with pytest.raises(ValueError, match="k=2 is outside the prior support"):
+        taylor_check(bounded, {"x": X_PAPER}, {"k": 2.0})
+    nan = PhysicsModel(
+        lambda i, p: np.log(p["k"] - 0.9) * i["x"], {"k": Uniform(0, 1)}, inputs=["x"]
+    )
+    with pytest.raises(PhysicsModelError, match="non-finite.*k=0.5"):
+        taylor_check(nan, {"x": X_PAPER})
+
+
+def test_formulation_check_uses_model_graph():
+    physics, data = beam.physics_model(), beam.generate_data(seed=SEED)
+    report = check_formulation(physics, data, InputDependentGaussian(mean=["x"]))
+    assert report.identifiable and report.names == ["E", "delta_mean[1]", "delta_mean[x]"]
+    cubic = InputDependentGaussian(
+        mean=ParametricFunction(
+            lambda v, p: p["c1"] * v["x"] + p["c2"] * v["x"] ** 2 + p["c3"] * v["x"] ** 3,
+            {"c1": Normal(0, 1), "c2": Normal(0, 1), "c3": Normal(0, 1)},
+            inputs=["x"],
+        )
+    )
+    bad = check_formulation(physics, data, cubic)
+    assert not bad.identifiable
+    assert bad.non_identifiable_sets == [["E", "delta_mean_c2", "delta_mean_c3"]]
+    at_map = check_formulation(physics, data, InputDependentGaussian(mean=["x"]), point="map")
+    assert at_map.identifiable and at_map.point["E"] != 175.0
+    with pytest.raises(ValueError, match="outside the support"):
+        check_formulation(physics, data, InputDependentGaussian(mean=["x"]), point={"E": 400})
+
+
+def test_calibration_warns_and_names_the_combination():
+    physics, data = beam.physics_model(), beam.generate_data(seed=SEED)
+    cubic = InputDependentGaussian(
+        mean=ParametricFunction(
+            lambda v, p: p["c2"] * v["x"] ** 2 + p["c3"] * v["x"] ** 3,
+            {"c2": Normal(0, 1e-3), "c3": Normal(0, 1e-5)},
+            inputs=["x"],
+        )
+    )
+    with pytest.warns(IdentifiabilityWarning, match=r"E, delta_mean_c2 and delta_mean_c3"):
+        idata = calibrate(
+            physics, data, cubic, draws=20, tune=20, chains=1, warn=False, random_seed=SEED
+        )
+    assert '"identifiable": false' in idata.attrs["identifiability"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IdentifiabilityWarning)
+        calibrate(
+            physics,
+            data,
+            cubic,
+            draws=20,
+            tune=20,
+            chains=1,
+            warn=False,
+            random_seed=SEED,
+            check_identifiability=False,
+        )
+
+
+def _gp(ls_mean):
+    return GaussianProcess(
+        ["x"],
+        lengthscale_prior=Custom(
+            lambda name, **kw: __import__("pymc").LogNormal(
+                name, mu=np.log(ls_mean), sigma=0.1, **kw
+            ),
+            mean=ls_mean,
+        ),
+    )
+
+
+def test_fisher_flags_gp_amplitude_confounded_with_noise():
+    physics = beam.physics_model()
+    data = beam.generate_data(seed=SEED)
+    free = CalibrationData(data.inputs, data.y)  # σ_obs unknown
+    short = fisher_information_check(physics, free, _gp(0.5))  # spacing is 20 μm
+    assert not short.identifiable
+    assert ["sigma_obs", "delta_eta"] in short.non_identifiable_sets
+    assert ["delta_ls[x]"] in short.non_identifiable_sets
+    assert fisher_information_check(physics, free, _gp(150.0)).identifiable
+
+
+def test_fisher_information_matches_monte_carlo_score_covariance():
+    """E[s sᵀ] over simulated data, scores by finite differences of scipy's logpdf."""
+    physics = beam.physics_model()
+    data = beam.generate_data(seed=SEED)
+    free = CalibrationData(data.inputs, data.y)
+    report = fisher_information_check(physics, free, _gp(150.0))
+    names, point = report.names, report.point
+    x = data.inputs["x"]
+    z = (x - x.mean()) / x.std()
+
+    def mean_cov(v):
+        E, s, ls, eta, c0, c1 = (v[n] for n in names)
+        mu = beam.euler_bernoulli(data.inputs, {"E": E}) + c0 + c1 * z
+        K = eta**2 * np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / ls**2)
+        return mu, K + (s**2 + 1e-6) * np.eye(x.size)
+
+    rng = np.random.default_rng(SEED)
+    mu, cov = mean_cov(point)
+    Y = rng.multivariate_normal(mu, cov, size=20000)
+    scores = np.empty((Y.shape[0], len(names)))
+    for j, name in enumerate(names):
+        h = 1e-5 * max(abs(point[name]), 1.0)
+        up, down = dict(point), dict(point)
+        up[name] += h
+        down[name] -= h
+        lp_up = stats.multivariate_normal(*mean_cov(up)).logpdf(Y)
+        lp_down = stats.multivariate_normal(*mean_cov(down)).logpdf(Y)
+        scores[:, j] = (lp_up - lp_down) / (2 * h)
+    mc = scores.T @ scores / Y.shape[0]
+    info = report.matrix
+    sd = np.sqrt(np.diag(info))
+    # Monte Carlo error of a second moment with 20000 draws: a few percent of sqrt(I_ii I_jj)
+    np.testing.assert_allclose(mc / np.outer(sd, sd), info / np.outer(sd, sd), atol=0.06)

@@ -247,3 +247,17 @@ def test_fisher_information_matches_monte_carlo_score_covariance():
     sd = np.sqrt(np.diag(info))
     # Monte Carlo error of a second moment with 20000 draws: a few percent of sqrt(I_ii I_jj)
     np.testing.assert_allclose(mc / np.outer(sd, sd), info / np.outer(sd, sd), atol=0.06)
+
+
+def test_algorithm1_on_permuted_beam_matrix_drops_one_of_E_phi3_phi4():
+    """The paper: applying Algorithm 1 to permuted A shows E, φ3, φ4 are not jointly
+    identifiable; every permutation keeps φ1, φ2 and exactly two of the three."""
+    import itertools
+
+    data = beam.generate_data(seed=SEED)
+    report = taylor_check([beam.physics_model(), _cubic()], data.inputs, denser=None)
+    A, names = report.matrix, report.names
+    for perm in itertools.permutations(range(5)):
+        kept = {names[perm[i]] for i in algorithm1(A[:, list(perm)])}
+        assert len(kept) == 4 and {"phi1", "phi2"} <= kept
+        assert len(kept & {"E", "phi3", "phi4"}) == 2

@@ -216,6 +216,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     )
     rows = []
     for label, disc in formulations().items():
+        print(f"  calibrating {label} ({disc.description}) ...", flush=True)
         start = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SamplerTroubleWarning)

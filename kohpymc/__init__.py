@@ -8,6 +8,7 @@ calibration".
 from importlib.metadata import PackageNotFoundError, version
 
 from kohpymc.calibration import calibrate, predict
+from kohpymc.combination import combine_posteriors, reliability_weights
 from kohpymc.data import CalibrationData, pooled_replicate_sd
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems, sampler_diagnostics
 from kohpymc.discrepancy import (
@@ -32,6 +33,7 @@ from kohpymc.identifiability import (
 from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
+from kohpymc.reliability import Reliability, reliability
 
 try:
     __version__ = version("kohpymc")
@@ -70,5 +72,9 @@ __all__ = [
     "IdentifiabilityWarning",
     "convergence_problems",
     "SamplerTroubleWarning",
+    "reliability",
+    "Reliability",
+    "reliability_weights",
+    "combine_posteriors",
     "__version__",
 ]

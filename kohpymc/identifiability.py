@@ -480,6 +480,14 @@ def _free_names(model, rvs) -> list[tuple[Any, str, int | None]]:
     return out
 
 
+def _flat_point(entries, values: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Scalar value per flattened label (``E``, ``delta_mean[x]``)."""
+    return {
+        label: float(values[rv.name] if k is None else values[rv.name].reshape(-1)[k])
+        for rv, label, k in entries
+    }
+
+
 def _natural_point(model, point: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
     """Values of every free RV (natural scale) at ``point`` (default: prior centre)."""
     import pytensor
@@ -501,23 +509,16 @@ def _natural_point(model, point: Mapping[str, Any] | None) -> dict[str, np.ndarr
 
 def _check_support(model, values: Mapping[str, np.ndarray]) -> None:
     """Raise when a value lies outside its prior's support (zero prior density)."""
+    import pymc as pm
     import pytensor
 
     for rv in model.free_RVs:
         value = values[rv.name]
-        logp = pm_logp(rv, value)
-        lp = pytensor.function([], logp)()
+        lp = pytensor.function([], pm.logp(rv, value))()
         if not np.all(np.isfinite(lp)):
             raise ValueError(
                 f"expansion point {rv.name}={value.tolist()} is outside the support of its prior"
             )
-
-
-def pm_logp(rv, value):
-    """Elementwise prior log density of ``rv`` at ``value``."""
-    import pymc as pm
-
-    return pm.logp(rv, value)
 
 
 def _jacobians(model, exprs, rvs, values):
@@ -610,10 +611,7 @@ def check_formulation(
     ((mu_val, A),) = _jacobians(model, [mu], rvs, values)
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the model mean is non-finite at the expansion point")
-    flat_point = {}
-    for rv, label, k in entries:
-        v = values[rv.name]
-        flat_point[label] = float(v if k is None else v.reshape(-1)[k])
+    flat_point = _flat_point(entries, values)
     return analyse_matrix(A, [e[1] for e in entries], rtol=rtol, point=flat_point)
 
 
@@ -689,10 +687,7 @@ def fisher_information_check(
     lam, vec = np.linalg.eigh(scaled)
     root = np.sqrt(np.clip(lam, 0.0, None))[:, None] * vec.T
     root[:, ~informative] = 0.0
-    flat_point = {}
-    for rv, label, k in entries:
-        v = values[rv.name]
-        flat_point[label] = float(v if k is None else v.reshape(-1)[k])
+    flat_point = _flat_point(entries, values)
     report = analyse_matrix(
         root, [e[1] for e in entries], rtol=rtol, point=flat_point, kind="fisher"
     )

@@ -27,7 +27,7 @@ from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.discrepancy.none import NoDiscrepancy
-from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
+from kohpymc.identifiability import IdentifiabilityWarning, model_taylor_check
 from kohpymc.model import OBS_DIM, PRED_DIM, build_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
@@ -110,10 +110,15 @@ def calibrate(
     """
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     model = build_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
+    # the direct (unmarginalized) form serves the identifiability check and, for M0–M3,
+    # the pointwise log-likelihood
+    plain = build_model(
+        physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
+    )
     identifiability = None
     if check_identifiability:
         try:
-            report = check_formulation(physics, data, discrepancy)
+            report = model_taylor_check(plain)
         except ValueError as err:
             warnings.warn(
                 f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=2
@@ -161,9 +166,6 @@ def calibrate(
     elapsed = time.perf_counter() - start
     if discrepancy.independent_rows and "y" in idata.log_likelihood:
         if idata.log_likelihood["y"].ndim == 2:  # marginalized: use the pointwise form
-            plain = build_model(
-                physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
-            )
             pointwise = pm.compute_log_likelihood(
                 idata, model=plain, extend_inferencedata=False, progressbar=False
             )

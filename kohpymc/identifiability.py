@@ -46,6 +46,7 @@ __all__ = [
     "sensitivity_matrix",
     "taylor_check",
     "check_formulation",
+    "model_taylor_check",
     "fisher_information_check",
 ]
 
@@ -596,16 +597,34 @@ def check_formulation(
     True
     """
     model = build_model(physics, data, discrepancy, marginalize=False)
+    return model_taylor_check(model, point=point, rtol=rtol)
+
+
+def model_taylor_check(
+    model: Any, *, point: Mapping[str, Any] | str | None = None, rtol: float = RTOL
+) -> IdentifiabilityReport:
+    """:func:`check_formulation` on an already built unmarginalized kohpymc model.
+
+    Examples
+    --------
+    >>> from kohpymc import build_model
+    >>> from kohpymc.examples import beam
+    >>> model = build_model(beam.physics_model(), beam.generate_data(), marginalize=False)
+    >>> model_taylor_check(model).names
+    ['E']
+    """
+    import pytensor.graph as pg
+
+    n = len(model.coords["obs"])
     mu, _, _ = _likelihood_parts(model)
     values = _design_point(model, point)
-    import pytensor.graph as pg
 
     ancestors = set(pg.ancestors([mu]))
     rvs = [rv for rv in model.free_RVs if rv in ancestors]
     entries = _free_names(model, rvs)
-    if len(entries) > data.n:
+    if len(entries) > n:
         raise ValueError(
-            f"design has {data.n} points for {len(entries)} mean parameters: the rank check "
+            f"design has {n} points for {len(entries)} mean parameters: the rank check "
             "needs at least as many points as parameters"
         )
     ((mu_val, A),) = _jacobians(model, [mu], rvs, values)

@@ -8,7 +8,8 @@ calibration".
 from importlib.metadata import PackageNotFoundError, version
 
 from kohpymc.calibration import calibrate, predict
-from kohpymc.combination import combine_posteriors, reliability_weights
+from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
+from kohpymc.config import StudySpec, load_study
 from kohpymc.data import CalibrationData, pooled_replicate_sd
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems, sampler_diagnostics
 from kohpymc.discrepancy import (
@@ -34,6 +35,7 @@ from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
 from kohpymc.reliability import Reliability, reliability
+from kohpymc.study import StudyResult, default_formulations, run_study
 
 try:
     __version__ = version("kohpymc")
@@ -76,5 +78,11 @@ __all__ = [
     "Reliability",
     "reliability_weights",
     "combine_posteriors",
+    "loo_weights",
+    "run_study",
+    "StudyResult",
+    "default_formulations",
+    "load_study",
+    "StudySpec",
     "__version__",
 ]

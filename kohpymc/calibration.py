@@ -28,6 +28,7 @@ from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.discrepancy.none import NoDiscrepancy
 from kohpymc.identifiability import IdentifiabilityWarning, model_taylor_check
+from kohpymc.loo import loo_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, build_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
@@ -170,6 +171,10 @@ def calibrate(
                 idata, model=plain, extend_inferencedata=False, progressbar=False
             )
             idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
+    elif "y" in idata.log_likelihood and idata.log_likelihood["y"].ndim == 2:
+        # correlated rows (GP): exact leave-one-out conditionals as the pointwise values
+        pointwise = loo_log_likelihood(idata.posterior, model, "y", obs_dim=OBS_DIM)
+        idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
     _attach_input_coords(idata, OBS_DIM, data.inputs)
     param_names = list(physics.parameters)
     problems = convergence_problems(idata) if method == "nuts" else []

@@ -4,8 +4,14 @@ Weights ``w_i = μ_r,i / Σ_j μ_r,j`` (Eq. 23); the averaged posterior (Eq. 24)
 mixture ``Σ_i w_i π(θ, δ | D, M_i)``, represented by resampling draws: formulation ``i``
 contributes ``round(w_i · N)`` draws (largest-remainder rounding, so counts add up to
 ``N``) taken without replacement from its pooled chains when it has enough, with
-replacement otherwise.  A ``formulation`` coordinate along ``draw`` records where every
-draw came from.
+replacement otherwise, in shuffled order.  A ``formulation`` coordinate along ``draw``
+records where every draw came from.
+
+For comparison, :func:`loo_weights` gives the weights ArviZ's ``az.compare`` assigns on
+the *calibration* data (PSIS-LOO stacking or pseudo-BMA), whereas the paper's weights
+use the *validation* data.  The GP formulations store exact leave-one-out conditional
+densities as their pointwise log-likelihood (:mod:`kohpymc.loo`), so LOO sees every
+observation there too.
 """
 
 from __future__ import annotations
@@ -14,9 +20,10 @@ from collections.abc import Mapping, Sequence
 
 import arviz as az
 import numpy as np
+import pandas as pd
 import xarray as xr
 
-__all__ = ["reliability_weights", "combine_posteriors"]
+__all__ = ["reliability_weights", "combine_posteriors", "loo_weights"]
 
 
 def reliability_weights(mu_r: Mapping[str, float]) -> dict[str, float]:
@@ -37,6 +44,54 @@ def reliability_weights(mu_r: Mapping[str, float]) -> dict[str, float]:
     if total <= 0:
         raise ValueError("all mu_r are zero: no formulation predicts within the tolerance")
     return {k: v / total for k, v in values.items()}
+
+
+def loo_weights(
+    results: Mapping[str, az.InferenceData],
+    method: str = "stacking",
+    var_name: str = "y",
+) -> pd.DataFrame:
+    """LOO model comparison on the calibration data (``az.compare``).
+
+    Parameters
+    ----------
+    results : mapping label -> InferenceData
+        Calibrations with a pointwise ``log_likelihood`` group (as :func:`calibrate`
+        stores).
+    method : {"stacking", "BB-pseudo-BMA", "pseudo-BMA"}
+        ArviZ's weighting method.
+    var_name : str
+        Log-likelihood variable.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``az.compare``'s table (``elpd_loo``, ``p_loo``, ``weight``, ``warning`` ...)
+        indexed by formulation, in the order of ``results``, plus ``max_pareto_k``.
+
+    Examples
+    --------
+    >>> import arviz as az, numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> good = az.from_dict(posterior={"a": rng.normal(size=(2, 100))},
+    ...                     log_likelihood={"y": rng.normal(-1.0, 0.01, size=(2, 100, 10))})
+    >>> bad = az.from_dict(posterior={"a": rng.normal(size=(2, 100))},
+    ...                    log_likelihood={"y": rng.normal(-3.0, 0.01, size=(2, 100, 10))})
+    >>> table = loo_weights({"good": good, "bad": bad})
+    >>> bool(table.loc["good", "weight"] > 0.99)
+    True
+    """
+    if len(results) < 2:
+        raise ValueError("LOO weights need at least two formulations")
+    for label, idata in results.items():
+        if "log_likelihood" not in idata.groups() or var_name not in idata.log_likelihood:
+            raise KeyError(f"{label}: no log_likelihood variable {var_name!r}")
+        if idata.log_likelihood[var_name].ndim < 3:
+            raise ValueError(f"{label}: log-likelihood {var_name!r} is not pointwise")
+    loos = {k: az.loo(v, pointwise=True, var_name=var_name) for k, v in results.items()}
+    table = az.compare(loos, ic="loo", method=method)
+    table["max_pareto_k"] = [float(np.max(loos[k].pareto_k)) for k in table.index]
+    return table.loc[list(results)]
 
 
 def _counts(weights: Sequence[float], total: int) -> np.ndarray:
@@ -121,11 +176,16 @@ def combine_posteriors(
     origin = np.concatenate(
         [np.full(n, k, dtype=object) for k, n in zip(labels, counts, strict=True)]
     )
+    # shuffle so the single "chain" is not sorted by formulation (its autocorrelation,
+    # hence ArviZ's ESS/MCSE of the mixture, then reflects independent resampling)
+    order = rng.permutation(total)
 
     def mix(groups: Mapping[str, xr.Dataset], names: Sequence[str]) -> xr.Dataset:
         parts = [groups[k][list(names)].isel(sample=picks[k]) for k in labels]
-        out = xr.concat(parts, dim="sample").rename({"sample": "draw"})
-        out = out.assign_coords(draw=np.arange(total), formulation=("draw", origin.astype(str)))
+        out = xr.concat(parts, dim="sample").isel(sample=order).rename({"sample": "draw"})
+        out = out.assign_coords(
+            draw=np.arange(total), formulation=("draw", origin[order].astype(str))
+        )
         return out.expand_dims(chain=[0]).transpose("chain", "draw", ...)
 
     groups = {"posterior": mix(posts, var_names)}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from pathlib import Path
 
 import pytest
 
@@ -50,3 +51,65 @@ def beam_calibrations(beam_physics, beam_data):
         return cache[label]
 
     return get
+
+
+PHYSICS = """
+import numpy as np
+
+def model(inputs, params):
+    x = np.asarray(inputs["x"])
+    if np.any(x > 400.0):
+        raise ValueError("x beyond the beam length 400")
+    return 240.0 * inputs["P"] * (1200.0 - x) * x**2 / (6 * params["E"] * 400.0**3 / 12)
+"""
+
+
+def _write_study(folder: Path, toml: str | None = None, **replace: str) -> Path:
+    """A beam study in ``folder``: physics.py, calib.csv, valid.csv, study.toml."""
+    (folder / "physics.py").write_text(PHYSICS)
+    cal = beam.generate_data((2.5,), n_points=8, seed=1)
+    val = beam.generate_data((3.5,), n_points=6, seed=2)
+    for name, d in (("calib.csv", cal), ("valid.csv", val)):
+        rows = ["x,P,u"] + [
+            f"{float(x)!r},{float(p)!r},{float(y)!r}"
+            for x, p, y in zip(d.inputs["x"], d.inputs["P"], d.y, strict=True)
+        ]
+        (folder / name).write_text("\n".join(rows) + "\n")
+    text = toml or STUDY
+    for old, new in replace.items():
+        text = text.replace(old, new)
+    path = folder / "study.toml"
+    path.write_text(text)
+    return path
+
+
+STUDY = """
+[physics]
+function = "physics.py:model"
+inputs = ["x", "P"]
+output = "u"
+[physics.parameters]
+E = { prior = "uniform", lower = 50, upper = 300 }
+[data]
+calibration = "calib.csv"
+validation = "valid.csv"
+noise_sd = 0.316
+[validation]
+tolerance = 0.75
+[formulations]
+M0 = "none"
+M3 = { type = "input_dependent", mean = ["x"], log_variance = ["x"] }
+M4 = { type = "gp", inputs = ["x"], mean = ["x", "P", "x*P"] }
+[sampling]
+draws = 100
+tune = 100
+chains = 2
+seed = 4
+"""
+
+
+@pytest.fixture
+def write_study():
+    """``write_study(folder, toml=None, **replace)``: a small beam study TOML + CSVs +
+    physics file in ``folder`` (``replace`` edits the TOML text); returns its path."""
+    return _write_study

@@ -30,7 +30,9 @@ class LinearBasis:
     Parameters
     ----------
     inputs : sequence of str
-        Inputs in the basis (may be empty for an intercept-only function).
+        Terms of the basis besides the intercept: input names, or products of input
+        names such as ``"x*P"`` (the product of the standardised inputs, for an
+        interaction).  May be empty for an intercept-only function.
     intercept : bool
         Include ``c_0``.
     prior : Prior, optional
@@ -47,6 +49,8 @@ class LinearBasis:
     --------
     >>> LinearBasis(["x"]).terms
     ('1', 'x')
+    >>> LinearBasis(["x", "P", "x*P"]).inputs
+    ('x', 'P')
     """
 
     def __init__(
@@ -60,7 +64,12 @@ class LinearBasis:
     ) -> None:
         if isinstance(inputs, str):
             inputs = [inputs]
-        self.inputs: tuple[str, ...] = tuple(inputs)
+        #: basis terms other than the intercept: input names or products such as "x*P"
+        self.products: tuple[str, ...] = tuple(str(t).replace(" ", "") for t in inputs)
+        factors = [f for t in self.products for f in t.split("*")]
+        if any(not f for f in factors):
+            raise ValueError(f"LinearBasis: empty factor in terms {list(self.products)}")
+        self.inputs: tuple[str, ...] = tuple(dict.fromkeys(factors))
         self.intercept = bool(intercept)
         if not self.inputs and not self.intercept:
             raise ValueError("LinearBasis needs an intercept or at least one input")
@@ -71,11 +80,17 @@ class LinearBasis:
     @property
     def terms(self) -> tuple[str, ...]:
         """Names of the basis terms (``"1"`` is the intercept)."""
-        return (("1",) if self.intercept else ()) + self.inputs
+        return (("1",) if self.intercept else ()) + self.products
 
     def design(self, ctx: ModelContext, X: pt.TensorVariable) -> pt.TensorVariable:
         """The ``(m, k)`` basis matrix at inputs ``X`` (columns as :attr:`terms`)."""
-        cols = [ctx.standardized(X, inp) for inp in self.inputs]
+        cols = []
+        for term in self.products:
+            col = None
+            for factor in term.split("*"):
+                z = ctx.standardized(X, factor)
+                col = z if col is None else col * z
+            cols.append(col)
         if self.intercept:
             cols = [pt.ones_like(X[:, 0])] + cols
         return pt.stack(cols, axis=1)
@@ -165,7 +180,7 @@ class LinearBasis:
         return lambda X: pt.dot(self.design(ctx, X), coef)
 
     def __repr__(self) -> str:
-        return f"LinearBasis({list(self.inputs)}, intercept={self.intercept})"
+        return f"LinearBasis({list(self.products)}, intercept={self.intercept})"
 
 
 class ParametricFunction:

@@ -1,0 +1,392 @@
+"""Scripted studies: read a study from a TOML file.
+
+A study file names the physics function, its inputs, output and parameter priors, the
+calibration and validation CSV files, the validation tolerance and, optionally, the
+formulations and sampler settings::
+
+    [physics]
+    function = "physics.py:model"     # file relative to this TOML, or "module:function"
+    inputs = ["x", "P"]
+    output = "u"
+    # jacobian = "physics.py:model_jacobian"   # optional, same syntax
+    # time = "t"                               # optional: adds M5 to the defaults
+    [physics.parameters]
+    E = { prior = "uniform", lower = 50, upper = 300 }
+
+    [data]
+    calibration = "calib.csv"
+    validation = "valid.csv"
+    noise_sd = 0.316                  # optional; else from replicates, else calibrated
+    # replicates = "inputs"           # optional: rows with equal inputs are replicates
+
+    [validation]
+    tolerance = 0.75
+    # weights = "w"                   # optional column of the validation CSV (Eq. 22)
+
+    [formulations]                    # optional; default M0–M4 (M5 with physics.time)
+    M0 = "none"
+    M3 = { type = "input_dependent", mean = ["x"], log_variance = ["x"] }
+    M4 = { type = "gp", inputs = ["x"] }
+
+    [sampling]                        # optional
+    draws = 1000
+    tune = 1000
+    chains = 4
+    seed = 2026
+
+    [output]                          # optional; the CLI's --out wins
+    dir = "beam_study"
+
+Every problem is reported with the file and the key at fault.  Formulation types:
+``none``, ``constant``, ``iid``, ``input_dependent``, ``gp``, ``nonstationary_gp``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from kohpymc.data import CalibrationData
+from kohpymc.discrepancy import (
+    ConstantBias,
+    Discrepancy,
+    GaussianProcess,
+    IIDGaussian,
+    InputDependentGaussian,
+    NoDiscrepancy,
+    NonStationaryGP,
+)
+from kohpymc.physics import PhysicsModel
+from kohpymc.study import default_formulations
+
+__all__ = ["StudyConfigError", "StudySpec", "load_study"]
+
+
+class StudyConfigError(ValueError):
+    """A study file is wrong; the message names the file and the key."""
+
+
+_SECTIONS: dict[str, set[str]] = {
+    "study": {"name"},
+    "physics": {
+        "function", "inputs", "output", "parameters", "jacobian", "backend", "fd_scheme",
+        "time", "name",
+    },
+    "data": {"calibration", "validation", "noise_sd", "replicates"},
+    "validation": {"tolerance", "weights"},
+    "formulations": None,  # free labels
+    "sampling": {"draws", "tune", "chains", "seed", "target_accept", "method"},
+    "output": {"dir"},
+}  # fmt: skip
+
+_FORMULATION_KEYS: dict[str, set[str]] = {
+    "none": set(),
+    "constant": {"prior"},
+    "iid": {"mean_prior", "sd_prior"},
+    "input_dependent": {"mean", "log_variance", "link"},
+    "gp": {"inputs", "mean", "amplitude_prior", "lengthscale_prior"},
+    "nonstationary_gp": {
+        "inputs", "time", "mean", "amplitude_prior", "lengthscale_prior", "w1_prior",
+        "w2_prior",
+    },
+}  # fmt: skip
+
+
+@dataclass
+class StudySpec:
+    """A study read from a TOML file, ready for :func:`kohpymc.run_study`.
+
+    Attributes
+    ----------
+    source : Path
+        The TOML file.
+    physics : PhysicsModel
+    calibration, validation : CalibrationData
+    tolerance : float
+    formulations : dict label -> Discrepancy
+    validation_weights : array or None
+    sampling : dict
+        ``draws``, ``tune``, ``chains``, ``random_seed``, ... for :func:`run_study`.
+    out_dir : Path
+        Output folder (``[output] dir`` relative to the file, default
+        ``<file stem>_results`` beside it).
+    """
+
+    source: Path
+    physics: PhysicsModel
+    calibration: CalibrationData
+    validation: CalibrationData
+    tolerance: float
+    formulations: dict[str, Discrepancy]
+    validation_weights: Any = None
+    sampling: dict[str, Any] = field(default_factory=dict)
+    out_dir: Path = Path("study_results")
+
+    def run_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`kohpymc.run_study` for this study."""
+        return {
+            "physics": self.physics,
+            "calibration": self.calibration,
+            "validation": self.validation,
+            "formulations": self.formulations,
+            "tolerance": self.tolerance,
+            "validation_weights": self.validation_weights,
+            **self.sampling,
+        }
+
+
+def _err(path: Path, key: str, message: str) -> StudyConfigError:
+    return StudyConfigError(f"{path}: [{key}] {message}")
+
+
+def _check_keys(path: Path, where: str, table: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise _err(path, where, f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+
+
+def _require(path: Path, table: Mapping[str, Any], section: str, key: str) -> Any:
+    if key not in table:
+        raise _err(path, f"{section}.{key}", "is required but missing")
+    return table[key]
+
+
+def _load_callable(spec: Any, base: Path, path: Path, key: str) -> Callable[..., Any]:
+    """``"file.py:name"`` (relative to ``base``) or ``"package.module:name"``."""
+    if not isinstance(spec, str) or ":" not in spec:
+        raise _err(
+            path, key, f"must look like 'file.py:function' or 'module:function', got {spec!r}"
+        )
+    target, _, attr = spec.rpartition(":")
+    if target.endswith(".py"):
+        file = (base / target).resolve()
+        if not file.is_file():
+            raise _err(path, key, f"file {file} not found")
+        name = f"kohpymc_user_{abs(hash(str(file)))}"
+        module_spec = importlib.util.spec_from_file_location(name, file)
+        if module_spec is None or module_spec.loader is None:
+            raise _err(path, key, f"cannot import {file}")
+        module = importlib.util.module_from_spec(module_spec)
+        sys.modules[name] = module
+        try:
+            module_spec.loader.exec_module(module)
+        except Exception as err:
+            sys.modules.pop(name, None)
+            raise _err(path, key, f"importing {file} failed: {type(err).__name__}: {err}") from err
+    else:
+        try:
+            module = importlib.import_module(target)
+        except Exception as err:
+            raise _err(path, key, f"cannot import module {target!r}: {err}") from err
+    func = getattr(module, attr, None)
+    if not callable(func):
+        raise _err(path, key, f"{target!r} has no function {attr!r}")
+    return func
+
+
+def _data(
+    path: Path, base: Path, key: str, file: Any, inputs, output, noise_sd, replicates
+) -> CalibrationData:
+    if not isinstance(file, str):
+        raise _err(path, key, f"must be a CSV file name, got {file!r}")
+    csv = (base / file).resolve()
+    if not csv.is_file():
+        raise _err(path, key, f"data file {csv} not found")
+    try:
+        return CalibrationData.from_csv(
+            csv, inputs=inputs, output=output, noise_sd=noise_sd, replicates=replicates
+        )
+    except (KeyError, ValueError, TypeError) as err:
+        raise _err(path, key, str(err).strip("'\"")) from err
+
+
+def _names(path: Path, key: str, value: Any) -> list[str]:
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise _err(path, key, f"must be a list of input names, got {value!r}")
+    return list(value)
+
+
+def _formulation(
+    path: Path, label: str, value: Any, inputs: list[str], time: str | None
+) -> Discrepancy:
+    key = f"formulations.{label}"
+    if isinstance(value, str):
+        value = {"type": value}
+    if not isinstance(value, dict) or "type" not in value:
+        raise _err(path, key, "must be a type name or a table with 'type'")
+    kind = value["type"]
+    if kind not in _FORMULATION_KEYS:
+        raise _err(
+            path, f"{key}.type", f"unknown type {kind!r}; known: {sorted(_FORMULATION_KEYS)}"
+        )
+    opts = {k: v for k, v in value.items() if k != "type"}
+    _check_keys(path, key, opts, _FORMULATION_KEYS[kind])
+    for name_key in ("mean", "log_variance", "inputs"):
+        if name_key in opts:
+            opts[name_key] = _names(path, f"{key}.{name_key}", opts[name_key])
+    try:
+        if kind == "none":
+            return NoDiscrepancy()
+        if kind == "constant":
+            return ConstantBias(**opts)
+        if kind == "iid":
+            return IIDGaussian(**opts)
+        if kind == "input_dependent":
+            return InputDependentGaussian(**{"mean": inputs, **opts})
+        if kind == "gp":
+            return GaussianProcess(**{"inputs": inputs, **opts})
+        return NonStationaryGP(**{"inputs": inputs, "time": time, **opts})
+    except (TypeError, ValueError, KeyError) as err:
+        raise _err(path, key, f"{type(err).__name__}: {err}") from err
+
+
+def load_study(path: str | Path) -> StudySpec:
+    r"""Read and check a study TOML file (see the module docstring for its keys).
+
+    Parameters
+    ----------
+    path : path
+        The TOML file; relative file names inside it are relative to its folder.
+
+    Returns
+    -------
+    StudySpec
+
+    Raises
+    ------
+    StudyConfigError
+        Naming the file and the key: unknown keys, missing required keys, missing files,
+        a function that does not import, bad data columns, a non-positive tolerance.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "s.toml").write_text('[physics]\nfunktion = "m.py:f"\n')
+    >>> load_study(d / "s.toml")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    kohpymc.config.StudyConfigError: .../s.toml: [physics] unknown key(s) ['funktion']; ...
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise StudyConfigError(f"study file {path} not found")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise StudyConfigError(f"{path}: not valid TOML: {err}") from err
+    base = path.resolve().parent
+    _check_keys(path, "top level", doc, set(_SECTIONS))
+    for section, allowed in _SECTIONS.items():
+        if section in doc:
+            if not isinstance(doc[section], dict):
+                raise _err(path, section, "must be a table")
+            if allowed is not None:
+                _check_keys(path, section, doc[section], allowed)
+    for section in ("physics", "data", "validation"):
+        if section not in doc:
+            raise _err(path, section, "section is required but missing")
+
+    phys = doc["physics"]
+    function = _load_callable(
+        _require(path, phys, "physics", "function"), base, path, "physics.function"
+    )
+    inputs = _names(path, "physics.inputs", _require(path, phys, "physics", "inputs"))
+    output = _require(path, phys, "physics", "output")
+    if not isinstance(output, str):
+        raise _err(path, "physics.output", f"must be a column name, got {output!r}")
+    params = _require(path, phys, "physics", "parameters")
+    if not isinstance(params, dict) or not params:
+        raise _err(path, "physics.parameters", "must be a table of parameter priors")
+    jacobian = (
+        _load_callable(phys["jacobian"], base, path, "physics.jacobian")
+        if "jacobian" in phys
+        else None
+    )
+    time = phys.get("time")
+    if time is not None and time not in inputs:
+        raise _err(path, "physics.time", f"{time!r} is not one of the inputs {inputs}")
+    kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
+    try:
+        physics = PhysicsModel(function, params, inputs, jacobian=jacobian, **kwargs)
+    except (TypeError, ValueError, KeyError) as err:
+        raise _err(path, "physics.parameters", f"{type(err).__name__}: {err}") from err
+
+    data = doc["data"]
+    noise_sd = data.get("noise_sd")
+    if noise_sd is not None and (not isinstance(noise_sd, int | float) or noise_sd <= 0):
+        raise _err(path, "data.noise_sd", f"must be a positive number, got {noise_sd!r}")
+    replicates = data.get("replicates")
+    calibration = _data(
+        path, base, "data.calibration", _require(path, data, "data", "calibration"),
+        inputs, output, noise_sd, replicates,
+    )  # fmt: skip
+    validation = _data(
+        path, base, "data.validation", _require(path, data, "data", "validation"),
+        inputs, output, noise_sd, replicates,
+    )  # fmt: skip
+    if validation.n == 0:
+        raise _err(path, "data.validation", f"{validation.source} has no rows")
+    try:
+        physics.evaluate({k: validation.inputs[k] for k in inputs}, physics.prior_mean())
+    except Exception as err:
+        raise _err(
+            path, "data.validation",
+            f"the physics function fails on the inputs of {validation.source}: {err}",
+        ) from err  # fmt: skip
+
+    val = doc["validation"]
+    tolerance = _require(path, val, "validation", "tolerance")
+    if not isinstance(tolerance, int | float) or not tolerance > 0:
+        raise _err(path, "validation.tolerance", f"must be a positive number, got {tolerance!r}")
+    weights = None
+    if "weights" in val:
+        frame = pd.read_csv(validation.source)
+        if val["weights"] not in frame:
+            raise _err(
+                path, "validation.weights",
+                f"column {val['weights']!r} not in {validation.source}",
+            )  # fmt: skip
+        weights = frame[val["weights"]].to_numpy(dtype=float)
+
+    if "formulations" in doc and doc["formulations"]:
+        formulations = {
+            str(label): _formulation(path, str(label), value, inputs, time)
+            for label, value in doc["formulations"].items()
+        }
+    else:
+        formulations = default_formulations(inputs, time=time)
+
+    sampling_doc = dict(doc.get("sampling", {}))
+    if "seed" in sampling_doc:
+        sampling_doc["random_seed"] = sampling_doc.pop("seed")
+    for key in ("draws", "tune", "chains"):
+        if key in sampling_doc and (
+            not isinstance(sampling_doc[key], int) or sampling_doc[key] < 1
+        ):
+            raise _err(
+                path, f"sampling.{key}", f"must be a positive integer, got {sampling_doc[key]!r}"
+            )
+    out = doc.get("output", {}).get("dir")
+    out_dir = (base / out) if out else base / f"{path.stem}_results"
+    return StudySpec(
+        source=path,
+        physics=physics,
+        calibration=calibration,
+        validation=validation,
+        tolerance=float(tolerance),
+        formulations=formulations,
+        validation_weights=weights,
+        sampling=sampling_doc,
+        out_dir=out_dir,
+    )

@@ -1,0 +1,192 @@
+"""Figures of a study, after the paper's figures.
+
+Parameter posteriors per formulation (Figs. 4 and 7), predictions with 90 % bands
+against validation data (Figs. 5, 6 and 8) and the validation metric per formulation.
+
+All functions take InferenceData / tables produced by :mod:`kohpymc.study` (or by
+:func:`kohpymc.calibrate` and :func:`kohpymc.predict`) and return a matplotlib Figure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import arviz as az
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+__all__ = ["plot_parameter_posteriors", "plot_validation_predictions", "plot_reliability"]
+
+_COMBINED = "combined"
+
+
+def plot_parameter_posteriors(
+    results: Mapping[str, az.InferenceData],
+    var_names: Sequence[str],
+    *,
+    combined: az.InferenceData | None = None,
+    reference: Mapping[str, float] | None = None,
+) -> plt.Figure:
+    """Marginal posterior densities of the physics parameters, one curve per formulation.
+
+    Parameters
+    ----------
+    results : mapping label -> InferenceData
+        Calibrations.
+    var_names : sequence of str
+        Physics parameters (one panel each).
+    combined : InferenceData, optional
+        The reliability-weighted mixture, drawn as a dashed black curve.
+    reference : mapping, optional
+        Known values (e.g. the synthetic truth) drawn as vertical lines.
+
+    Examples
+    --------
+    >>> import arviz as az, numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> res = {"M0": az.from_dict(posterior={"E": rng.normal(110, 1, (2, 200))}),
+    ...        "M4": az.from_dict(posterior={"E": rng.normal(200, 30, (2, 200))})}
+    >>> fig = plot_parameter_posteriors(res, ["E"], reference={"E": 200.0})
+    >>> len(fig.axes)
+    1
+    """
+    names = list(var_names)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names, strict=True):
+        for i, (label, idata) in enumerate(results.items()):
+            values = idata.posterior[name].values.ravel()
+            az.plot_kde(values, ax=ax, plot_kwargs={"color": f"C{i}", "label": label})
+        if combined is not None and name in combined.posterior:
+            az.plot_kde(
+                combined.posterior[name].values.ravel(),
+                ax=ax,
+                plot_kwargs={"color": "k", "linestyle": "--", "label": _COMBINED},
+            )
+        if reference and name in reference:
+            ax.axvline(reference[name], color="0.4", linewidth=1, label="reference")
+        ax.set_xlabel(name)
+        ax.set_ylabel("posterior density")
+    axes[0][0].legend(fontsize="small")
+    fig.tight_layout()
+    return fig
+
+
+def _main_input(coords: Mapping[str, np.ndarray]) -> str:
+    """The input with most distinct values (the x-axis of a prediction plot)."""
+    return max(coords, key=lambda k: (np.unique(coords[k]).size, -list(coords).index(k)))
+
+
+def plot_validation_predictions(
+    predictions: Mapping[str, az.InferenceData],
+    y_validation: np.ndarray,
+    inputs: Mapping[str, np.ndarray],
+    *,
+    x_input: str | None = None,
+    var_name: str = "y_pred",
+    output_name: str = "y",
+) -> plt.Figure:
+    """Posterior mean and 90 % band of the predictions against validation data.
+
+    One panel per formulation (and per mixture).  The x-axis is ``x_input`` (default: the
+    input with the most distinct values); rows that differ in the other inputs are drawn
+    as separate series.
+
+    Parameters
+    ----------
+    predictions : mapping label -> InferenceData
+        Each with a ``predictions`` group at the validation inputs.
+    y_validation : array
+        Validation measurements, one per prediction point.
+    inputs : mapping name -> array
+        Validation input values.
+    x_input : str, optional
+        Input on the x-axis.
+    var_name : str
+        ``"y_pred"`` (with measurement noise) or ``"y_model"``.
+    output_name : str
+        Label of the y-axis.
+
+    Examples
+    --------
+    >>> import arviz as az, numpy as np
+    >>> x = np.linspace(0, 1, 5)
+    >>> pred = az.from_dict(predictions={"y_pred": np.tile(x, (2, 50, 1))},
+    ...                     dims={"y_pred": ["pred"]})
+    >>> fig = plot_validation_predictions({"M0": pred}, x, {"x": x})
+    >>> len(fig.axes)
+    1
+    """
+    inputs = {k: np.asarray(v) for k, v in inputs.items()}
+    x_input = x_input or _main_input(inputs)
+    others = [k for k in inputs if k != x_input]
+    groups = (
+        pd.DataFrame({k: inputs[k] for k in others}).groupby(others, sort=True).indices
+        if others
+        else {(): np.arange(len(y_validation))}
+    )
+    labels = list(predictions)
+    ncol = min(3, len(labels))
+    nrow = int(np.ceil(len(labels) / ncol))
+    fig, axes = plt.subplots(
+        nrow, ncol, figsize=(4.2 * ncol, 3.3 * nrow), squeeze=False, sharey=True
+    )
+    x_all = inputs[x_input]
+    for ax, label in zip(axes.ravel(), labels, strict=False):
+        draws = predictions[label].predictions[var_name].transpose(..., "pred").values
+        draws = draws.reshape(-1, draws.shape[-1])
+        mean = draws.mean(axis=0)
+        lo, hi = np.quantile(draws, [0.05, 0.95], axis=0)
+        for j, (key, idx) in enumerate(groups.items()):
+            idx = np.asarray(idx)[np.argsort(x_all[idx], kind="stable")]
+            color = f"C{j % 10}"
+            ax.fill_between(x_all[idx], lo[idx], hi[idx], color=color, alpha=0.25, lw=0)
+            ax.plot(x_all[idx], mean[idx], color=color, lw=1.5)
+            tag = ", ".join(f"{k}={v:g}" for k, v in zip(others, np.atleast_1d(key), strict=True))
+            ax.plot(
+                x_all[idx], np.asarray(y_validation)[idx], "o", ms=3.5, color=color,
+                mec="k", mew=0.4, label=tag or None,
+            )  # fmt: skip
+        ax.set_title(label)
+        ax.set_xlabel(x_input)
+        ax.set_ylabel(output_name)
+    for ax in axes.ravel()[len(labels) :]:
+        ax.set_visible(False)
+    if others and len(groups) <= 12:
+        axes.ravel()[0].legend(fontsize="x-small")
+    fig.suptitle("posterior mean, 90 % band and validation data", fontsize="medium")
+    fig.tight_layout()
+    return fig
+
+
+def plot_reliability(table: pd.DataFrame) -> plt.Figure:
+    """Bar chart of μ_r with ±2 Monte-Carlo standard errors, weights written on the bars.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Indexed by formulation with columns ``mu_r``, ``mu_r_mcse`` and optionally
+        ``weight`` (a study's table).
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> table = pd.DataFrame({"mu_r": [0.3, 0.6], "mu_r_mcse": [0.01, 0.01],
+    ...                       "weight": [1 / 3, 2 / 3]}, index=["M0", "M1"])
+    >>> len(plot_reliability(table).axes)
+    1
+    """
+    rows = table.dropna(subset=["mu_r"])
+    fig, ax = plt.subplots(figsize=(1.1 * len(rows) + 2.5, 3.4))
+    colors = ["0.3" if k == _COMBINED else f"C{i}" for i, k in enumerate(rows.index)]
+    pos = np.arange(len(rows))
+    ax.bar(pos, rows["mu_r"], yerr=2 * rows["mu_r_mcse"].fillna(0), color=colors, capsize=4)
+    if "weight" in rows:
+        for p, (m, w) in enumerate(zip(rows["mu_r"], rows["weight"], strict=True)):
+            if np.isfinite(w):
+                ax.text(p, m + 0.02, f"w={w:.2f}", ha="center", fontsize="small")
+    ax.set_xticks(pos, [str(k) for k in rows.index])
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel(r"$\mu_r$ (validation reliability)")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,106 @@
+"""Study TOML files: a valid one loads; each kind of mistake names the file and key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kohpymc.config import StudyConfigError, load_study
+from kohpymc.discrepancy import GaussianProcess, InputDependentGaussian, NonStationaryGP
+from kohpymc.examples import beam
+
+
+def test_valid_study_loads(tmp_path, write_study):
+    spec = load_study(write_study(tmp_path))
+    assert spec.physics.parameter_names == ("E",)
+    assert spec.calibration.n == 8 and spec.validation.n == 6
+    assert spec.tolerance == 0.75
+    assert list(spec.formulations) == ["M0", "M3", "M4"]
+    assert isinstance(spec.formulations["M3"], InputDependentGaussian)
+    m4 = spec.formulations["M4"]
+    assert isinstance(m4, GaussianProcess) and m4.mean.terms == ("1", "x", "P", "x*P")
+    assert spec.sampling == {"draws": 100, "tune": 100, "chains": 2, "random_seed": 4}
+    assert spec.out_dir == tmp_path / "study_results"
+    # the user's file-path function is the one evaluated
+    out = spec.physics.evaluate({"x": np.array([400.0]), "P": np.array([2.5])}, {"E": 200.0})
+    np.testing.assert_allclose(out, 12.0)
+
+
+def test_defaults_all_that_apply_and_time_adds_m5(tmp_path, write_study):
+    text = write_study(tmp_path).read_text()
+    cut = text.split("[formulations]")[0] + "[sampling]" + text.split("[sampling]")[1]
+    spec = load_study(write_study(tmp_path, cut))
+    assert list(spec.formulations) == ["M0", "M1", "M2", "M3", "M4"]
+    timed = cut.replace('output = "u"', 'output = "u"\ntime = "x"')
+    spec = load_study(write_study(tmp_path, timed))
+    assert isinstance(spec.formulations["M5"], NonStationaryGP)
+
+
+def test_shipped_beam_study_matches_the_generator():
+    path = Path(beam.__file__).with_name("beam_study.toml")
+    spec = load_study(path)
+    cal = beam.generate_data((2.5,), seed=2026)
+    val = beam.generate_data((3.5,), seed=2027)
+    np.testing.assert_allclose(spec.calibration.y, cal.y, rtol=1e-14)
+    np.testing.assert_allclose(spec.validation.y, val.y, rtol=1e-14)
+    np.testing.assert_allclose(spec.validation.inputs["P"], 3.5)
+    assert spec.calibration.noise_sd == pytest.approx(np.sqrt(beam.NOISE_VAR))
+
+
+@pytest.mark.parametrize(
+    ("replace", "key", "words"),
+    [
+        ({"[validation]": "[validation]\ntolerence = 1"}, "[validation]", "tolerence"),
+        ({"[physics]": "[physics]\nfunktion = 1"}, "[physics]", "funktion"),
+        ({"[sampling]": "[sampler]"}, "[top level]", "sampler"),
+        ({'"calib.csv"': '"nowhere.csv"'}, "[data.calibration]", "nowhere.csv"),
+        ({'"physics.py:model"': '"missing.py:model"'}, "[physics.function]", "missing.py"),
+        ({'"physics.py:model"': '"physics.py:nomodel"'}, "[physics.function]", "nomodel"),
+        ({'"physics.py:model"': '"no_such_pkg.mod:f"'}, "[physics.function]", "no_such_pkg"),
+        ({"tolerance = 0.75": "tolerance = 0"}, "[validation.tolerance]", "positive"),
+        ({"tolerance = 0.75": "tolerance = -2"}, "[validation.tolerance]", "positive"),
+        ({"tolerance = 0.75": ""}, "[validation.tolerance]", "required"),
+        ({'M0 = "none"': 'M0 = "nonsense"'}, "[formulations.M0.type]", "nonsense"),
+        ({'M0 = "none"': 'M0 = { type = "gp", bogus = 1 }'}, "[formulations.M0]", "bogus"),
+        ({'inputs = ["x", "P"]': 'inputs = ["x", "Q"]'}, "[data.calibration]", "Q"),
+        ({"draws = 100": "draws = 0"}, "[sampling.draws]", "positive integer"),
+    ],
+)
+def test_bad_study_files_name_file_and_key(tmp_path, write_study, replace, key, words):
+    path = write_study(tmp_path, **replace)
+    with pytest.raises(StudyConfigError) as info:
+        load_study(path)
+    message = str(info.value)
+    assert str(path) in message and key in message and words in message
+
+
+def test_broken_physics_file_names_the_import_error(tmp_path, write_study):
+    path = write_study(tmp_path)
+    (tmp_path / "physics.py").write_text("import numpy as np\nraise RuntimeError('boom')\n")
+    with pytest.raises(StudyConfigError, match=r"physics\.function.*RuntimeError: boom"):
+        load_study(path)
+
+
+def test_empty_validation_file(tmp_path, write_study):
+    path = write_study(tmp_path)
+    (tmp_path / "valid.csv").write_text("x,P,u\n")
+    with pytest.raises(StudyConfigError, match=r"data\.validation.*empty"):
+        load_study(path)
+
+
+def test_validation_inputs_outside_what_the_physics_accepts(tmp_path, write_study):
+    path = write_study(tmp_path)
+    (tmp_path / "valid.csv").write_text("x,P,u\n100,3.5,1.0\n500,3.5,2.0\n")
+    with pytest.raises(StudyConfigError, match=r"data\.validation.*beyond the beam length"):
+        load_study(path)
+
+
+def test_not_toml_and_missing_file(tmp_path, write_study):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[physics\n")
+    with pytest.raises(StudyConfigError, match="not valid TOML"):
+        load_study(bad)
+    with pytest.raises(StudyConfigError, match="not found"):
+        load_study(tmp_path / "absent.toml")

@@ -1,0 +1,156 @@
+"""The three-step study: reproducibility, weights, mixture, failures, paper Table 2."""
+
+from __future__ import annotations
+
+import arviz as az
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+import pytest
+
+from kohpymc import ConstantBias, GaussianProcess, NoDiscrepancy, reliability, run_study
+from kohpymc.examples import beam
+from kohpymc.study import COMBINED, markdown_table
+
+SMALL = {"draws": 150, "tune": 150, "chains": 2}
+
+
+@pytest.fixture(scope="module")
+def small_study(beam_physics, beam_data, beam_validation, tmp_path_factory):
+    out = tmp_path_factory.mktemp("study")
+    formulations = {
+        "M0": NoDiscrepancy(),
+        "M1": ConstantBias(),
+        "bad": GaussianProcess(["no_such_input"]),
+    }
+    result = run_study(
+        beam_physics,
+        beam_data,
+        beam_validation,
+        formulations,
+        tolerance=0.75,
+        random_seed=3,
+        out_dir=out,
+        **SMALL,
+    )
+    return result, out
+
+
+def test_same_seed_gives_identical_tables(small_study, beam_physics, beam_data, beam_validation):
+    first, _ = small_study
+    again = run_study(
+        beam_physics,
+        beam_data,
+        beam_validation,
+        {"M0": NoDiscrepancy(), "M1": ConstantBias()},
+        tolerance=0.75,
+        random_seed=3,
+        **SMALL,
+    )
+    pd.testing.assert_frame_equal(first.table.drop(index="bad"), again.table)
+
+
+def test_failed_formulation_is_reported_and_others_kept(small_study):
+    result, out = small_study
+    assert set(result.results) == {"M0", "M1"}
+    assert "no_such_input" in result.failures["bad"]
+    assert result.table.loc["bad", "status"].startswith("failed")
+    assert (out / "M0.nc").exists() and (out / "M1.nc").exists()
+    assert not (out / "bad.nc").exists()
+    assert not list(out.glob(".*.part"))
+
+
+def test_weights_follow_eq23_and_mixture_counts_match(small_study, beam_validation):
+    result, _ = small_study
+    table = result.table
+    mu = table.loc[["M0", "M1"], "mu_r"]
+    np.testing.assert_allclose(table.loc[["M0", "M1"], "weight"], mu / mu.sum(), rtol=1e-12)
+    assert sum(result.weights.values()) == pytest.approx(1.0)
+    combined = result.combined
+    origin = combined.posterior["formulation"].values
+    n = origin.size
+    for label, w in result.weights.items():
+        assert abs(np.sum(origin == label) - w * n) <= 1
+    # the mixture's μ_r is the weighted mean (r is linear in the predictive distribution),
+    # and the resampled predictions agree with it within Monte-Carlo error
+    expected = sum(result.weights[k] * table.loc[k, "mu_r"] for k in result.weights)
+    assert table.loc[COMBINED, "mu_r"] == pytest.approx(expected, rel=1e-12)
+    resampled = reliability(combined, beam_validation, 0.75).mu_r
+    assert resampled == pytest.approx(expected, abs=0.03)
+    summary = az.summary(combined, var_names=["E"], kind="stats")
+    mean = float(combined.posterior["E"].mean())
+    assert summary.loc["E", "mean"] == pytest.approx(mean, abs=1e-3)
+    axes = az.plot_posterior(combined, var_names=["E"])
+    assert np.size(axes) == 1
+    plt.close("all")
+
+
+def test_outputs_written_and_readable(small_study):
+    result, out = small_study
+    names = {p.name for p in out.iterdir()}
+    expected = {"M0.nc", "M1.nc", "combined.nc", "table.csv", "table.md", "study.json"}
+    expected |= {"posteriors.png", "predictions.png", "reliability.png"}
+    assert expected <= names
+    back = az.from_netcdf(out / "M1.nc")
+    assert {"posterior", "log_likelihood", "predictions", "predictions_constant_data"} <= set(
+        back.groups()
+    )
+    assert back.predictions["y_model"].dims == ("chain", "draw", "pred")
+    csv = pd.read_csv(out / "table.csv", index_col=0)
+    np.testing.assert_allclose(csv.loc["M1", "mu_r"], result.table.loc["M1", "mu_r"])
+    md = (out / "table.md").read_text()
+    assert md.splitlines()[0].startswith("| formulation | description | mu_r")
+    assert "| M0 |" in md and "| combined |" in md
+
+
+def test_markdown_table_formats_and_escapes():
+    frame = pd.DataFrame({"a": [1.23456789, np.nan], "b": ["x|y", "z"]}, index=["r1", "r2"])
+    lines = markdown_table(frame, digits=3).splitlines()
+    assert lines[2] == "| r1 | 1.23 | x\\|y |"
+    assert lines[3] == "| r2 |  | z |"
+
+
+@pytest.mark.parametrize("tolerance", [0.0, -1.0, float("nan")])
+def test_bad_tolerance(beam_physics, beam_data, beam_validation, tolerance):
+    with pytest.raises(ValueError, match="tolerance"):
+        run_study(beam_physics, beam_data, beam_validation, tolerance=tolerance)
+
+
+def test_validation_inputs_the_physics_rejects(beam_data):
+    from kohpymc import CalibrationData, PhysicsModel, Uniform
+
+    def on_beam(inputs, params):
+        x = np.asarray(inputs["x"])
+        if np.any(x > beam.LENGTH):
+            raise ValueError(f"x beyond the beam length {beam.LENGTH}")
+        return beam.euler_bernoulli(inputs, params)
+
+    physics = PhysicsModel(on_beam, {"E": Uniform(50, 300)}, ["x", "P"])
+    outside = CalibrationData({"x": [100.0, 500.0], "P": [3.5, 3.5]}, [1.0, 2.0], noise_sd=0.3)
+    with pytest.raises(ValueError, match="validation inputs.*beyond the beam"):
+        run_study(physics, beam_data, outside, tolerance=0.75)
+
+
+def test_table2_load_dependent_m3_m4_beat_m0_m2():
+    """Paper Table 2: calibrating at loads 2.5 and 3.0 with load-dependent M3/M4, their
+    validation reliability at load 3.5 exceeds that of M0, M1 and M2."""
+    calibration = beam.generate_data((2.5, 3.0), seed=2030)
+    validation = beam.generate_data((3.5,), seed=2031)
+    result = run_study(
+        beam.physics_model(),
+        calibration,
+        validation,
+        beam.formulations(load_dependent=True),
+        tolerance=0.75,
+        random_seed=7,
+        draws=500,
+        tune=500,
+        chains=2,
+    )
+    mu = result.table["mu_r"]
+    se = result.table["mu_r_mcse"]
+    best_simple = mu[["M0", "M1", "M2"]].idxmax()
+    for label in ("M3", "M4"):
+        gap = mu[label] - mu[best_simple]
+        assert gap > 3 * np.hypot(se[label], se[best_simple]), (label, mu.to_dict())
+    assert result.table.loc[["M3", "M4"], "divergences"].max() <= 2

@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m kohpymc.examples.beam
+	$(VENV)/bin/kohpymc study kohpymc/examples/beam_study.toml --out out/beam_study
 
 test: $(STAMP)
 	$(PY) -m pytest

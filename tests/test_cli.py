@@ -9,22 +9,23 @@ import pytest
 from kohpymc.cli import main
 
 EXPECTED = {
-    "M0.nc", "M3.nc", "M4.nc", "combined.nc", "table.csv", "table.md", "study.json",
+    "M0.nc", "M4.nc", "combined.nc", "table.csv", "table.md", "study.json",
     "posteriors.png", "predictions.png", "reliability.png",
 }  # fmt: skip
 
 
 def test_study_command_writes_every_file(tmp_path, capsys, write_study):
-    path = write_study(tmp_path)
+    m3 = 'M3 = { type = "input_dependent", mean = ["x"], log_variance = ["x"] }'
+    path = write_study(tmp_path, **{m3: ""})
     out = tmp_path / "results"
     assert main(["study", str(path), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "[1/3] M0" in printed and "[3/3] M4" in printed  # progress while sampling
+    assert "[1/2] M0" in printed and "[2/2] M4" in printed  # progress while sampling
     assert "mu_r" in printed and "combined" in printed  # the summary table
     assert EXPECTED <= {p.name for p in out.iterdir()}
     table = pd.read_csv(out / "table.csv", index_col=0)
-    assert list(table.index) == ["M0", "M3", "M4", "combined"]
-    assert table["weight"].iloc[:3].sum() == pytest.approx(1.0)
+    assert list(table.index) == ["M0", "M4", "combined"]
+    assert table["weight"].iloc[:2].sum() == pytest.approx(1.0)
     m4 = az.from_netcdf(out / "M4.nc")
     assert m4.log_likelihood["y"].dims == ("chain", "draw", "obs")  # GP: LOO conditionals
     assert (m4.posterior.sizes["chain"], m4.posterior.sizes["draw"]) == (2, 100)

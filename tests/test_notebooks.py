@@ -8,6 +8,8 @@ import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
+#: notebooks that sample many formulations: executed under the ``slow`` marker
+SLOW = {"04_paper_beam_study.ipynb"}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
@@ -16,7 +18,11 @@ def test_notebook_is_stored_without_outputs(path):
     assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code")
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p for p in NOTEBOOKS],
+    ids=lambda p: p.name,
+)
 def test_notebook_runs_with_small_draws(path, monkeypatch):
     monkeypatch.setenv("KOHPYMC_NB_DRAWS", os.environ.get("KOHPYMC_NB_DRAWS", "150"))
     monkeypatch.setenv("KOHPYMC_NB_CHAINS", "2")

@@ -131,6 +131,7 @@ def test_validation_inputs_the_physics_rejects(beam_data):
         run_study(physics, beam_data, outside, tolerance=0.75)
 
 
+@pytest.mark.slow
 def test_table2_load_dependent_m3_m4_beat_m0_m2():
     """Paper Table 2: calibrating at loads 2.5 and 3.0 with load-dependent M3/M4, their
     validation reliability at load 3.5 exceeds that of M0, M1 and M2."""

@@ -1,0 +1,321 @@
+"""The dielectric-charging stand-in (paper Section 6.2): physics, numerics, data, split.
+
+Reference values are computed independently here (own right-hand side with
+``scipy.constants``, ``solve_ivp``, textbook Fowler–Nordheim / Frenkel–Poole formulas).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from scipy import constants as C
+from scipy.integrate import solve_ivp
+from scipy.optimize import least_squares
+
+from kohpymc.examples import dielectric as d
+
+NAMES = list(d.PRIOR_RANGES)
+LOWER = np.array([d.PRIOR_RANGES[k][0] for k in NAMES])
+UPPER = np.array([d.PRIOR_RANGES[k][1] for k in NAMES])
+D = 200e-9
+
+
+def _prior_draws(n, seed):
+    rng = np.random.default_rng(seed)
+    draws = LOWER + (UPPER - LOWER) * rng.uniform(size=(n, 7))
+    return [dict(zip(NAMES, row, strict=True)) for row in draws]
+
+
+def _rows(V, T, t):
+    t = np.asarray(t, dtype=float)
+    return {"V": np.full(t.size, float(V)), "T": np.full(t.size, float(T)), "t": t}
+
+
+def _fn_textbook(E, phi_B, m_eff):
+    """J = q³ m0 E² / (8π h m* qΦ_B) · exp(-8π √(2 m* m0) (qΦ_B)^{3/2} / (3 q h E)), A/m²."""
+    m_star = m_eff * C.m_e
+    barrier = C.e * phi_B
+    A = C.e**3 * C.m_e / (8 * np.pi * C.h * m_star * barrier)
+    B = 8 * np.pi * np.sqrt(2 * m_star) * barrier**1.5 / (3 * C.e * C.h)
+    return A * E**2 * np.exp(-B / E)
+
+
+def _emission(V, T, p):
+    E = V / D
+    barrier = p["E_A"] - np.sqrt(C.e * E / (np.pi * C.epsilon_0 * p["eps_inf"]))
+    return np.exp(p["ln_gamma"]) / (1.0 + np.exp(C.e * barrier / (C.k * T)))
+
+
+def _rhs(n, V, T, p):
+    """dn/dt and J_FN(E_inj), written out independently of the module."""
+    E_inj = V / D - C.e * n * D / (2 * C.epsilon_0 * 7.5)
+    J = _fn_textbook(E_inj, p["phi_B"], p["m_eff"]) if E_inj > 0 else 0.0
+    transit = D / (1e-7 * V / D)  # d / (μ E)
+    capture = 1.0 - np.exp(-np.exp(p["ln_sigma"]) * 1e5 * (np.exp(p["ln_NT"]) - n) * transit)
+    return J * capture / (C.e * D) - _emission(V, T, p) * n, J
+
+
+# ---------------------------------------------------------------------- numerics
+@pytest.mark.parametrize("point", [0, 1, 2, 3])
+def test_trapped_charge_and_current_match_solve_ivp(point):
+    p = d.TRUE_PARAMS if point == 0 else _prior_draws(3, seed=11)[point - 1]
+    times = np.concatenate([[0.0, 1e-4, 0.3], np.arange(1, 41) * 2.5])
+    for V, T in [(20.0, 300.0), (27.3, 345.0), (30.0, 390.0)]:
+        rows = _rows(V, T, times)
+        n = d.trapped_charge(rows, p)
+        J = d.charging_current(rows, p)
+
+        def jac(_, y, V=V, T=T):
+            eps = 1e-7 * max(abs(y[0]), 1e10)
+            up, down = _rhs(y[0] + eps, V, T, p)[0], _rhs(y[0] - eps, V, T, p)[0]
+            return [[(up - down) / (2 * eps)]]
+
+        sol = solve_ivp(
+            lambda _, y, V=V, T=T: [_rhs(y[0], V, T, p)[0]],
+            (0.0, 100.0),
+            [0.0],
+            method="Radau",
+            jac=jac,
+            t_eval=times,
+            rtol=1e-10,
+            atol=1e-40,
+        )
+        assert sol.success
+        ref = sol.y[0]
+        assert np.max(np.abs(n - ref)) <= 1e-6 * max(np.max(ref), 1e-300)
+        rates = [_rhs(x, V, T, p) for x in ref]
+        J_ref = 1e5 * np.array([j - 0.5 * C.e * D * f for f, j in rates])
+        np.testing.assert_allclose(J, J_ref, rtol=2e-5, atol=1e-300)
+
+
+def test_output_finite_and_nonnegative_over_the_prior_box():
+    rng = np.random.default_rng(5)
+    rows = d.design().to_dict("list")
+    extra = {
+        "V": rng.uniform(0.0, 60.0, 50),
+        "T": rng.uniform(250.0, 450.0, 50),
+        "t": np.r_[0.0, rng.uniform(0.0, 100.0, 49)],
+    }
+    rows = {k: np.r_[rows[k], extra[k]] for k in rows}
+    draws = _prior_draws(190, seed=2026)
+    # and ten corners of the box
+    corners = rng.integers(0, 2, size=(10, 7))
+    draws += [dict(zip(NAMES, np.where(c, UPPER, LOWER), strict=True)) for c in corners]
+    for p in draws:
+        J = d.charging_current(rows, p)
+        assert J.shape == (530,)
+        assert np.all(np.isfinite(J)) and np.all(J >= 0), p
+
+
+def test_rows_in_any_order_and_any_setting():
+    rng = np.random.default_rng(3)
+    rows = {
+        "V": rng.choice([20.0, 22.5, 30.0], 60),
+        "T": rng.choice([300.0, 317.0, 390.0], 60),
+        "t": rng.uniform(0.0, 100.0, 60),
+    }
+    J = d.charging_current(rows, d.TRUE_PARAMS)
+    perm = rng.permutation(60)
+    J_perm = d.charging_current({k: v[perm] for k, v in rows.items()}, d.TRUE_PARAMS)
+    np.testing.assert_allclose(J_perm, J[perm], rtol=1e-12)
+    one = d.charging_current({k: v[:1] for k, v in rows.items()}, d.TRUE_PARAMS)
+    np.testing.assert_allclose(one, J[:1], rtol=1e-12)
+    with pytest.raises(ValueError, match="t >= 0"):
+        d.charging_current({"V": [20.0], "T": [300.0], "t": [-1.0]}, d.TRUE_PARAMS)
+
+
+def test_finite_differences_are_smooth():
+    """Central FD at the default step (ε^{1/3} ≈ 6e-6) and at 1e-4 agree: no solver noise."""
+    physics = d.physics_model()
+    rows = d.design().to_dict("list")
+    scales = np.array([physics.parameters[k].scale() for k in NAMES])
+    for i, p in enumerate([d.TRUE_PARAMS, *_prior_draws(3, seed=7)]):
+        physics.fd_relative_step = np.finfo(float).eps ** (1 / 3)
+        fine = physics.finite_difference_jacobian(rows, p) * scales
+        physics.fd_relative_step = 1e-4
+        coarse = physics.finite_difference_jacobian(rows, p) * scales
+        total = np.linalg.norm(fine - coarse) / np.linalg.norm(fine)
+        assert total < 3e-5, (p, total)
+        if i == 0:  # at the truth every parameter matters: column-wise agreement
+            col = np.linalg.norm(fine - coarse, axis=0) / np.linalg.norm(fine, axis=0)
+            assert np.all(col < 3e-5), col
+
+
+# ----------------------------------------------------------------------- physics
+def test_without_traps_the_current_is_the_fowler_nordheim_current():
+    p = dict(d.TRUE_PARAMS, ln_sigma=-200.0)  # capture probability ~1e-70
+    for V in (20.0, 30.0, 45.0):
+        rows = _rows(V, 330.0, [0.0, 1.0, 50.0, 100.0])
+        expected = 1e5 * _fn_textbook(V / D, p["phi_B"], p["m_eff"])
+        np.testing.assert_allclose(d.charging_current(rows, p), expected, rtol=1e-10)
+        assert np.all(d.trapped_charge(rows, p) < 1e-20)  # m^-3, vs N_T ~ 2e24
+    E = np.array([5e7, 1e8, 3e8])
+    np.testing.assert_allclose(
+        d.fowler_nordheim(E, {"phi_B": 0.9, "m_eff": 0.3}), _fn_textbook(E, 0.9, 0.3), rtol=1e-12
+    )
+    assert d.fowler_nordheim(-1e8, {"phi_B": 0.9, "m_eff": 0.3}) == 0.0
+
+
+def test_frenkel_poole_rate_rises_with_temperature_and_field():
+    p = {"ln_gamma": 18.0, "E_A": 0.9, "eps_inf": 6.0}
+    T = np.linspace(280.0, 420.0, 8)
+    V = np.linspace(5.0, 50.0, 8)
+    assert np.all(np.diff(d.frenkel_poole_rate(25.0, T, p)) > 0)
+    assert np.all(np.diff(d.frenkel_poole_rate(V, 330.0, p)) > 0)
+    # the textbook γ exp(-q(E_A - β√E)/kT) where the lowered barrier is well positive
+    E = V / D
+    textbook = np.exp(18.0) * np.exp(
+        -C.e * (0.9 - np.sqrt(C.e * E / (np.pi * C.epsilon_0 * 6.0))) / (C.k * 330.0)
+    )
+    np.testing.assert_allclose(d.frenkel_poole_rate(V, 330.0, p), textbook, rtol=1e-6)
+    # saturates at the attempt frequency when the Poole lowering exceeds E_A
+    fast = d.frenkel_poole_rate(50.0, 400.0, {"ln_gamma": 25.0, "E_A": 0.01, "eps_inf": 0.1})
+    assert np.exp(25.0) * 0.99 < fast <= np.exp(25.0)
+
+
+def test_transient_at_the_truth_decays_and_rises_with_temperature():
+    frame = d.design()
+    J = d.charging_current(frame, d.TRUE_PARAMS).reshape(3, 4, 40)
+    assert np.all(np.diff(J, axis=2) < 0)  # decays at every setting
+    assert np.all(J[..., 0] / J[..., -1] > 1.5)  # visibly over 2.5-100 s
+    assert np.all(np.diff(J[..., -1], axis=1) > 0)  # late current rises with T
+    assert 1.0 < J.min() and J.max() < 500.0  # nA/cm², O(1)-O(100)
+
+
+# -------------------------------------------------------------- truth and data
+def test_truth_is_the_stand_in_plus_a_decaying_polarization_current():
+    frame = d.design()
+    pol = d.polarization_current(frame)
+    np.testing.assert_allclose(
+        d.true_current(frame) - d.charging_current(frame, d.TRUE_PARAMS), pol, atol=1e-11
+    )
+    pol = pol.reshape(3, 4, 40)
+    assert np.all(pol > 0) and np.all(np.diff(pol, axis=2) < 0)
+    assert np.all(np.diff(pol[..., 0], axis=0) > 0)  # grows with V at the first time
+    late_over_early = pol[..., -1] / pol[..., 0]
+    assert np.all(np.diff(late_over_early, axis=1) < 0)  # decays faster when hotter
+    # independent: ε0 Δε E / τ exp(-t/τ), τ(300 K) = 30 s
+    rows = _rows(25.0, 300.0, [0.0, 30.0])
+    expected = 1e5 * C.epsilon_0 * 3.0 * (25.0 / D) / 30.0 * np.exp([0.0, -1.0])
+    np.testing.assert_allclose(d.polarization_current(rows), expected, rtol=1e-9)
+
+
+def test_discrepancy_cannot_be_absorbed_by_the_parameters():
+    frame = d.design()
+    rows = {k: frame[k].to_numpy() for k in frame}
+    truth = d.true_current(rows)
+    theta0 = np.array([d.TRUE_PARAMS[k] for k in NAMES])
+    fit = least_squares(
+        lambda th: d.charging_current(rows, dict(zip(NAMES, th, strict=True))) - truth,
+        theta0,
+        bounds=(LOWER, UPPER),
+        x_scale=UPPER - LOWER,
+    )
+    rms = float(np.sqrt(np.mean(fit.fun**2)))
+    assert rms > 5 * d.NOISE_SD, rms
+
+
+def test_data_are_reproducible():
+    a, b, c = d.generate_data(seed=0), d.generate_data(seed=0), d.generate_data(seed=1)
+    np.testing.assert_array_equal(a.y, b.y)
+    assert not np.allclose(a.y, c.y)
+    assert a.n == 480 and a.input_names == ("V", "T", "t") and a.noise_sd == d.NOISE_SD
+    resid = a.y - d.true_current(a.inputs)
+    assert 0.8 * d.NOISE_SD < resid.std() < 1.2 * d.NOISE_SD
+    assert sorted(set(zip(a.inputs["V"], a.inputs["T"], strict=True))) == [
+        (V, T) for V in d.VOLTAGES for T in d.TEMPERATURES
+    ]
+    np.testing.assert_allclose(np.unique(a.inputs["t"]), 2.5 * np.arange(1, 41))
+    short = d.generate_data(seed=0, n_times=10, noise=1.0)
+    assert short.n == 120 and short.noise_sd == 1.0
+
+
+def _keys(data):
+    return list(zip(data.inputs["V"], data.inputs["T"], data.inputs["t"], strict=True))
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_split_is_interleaved_in_time_within_every_setting(shuffle):
+    data = d.generate_data(seed=4)
+    if shuffle:
+        data = data.subset(np.random.default_rng(0).permutation(data.n))
+    cal, val = d.split_calibration_validation(data)
+    assert cal.n == val.n == 240
+    cal_keys, val_keys = set(_keys(cal)), set(_keys(val))
+    assert not cal_keys & val_keys
+    assert cal_keys | val_keys == set(_keys(data))
+    for V in d.VOLTAGES:
+        for T in d.TEMPERATURES:
+            times = np.sort(data.inputs["t"][(data.inputs["V"] == V) & (data.inputs["T"] == T)])
+            c = np.sort([t for (v, tt, t) in cal_keys if v == V and tt == T])
+            w = np.sort([t for (v, tt, t) in val_keys if v == V and tt == T])
+            np.testing.assert_array_equal(c, times[0::2])  # t1, t3, ..., t39
+            np.testing.assert_array_equal(w, times[1::2])  # t2, t4, ..., t40
+    by_key = dict(zip(_keys(data), data.y, strict=True))
+    np.testing.assert_array_equal(cal.y, [by_key[k] for k in _keys(cal)])
+
+
+# -------------------------------------------------------- model and formulations
+def test_physics_model_has_table3_priors_and_fd_gradients():
+    physics = d.physics_model()
+    assert physics.name == "dielectric_charging" and physics.inputs == ("V", "T", "t")
+    assert physics.jacobian is None and physics.fd_scheme == "central"
+    assert {k: (p.args["lower"], p.args["upper"]) for k, p in physics.parameters.items()} == {
+        "ln_NT": (55.3, 61.5),
+        "phi_B": (0.8, 1.4),
+        "ln_sigma": (-55.3, -50.6),
+        "ln_gamma": (16.1, 25.3),
+        "eps_inf": (0.1, 15.0),
+        "m_eff": (0.01, 1.0),
+        "E_A": (0.01, 1.0),
+    }
+    assert all(physics.parameters[k].in_support(v) for k, v in d.TRUE_PARAMS.items())
+    assert d.physics_model(fd_scheme="forward").fd_scheme == "forward"
+    rows = d.design().to_dict("list")
+    np.testing.assert_array_equal(
+        physics.evaluate(rows, d.TRUE_PARAMS), d.charging_current(rows, d.TRUE_PARAMS)
+    )
+
+
+def test_formulations_follow_the_paper():
+    import pytensor.tensor as pt
+
+    from kohpymc.discrepancy import ParametricFunction
+
+    forms = d.formulations()
+    assert [f.label for f in forms.values()] == ["M0", "M1", "M2", "M3", "M4", "M5"]
+    m3, m4, m5 = forms["M3"], forms["M4"], forms["M5"]
+    assert isinstance(m3.mean, ParametricFunction) and m3.link == "softplus"
+    assert m3.inputs == ("V", "T", "t") and m4.gp_inputs == ("V", "T", "t")
+    assert m5.gp_inputs == ("V", "T", "t") and m5.time == "t"
+    for form in (m3, m4, m5):
+        assert sorted(form.mean.parameters) == [f"phi{k}" for k in range(1, 6)]
+    assert sorted(m3.log_variance.parameters) == [f"phi{k}" for k in range(6)]
+    # Eq. (29): no constant term in the mean, a constant ϕ0 in the variance
+    V, T, t = np.array([20.0, 30.0]), np.array([300.0, 390.0]), np.array([0.0, 50.0])
+    p = {f"phi{k}": pt.as_tensor_variable(float(k)) for k in range(6)}
+    mean = m3.mean.function({"V": V, "T": T, "t": t}, p).eval()
+    expected = V / 25 + 2 * T / 345 + 3 * t / 100 + 4 * np.exp(5 * t / 100)
+    np.testing.assert_allclose(mean, expected)
+    var = m3.log_variance.function({"V": V, "T": T, "t": t}, p).eval()
+    np.testing.assert_allclose(var, expected)  # ϕ0 = 0 here
+
+
+def test_speed_report():
+    """Not a timing assertion: prints the cost of one call and of one FD gradient."""
+    physics = d.physics_model()
+    rows = d.design().to_dict("list")
+    d.charging_current(rows, d.TRUE_PARAMS)
+    start = time.perf_counter()
+    for _ in range(20):
+        d.charging_current(rows, d.TRUE_PARAMS)
+    per_call = (time.perf_counter() - start) / 20
+    start = time.perf_counter()
+    physics.finite_difference_jacobian(rows, d.TRUE_PARAMS)
+    per_grad = time.perf_counter() - start
+    print(
+        f"\ndielectric stand-in: {per_call * 1e3:.2f} ms per call (480 rows), "
+        f"{per_grad * 1e3:.1f} ms per central-FD Jacobian (14 calls)"
+    )

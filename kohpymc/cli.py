@@ -1,14 +1,17 @@
-"""Command line: ``kohpymc study STUDY.toml [--out DIR]``.
+"""Command line: ``kohpymc study STUDY.toml [--out DIR]`` and ``kohpymc discover``.
 
-Runs :func:`kohpymc.run_study` on a study file (:mod:`kohpymc.config`), printing one
-line per step while it samples and the validation table at the end.  Exit status 0 on
-success, 2 for a bad study file or data, 1 when every formulation failed.
+``study`` runs :func:`kohpymc.run_study` on a study file (:mod:`kohpymc.config`),
+printing one line per step while it samples and the validation table at the end.
+``discover STUDY.toml [--json OUT] [--out DIR]`` runs :func:`kohpymc.discovery.discover`
+on the same file.  Exit status 0 on success, 2 for a bad study file or data, 1 when
+every formulation failed.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -68,6 +71,86 @@ def _study(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_atomic(path: Path, write) -> None:
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _discover(args: argparse.Namespace) -> int:
+    import json
+
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from kohpymc.config import StudyConfigError, load_study
+    from kohpymc.discovery import discover
+    from kohpymc.plots import plot_residuals_before_after
+
+    try:
+        spec = load_study(args.study)
+    except (StudyConfigError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    sampling = {k: v for k, v in spec.sampling.items() if k in ("draws", "tune", "chains")}
+    for key in ("draws", "tune", "chains"):
+        if getattr(args, key) is not None:
+            sampling[key] = getattr(args, key)
+    seed = args.seed if args.seed is not None else spec.sampling.get("random_seed")
+    try:
+        report = discover(
+            spec.physics,
+            spec.calibration,
+            spec.validation,
+            tolerance=spec.tolerance,
+            random_seed=seed,
+            progress=None if args.quiet else lambda msg: print(msg, flush=True),
+            **sampling,
+        )
+    except (ValueError, KeyError, TypeError) as err:
+        print(f"error: {spec.source}: {err}", file=sys.stderr)
+        return 2
+    payload = report.to_dict()
+    text = json.dumps(payload, indent=2)
+    print(text)
+    if args.json:
+        _write_atomic(Path(args.json), lambda p: p.write_text(text + "\n"))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        _write_atomic(out / "report.json", lambda p: p.write_text(text + "\n"))
+        _write_atomic(out / "before.nc", lambda p: report.before.to_netcdf(str(p)))
+        _write_atomic(out / "after.nc", lambda p: report.after.to_netcdf(str(p)))
+        cal = spec.calibration
+        key = report.inputs[0] if report.inputs else spec.physics.inputs[0]
+        resid = [
+            cal.y - report_physics.evaluate(cal.inputs, _posterior_mean(idata, report_physics))
+            for report_physics, idata in (
+                (spec.physics, report.before),
+                (report.physics, report.after),
+            )
+        ]
+        others = [k for k in report.inputs if k != key]
+        groups = None
+        if others:
+            groups = np.array([", ".join(f"{k}={cal.inputs[k][i]:g}" for k in others)
+                               for i in range(cal.n)])  # fmt: skip
+        fig = plot_residuals_before_after(
+            cal.inputs[key], resid[0], resid[1], x_name=key, groups=groups, noise_sd=cal.noise_sd
+        )
+        _write_atomic(out / "residuals.png", lambda p: fig.savefig(p, dpi=120, format="png"))
+        plt.close(fig)
+    return 0
+
+
+def _posterior_mean(idata, physics) -> dict[str, float]:
+    return {k: float(idata.posterior[k].mean()) for k in physics.parameters}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``kohpymc`` command.
 
@@ -91,6 +174,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     study.add_argument("--quiet", action="store_true", help="no progress lines")
     study.add_argument("--progressbar", action="store_true", help="PyMC's progress bar")
     study.set_defaults(run=_study)
+    disc = sub.add_parser("discover", help="find, name and add a missing effect")
+    disc.add_argument("study", help="study TOML file (same format as `kohpymc study`)")
+    disc.add_argument("--json", help="write the JSON report here")
+    disc.add_argument("--out", help="folder for report.json, before/after NetCDF, figure")
+    disc.add_argument("--draws", type=int, help="override [sampling] draws")
+    disc.add_argument("--tune", type=int, help="override [sampling] tune")
+    disc.add_argument("--chains", type=int, help="override [sampling] chains")
+    disc.add_argument("--seed", type=int, help="override [sampling] seed")
+    disc.add_argument("--quiet", action="store_true", help="no progress lines")
+    disc.set_defaults(run=_discover)
     args = parser.parse_args(argv)
     _quiet_libraries()
     return args.run(args)

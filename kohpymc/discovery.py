@@ -26,13 +26,20 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 from kohpymc.identifiability import analyse_matrix
 
-__all__ = ["TermSelection", "select_terms"]
+__all__ = [
+    "TermSelection",
+    "select_terms",
+    "DiscoveryReport",
+    "augmented_physics",
+    "discover",
+]
 
 
 @dataclass
@@ -204,4 +211,298 @@ def select_terms(
         inclusion=inclusion,
         subsets=ranked,
         rejected=rejected,
+    )
+
+
+# ---------------------------------------------------------------------- the workflow
+
+
+@dataclass
+class DiscoveryReport:
+    """What :func:`discover` found and did.
+
+    Attributes
+    ----------
+    significant : bool
+        Whether a missing effect was found (criterion: posterior probability of "nothing
+        missing" below ``threshold``).
+    effect : str or None
+        The added term(s), e.g. ``"c * x * P"``.
+    inputs : list of str
+        Inputs the added term depends on.
+    where : list of dict
+        Input ranges of the calibration rows with standardised residual beyond 2 and of the
+        validation rows with reliability below 0.5 (``{"input", "from", "to"}``).
+    validation : dict
+        ``{"before": {...}, "after": {...}}`` with ``mu_r``, ``rmse``, ``coverage90``.
+    parameters : dict
+        Posterior means of the physics parameters before and after.
+    selection : TermSelection
+        The term comparison.
+    physics : PhysicsModel
+        The augmented model (the original one when nothing is missing).
+    before, after : InferenceData
+        Calibrations with predictions at the validation inputs.
+    """
+
+    significant: bool
+    effect: str | None
+    inputs: list[str]
+    where: list[dict]
+    validation: dict
+    parameters: dict
+    selection: TermSelection
+    physics: Any
+    before: Any
+    after: Any
+
+    def to_dict(self) -> dict:
+        """The JSON report."""
+        return {
+            "significant": self.significant,
+            "effect": self.effect,
+            "inputs": list(self.inputs),
+            "where": self.where,
+            "validation": self.validation,
+            "parameters": self.parameters,
+            "probability_nothing_missing": self.selection.probability_none,
+            "rejected_candidates": self.selection.rejected,
+            "top_subsets": [
+                {"terms": list(s), "probability": p} for s, p in self.selection.subsets[:5]
+            ],
+        }
+
+
+def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
+    """``G(x; θ) + Σ_k c_k φ_k(x)`` as a new :class:`~kohpymc.PhysicsModel`.
+
+    The coefficients are parameters ``c_<k>`` with ``Normal(0, coefficient_sd[k])`` priors;
+    a user Jacobian of ``physics`` is extended with the columns ``φ_k``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kohpymc.candidates import CandidateTerm
+    >>> from kohpymc.examples import beam
+    >>> shear = CandidateTerm("x*P", ("x", "P"), lambda d: d["x"] * d["P"])
+    >>> aug = augmented_physics(beam.physics_model(), [shear], [1.0])
+    >>> aug.parameter_names
+    ('E', 'c_1')
+    >>> float(aug.evaluate({"x": np.array([400.0]), "P": np.array([2.5])},
+    ...                    {"E": 200.0, "c_1": 0.01})[0])
+    22.0
+    """
+    from kohpymc.physics import PhysicsModel
+    from kohpymc.priors import Normal
+
+    if physics.backend != "numpy":
+        raise NotImplementedError("augmenting a pytensor-backend physics model is not supported")
+    names = [f"c_{k + 1}" for k in range(len(terms))]
+    clash = set(names) & set(physics.parameters)
+    if clash:
+        raise ValueError(f"augmented model: parameter name(s) {sorted(clash)} already used")
+    original = physics.function
+    inputs = list(dict.fromkeys(list(physics.inputs) + [i for t in terms for i in t.inputs]))
+
+    def function(x, params):
+        base = original({k: x[k] for k in physics.inputs}, params)
+        extra = sum(params[c] * t(x) for c, t in zip(names, terms, strict=True))
+        return base + extra
+
+    jacobian = None
+    if physics.jacobian is not None:
+        user = physics.jacobian
+
+        def jacobian(x, params):
+            J = user({k: x[k] for k in physics.inputs}, params)
+            if isinstance(J, dict):
+                J = np.column_stack([np.asarray(J[p], dtype=float) for p in physics.parameters])
+            return np.column_stack([np.asarray(J, dtype=float)] + [t(x) for t in terms])
+
+    params = dict(physics.parameters)
+    params.update({c: Normal(0.0, float(s)) for c, s in zip(names, coefficient_sd, strict=True)})
+    return PhysicsModel(
+        function,
+        params,
+        inputs,
+        jacobian=jacobian,
+        fd_scheme=physics.fd_scheme,
+        name=f"{physics.name} + "
+        + " + ".join(_named(c, t) for c, t in zip(names, terms, strict=True)),
+    )
+
+
+def _named(coefficient: str, term) -> str:
+    """``"c_1 * x * P"``: the term's expression with its coefficient's name."""
+    return term.expression.replace("c *", f"{coefficient} *", 1)
+
+
+def _failure_ranges(frame_inputs, mask, names, source: str) -> list[dict]:
+    out = []
+    if not np.any(mask):
+        return out
+    for k in names:
+        vals = np.asarray(frame_inputs[k], dtype=float)[mask]
+        out.append({"input": k, "from": float(vals.min()), "to": float(vals.max()), "data": source})
+    return out
+
+
+def discover(
+    physics,
+    calibration,
+    validation,
+    *,
+    tolerance: float,
+    candidates: Sequence[Any] | None = None,
+    extra_terms: Any = None,
+    max_terms: int = 2,
+    threshold: float = 0.01,
+    draws: int = 1000,
+    tune: int = 1000,
+    chains: int = 4,
+    random_seed: int | None = None,
+    progress: Any = None,
+) -> DiscoveryReport:
+    """Find, name and add a missing effect; show the validation gap before and after.
+
+    1. *Where*: calibrate the physics model as given (no discrepancy), standardised
+       residuals on the calibration data and reliability r(x) on the validation data.
+    2. *What*: :func:`select_terms` over the candidate library built from every input in
+       the data (physics inputs and any other recorded columns), linearised at the
+       posterior mean.  The effect is significant when the posterior probability of
+       "nothing missing" is below ``threshold`` (default 0.01, i.e. evidence of more
+       than 99 : 1 at even prior odds).
+    3. *Add*: the selected term(s) with calibrated coefficients (:func:`augmented_physics`),
+       recalibrated jointly with θ.
+    4. *Gap*: μ_r, RMSE and 90 % coverage on the validation data before and after.
+
+    Parameters
+    ----------
+    physics : PhysicsModel
+        The model as given (numpy backend).
+    calibration, validation : CalibrationData
+        Data; every input column of the calibration data is offered to the library.
+    tolerance : float
+        ε of the reliability metric.
+    candidates : sequence of CandidateTerm, optional
+        Replace the generated library.
+    extra_terms : mapping, optional
+        User terms added to the generated library (see
+        :func:`kohpymc.candidates.candidate_library`).
+    max_terms : int
+        Largest number of terms added together.
+    threshold : float
+        Significance threshold on the probability of "nothing missing".
+    draws, tune, chains, random_seed :
+        Sampler settings of both calibrations.
+    progress : callable, optional
+        Called with a line of text per step.
+
+    Returns
+    -------
+    DiscoveryReport
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> report = discover(beam.physics_model(), beam.generate_data((2.5, 3.0), seed=1),
+    ...                   beam.generate_data((3.5,), seed=2), tolerance=0.75,
+    ...                   random_seed=1)  # doctest: +SKIP
+    >>> report.effect, report.inputs  # doctest: +SKIP
+    ('c * x * P', ['x', 'P'])
+    """
+    from kohpymc.calibration import calibrate, predict
+    from kohpymc.candidates import candidate_library, design_matrix
+    from kohpymc.study import _validation_metrics
+
+    say = progress or (lambda _m: None)
+    if not np.isfinite(tolerance) or tolerance <= 0:
+        raise ValueError(f"tolerance must be a positive number, got {tolerance!r}")
+    sampler = {"draws": draws, "tune": tune, "chains": chains}
+    params = list(physics.parameters)
+
+    def run(model, seed_offset):
+        seed = None if random_seed is None else random_seed + seed_offset
+        idata = calibrate(model, calibration, None, random_seed=seed, warn=False, **sampler)
+        pred = predict(idata, model, calibration, None, validation, random_seed=seed)
+        noise = validation.noise_sd if validation.noise_sd is not None else calibration.noise_sd
+        if noise is None and "sigma_obs" in idata.posterior:
+            noise = float(idata.posterior["sigma_obs"].mean())
+        scores, const = _validation_metrics(pred, validation, tolerance, noise, None)
+        idata.extend(pred)
+        idata.add_groups(predictions_constant_data=const)
+        return idata, scores, const
+
+    say("calibrating the model as given ...")
+    before, scores_before, const_before = run(physics, 0)
+    theta = {k: float(before.posterior[k].mean()) for k in params}
+    g_hat = physics.evaluate(calibration.inputs, theta)
+    post = before.posterior
+    sigma = calibration.noise_sd
+    if sigma is None:
+        sigma = float(post["sigma_obs"].mean()) if "sigma_obs" in post else None
+    resid = calibration.y - g_hat
+    z = resid / np.sqrt(np.var(resid - resid.mean()) if sigma is None else sigma**2)
+
+    say("comparing candidate terms ...")
+    if candidates is None:
+        candidates = candidate_library(calibration.inputs, extra=extra_terms)
+    candidates = list(candidates)
+    if not candidates:
+        raise ValueError("the candidate library is empty")
+    Phi = design_matrix(candidates, calibration.inputs)
+    J = physics.jacobian_matrix(calibration.inputs, theta)
+    theta_sd = [float(physics.parameters[k].sd()) for k in params]
+    selection = select_terms(
+        resid,
+        J,
+        Phi,
+        [t.name for t in candidates],
+        noise_sd=sigma,
+        parameter_sd=theta_sd,
+        max_terms=max_terms,
+    )
+    significant = bool(selection.best) and selection.probability_none < threshold
+    before_params = {k: theta[k] for k in params}
+    if not significant:
+        say(f"nothing missing (P = {selection.probability_none:.3g} that nothing is missing)")
+        return DiscoveryReport(
+            significant=False,
+            effect=None,
+            inputs=[],
+            where=[],
+            validation={"before": scores_before, "after": dict(scores_before)},
+            parameters={"before": before_params, "after": dict(before_params)},
+            selection=selection,
+            physics=physics,
+            before=before,
+            after=before,
+        )
+    chosen = [t for t in candidates if t.name in selection.best]
+    named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
+    effect = " + ".join(t.expression for t in chosen)
+    say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")
+    rel = const_before["reliability"].values
+    where = _failure_ranges(calibration.inputs, np.abs(z) > 2.0, named_inputs, "calibration")
+    where += _failure_ranges(validation.inputs, rel < 0.5, named_inputs, "validation")
+    scale = max(2.0 * float(np.std(resid)), sigma or 0.0)
+    coef_sd = [scale / max(float(np.std(t(calibration.inputs))), 1e-300) for t in chosen]
+    augmented = augmented_physics(physics, chosen, coef_sd)
+    say(f"recalibrating {augmented.name} ...")
+    after, scores_after, _ = run(augmented, 1)
+    after_params = {k: float(after.posterior[k].mean()) for k in params}
+    for c in augmented.parameters:
+        if c not in physics.parameters:
+            after_params[c] = float(after.posterior[c].mean())
+    return DiscoveryReport(
+        significant=True,
+        effect=effect,
+        inputs=named_inputs,
+        where=where,
+        validation={"before": scores_before, "after": scores_after},
+        parameters={"before": before_params, "after": after_params},
+        selection=selection,
+        physics=augmented,
+        before=before,
+        after=after,
     )

@@ -16,7 +16,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-__all__ = ["plot_parameter_posteriors", "plot_validation_predictions", "plot_reliability"]
+__all__ = [
+    "plot_parameter_posteriors",
+    "plot_validation_predictions",
+    "plot_reliability",
+    "plot_residuals_before_after",
+]
 
 _COMBINED = "combined"
 
@@ -188,5 +193,55 @@ def plot_reliability(table: pd.DataFrame) -> plt.Figure:
     ax.set_xticks(pos, [str(k) for k in rows.index])
     ax.set_ylim(0, 1.05)
     ax.set_ylabel(r"$\mu_r$ (validation reliability)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_residuals_before_after(
+    x: np.ndarray,
+    before: np.ndarray,
+    after: np.ndarray,
+    *,
+    x_name: str = "x",
+    groups: np.ndarray | None = None,
+    noise_sd: float | None = None,
+) -> plt.Figure:
+    """Residuals of the data from the posterior-mean model before and after a change.
+
+    Parameters
+    ----------
+    x : array
+        Input on the horizontal axis (the one the discrepancy depends on most).
+    before, after : array
+        Residuals ``y - E[y_model]`` of the same rows.
+    x_name : str
+        Axis label.
+    groups : array, optional
+        A label per row (e.g. the other inputs) to colour by.
+    noise_sd : float, optional
+        Draw ±2 σ_obs as a band.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> x = np.linspace(0, 1, 10)
+    >>> len(plot_residuals_before_after(x, x, 0 * x, noise_sd=0.1).axes)
+    2
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
+    labels = np.zeros(len(x), dtype=int) if groups is None else np.asarray(groups)
+    for ax, values, title in zip(axes, (before, after), ("before", "after"), strict=True):
+        for j, g in enumerate(np.unique(labels)):
+            m = labels == g
+            ax.plot(np.asarray(x)[m], np.asarray(values)[m], "o", ms=3.5, color=f"C{j % 10}",
+                    label=None if groups is None else str(g))  # fmt: skip
+        if noise_sd:
+            ax.axhspan(-2 * noise_sd, 2 * noise_sd, color="0.85", zorder=0)
+        ax.axhline(0.0, color="k", lw=0.8)
+        ax.set_title(f"residuals {title}")
+        ax.set_xlabel(x_name)
+    axes[0].set_ylabel("data - posterior mean")
+    if groups is not None:
+        axes[0].legend(fontsize="x-small")
     fig.tight_layout()
     return fig

@@ -84,6 +84,26 @@ class Prior:
             return a["sigma"] * math.sqrt(2.0 / math.pi)
         return 0.0 if self.mean_value is None else float(self.mean_value)
 
+    def sd(self) -> float:
+        """Prior standard deviation (``scale()`` for custom priors).
+
+        Examples
+        --------
+        >>> round(Uniform(0.0, 12.0).sd(), 6)
+        3.464102
+        """
+        a = self.args
+        if self.kind == "uniform":
+            return (a["upper"] - a["lower"]) / math.sqrt(12.0)
+        if self.kind == "normal":
+            return a["sigma"]
+        if self.kind == "lognormal":
+            var = (math.exp(a["sigma"] ** 2) - 1.0) * math.exp(2 * a["mu"] + a["sigma"] ** 2)
+            return math.sqrt(var)
+        if self.kind == "halfnormal":
+            return a["sigma"] * math.sqrt(1.0 - 2.0 / math.pi)
+        return self.scale()
+
     def scale(self) -> float:
         """Typical magnitude of the parameter (positive), used for step sizes."""
         a = self.args

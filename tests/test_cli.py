@@ -39,3 +39,20 @@ def test_bad_study_exits_2_and_names_the_key(tmp_path, capsys, write_study):
     err = capsys.readouterr().err
     assert str(path) in err and "validation.tolerance" in err
     assert not out.exists()  # nothing half-written
+
+
+@pytest.mark.slow
+def test_discover_command_writes_report_and_files(tmp_path, write_study):
+    import json
+
+    path = write_study(tmp_path)
+    out = tmp_path / "found"
+    report = tmp_path / "report.json"
+    assert main(["discover", str(path), "--json", str(report), "--out", str(out)]) == 0
+    payload = json.loads(report.read_text())
+    assert payload["significant"] is True
+    assert payload["inputs"] == ["x"]  # one calibration load: P does not vary, cannot be named
+    assert payload["parameters"]["after"]["E"] > payload["parameters"]["before"]["E"] + 50
+    assert {"report.json", "before.nc", "after.nc", "residuals.png"} <= {
+        p.name for p in out.iterdir()
+    }

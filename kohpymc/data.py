@@ -288,6 +288,9 @@ class CalibrationData:
     def subset(self, mask: Any) -> CalibrationData:
         """Rows selected by a boolean mask (or integer indices), keeping noise settings.
 
+        A noise sd estimated from replicates (Eq. 28) is re-estimated from the selected
+        rows' replicates.
+
         Examples
         --------
         >>> d = CalibrationData({"x": [1.0, 2.0, 3.0]}, [1.0, 2.0, 3.0])
@@ -309,6 +312,14 @@ class CalibrationData:
         new.replicates = None if self.replicates is None else self.replicates[idx].copy()
         new.noise_sd = self.noise_sd
         new.noise_sd_estimated = self.noise_sd_estimated
+        if self.noise_sd_estimated and new.replicates is not None:
+            # re-pool (Eq. 28) over the selected rows only, so a calibration subset's
+            # noise estimate uses no validation replicates; keep the parent's value when
+            # the subset has no replicated setting
+            try:
+                new.noise_sd = pooled_replicate_sd(new.y, new.replicates)
+            except ValueError:
+                pass
         return new
 
     def split(self, mask: Any) -> tuple[CalibrationData, CalibrationData]:

@@ -144,9 +144,11 @@ def plot_validation_predictions(
         lo, hi = np.quantile(draws, [0.05, 0.95], axis=0)
         for j, (key, idx) in enumerate(groups.items()):
             idx = np.asarray(idx)[np.argsort(x_all[idx], kind="stable")]
+            # one band point per distinct x (replicated rows share their prediction)
+            line = idx[np.unique(x_all[idx], return_index=True)[1]]
             color = f"C{j % 10}"
-            ax.fill_between(x_all[idx], lo[idx], hi[idx], color=color, alpha=0.25, lw=0)
-            ax.plot(x_all[idx], mean[idx], color=color, lw=1.5)
+            ax.fill_between(x_all[line], lo[line], hi[line], color=color, alpha=0.25, lw=0)
+            ax.plot(x_all[line], mean[line], color=color, lw=1.5)
             tag = ", ".join(f"{k}={v:g}" for k, v in zip(others, np.atleast_1d(key), strict=True))
             ax.plot(
                 x_all[idx], np.asarray(y_validation)[idx], "o", ms=3.5, color=color,

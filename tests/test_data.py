@@ -91,3 +91,15 @@ def test_dataframe_output_column():
     assert data.input_names == ("x",) and data.output_name == "u"
     with pytest.raises(KeyError, match="'v'"):
         CalibrationData(frame, "v")
+
+
+def test_subset_re_pools_the_replicate_noise_estimate():
+    from kohpymc.data import CalibrationData as Data
+
+    x = [1.0, 1.0, 2.0, 2.0, 3.0, 3.0]
+    y = [0.0, 0.2, 1.0, 1.2, 5.0, 7.0]
+    data = Data({"x": x}, y, replicates="inputs")
+    low, high = data.split(np.asarray(x) < 2.5)
+    assert low.noise_sd == pytest.approx(np.sqrt((0.02 + 0.02) / 2))  # by hand: ss / dof
+    assert high.noise_sd == pytest.approx(np.sqrt(2.0))
+    assert data.noise_sd == pytest.approx(np.sqrt((0.02 + 0.02 + 2.0) / 3))

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -71,16 +70,6 @@ def _study(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_atomic(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.part")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def _discover(args: argparse.Namespace) -> int:
     import json
 
@@ -90,6 +79,7 @@ def _discover(args: argparse.Namespace) -> int:
     from kohpymc.config import StudyConfigError, load_study
     from kohpymc.discovery import discover
     from kohpymc.plots import plot_residuals_before_after
+    from kohpymc.study import write_atomic
 
     try:
         spec = load_study(args.study)
@@ -118,13 +108,13 @@ def _discover(args: argparse.Namespace) -> int:
     text = json.dumps(payload, indent=2)
     print(text)
     if args.json:
-        _write_atomic(Path(args.json), lambda p: p.write_text(text + "\n"))
+        write_atomic(Path(args.json), lambda p: p.write_text(text + "\n"))
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        _write_atomic(out / "report.json", lambda p: p.write_text(text + "\n"))
-        _write_atomic(out / "before.nc", lambda p: report.before.to_netcdf(str(p)))
-        _write_atomic(out / "after.nc", lambda p: report.after.to_netcdf(str(p)))
+        write_atomic(out / "report.json", lambda p: p.write_text(text + "\n"))
+        write_atomic(out / "before.nc", lambda p: report.before.to_netcdf(str(p)))
+        write_atomic(out / "after.nc", lambda p: report.after.to_netcdf(str(p)))
         cal = spec.calibration
         key = report.inputs[0] if report.inputs else spec.physics.inputs[0]
         resid = [
@@ -142,7 +132,7 @@ def _discover(args: argparse.Namespace) -> int:
         fig = plot_residuals_before_after(
             cal.inputs[key], resid[0], resid[1], x_name=key, groups=groups, noise_sd=cal.noise_sd
         )
-        _write_atomic(out / "residuals.png", lambda p: fig.savefig(p, dpi=120, format="png"))
+        write_atomic(out / "residuals.png", lambda p: fig.savefig(p, dpi=120, format="png"))
         plt.close(fig)
     return 0
 

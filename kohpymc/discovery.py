@@ -413,7 +413,7 @@ def discover(
     """
     from kohpymc.calibration import calibrate, predict
     from kohpymc.candidates import candidate_library, design_matrix
-    from kohpymc.study import _validation_metrics
+    from kohpymc.study import validation_metrics
 
     say = progress or (lambda _m: None)
     if not np.isfinite(tolerance) or tolerance <= 0:
@@ -428,7 +428,7 @@ def discover(
         noise = validation.noise_sd if validation.noise_sd is not None else calibration.noise_sd
         if noise is None and "sigma_obs" in idata.posterior:
             noise = float(idata.posterior["sigma_obs"].mean())
-        scores, const = _validation_metrics(pred, validation, tolerance, noise, None)
+        scores, const = validation_metrics(pred, validation, tolerance, noise, None)
         idata.extend(pred)
         idata.add_groups(predictions_constant_data=const)
         return idata, scores, const

@@ -54,7 +54,14 @@ from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
 from kohpymc.physics import PhysicsModel
 from kohpymc.reliability import reliability
 
-__all__ = ["StudyResult", "run_study", "default_formulations", "markdown_table"]
+__all__ = [
+    "StudyResult",
+    "run_study",
+    "default_formulations",
+    "markdown_table",
+    "validation_metrics",
+    "write_atomic",
+]
 
 COMBINED = "combined"
 
@@ -192,9 +199,14 @@ def _seed(random_seed: int | None, label: str, purpose: int) -> int | None:
     return int(np.random.SeedSequence(random_seed, spawn_key=key).generate_state(1)[0])
 
 
-def _validation_metrics(
+def validation_metrics(
     pred: az.InferenceData, validation: CalibrationData, tolerance: float, noise_sd, weights
 ) -> tuple[dict[str, float], xr.Dataset]:
+    """μ_r ± MCSE, RMSE of the posterior-mean ``y_model`` and 90 % coverage of ``y_pred``.
+
+    Returns the scores and a Dataset (``reliability``, ``y_validation`` over ``pred``) for
+    the ``predictions_constant_data`` group.
+    """
     rel = reliability(pred, validation, tolerance, noise_sd=noise_sd, weights=weights)
     ym = pred.predictions["y_model"].transpose(..., "pred").values
     yp = pred.predictions["y_pred"].transpose(..., "pred").values
@@ -225,7 +237,18 @@ def _noise_sd_for_validation(
     return None
 
 
-def _write_atomic(path: Path, write: Callable[[Path], None], files: list[Path]) -> None:
+def write_atomic(path: Path, write: Callable[[Path], None]) -> Path:
+    """Write via ``write(tmp)`` to a hidden temporary name, then rename to ``path``.
+
+    Nothing is left behind under either name when ``write`` fails.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> target = pathlib.Path(tempfile.mkdtemp()) / "a.txt"
+    >>> write_atomic(target, lambda p: p.write_text("ok")).read_text()
+    'ok'
+    """
     tmp = path.with_name(f".{path.name}.part")
     try:
         write(tmp)
@@ -233,7 +256,11 @@ def _write_atomic(path: Path, write: Callable[[Path], None], files: list[Path]) 
     finally:
         if tmp.exists():
             tmp.unlink()
-    files.append(path)
+    return path
+
+
+def _write_atomic(path: Path, write: Callable[[Path], None], files: list[Path]) -> None:
+    files.append(write_atomic(path, write))
 
 
 def run_study(
@@ -368,7 +395,7 @@ def run_study(
                 random_seed=_seed(random_seed, label, 1),
             )
             noise_sd = _noise_sd_for_validation(validation, calibration, idata)
-            scores, const = _validation_metrics(
+            scores, const = validation_metrics(
                 pred, validation, tolerance, noise_sd, validation_weights
             )
         except Exception as err:  # noqa: BLE001 - reported, the study goes on
@@ -414,7 +441,7 @@ def run_study(
             random_seed=_seed(random_seed, COMBINED, 2),
         )
         noise_sd = _noise_sd_for_validation(validation, calibration, combined)
-        scores, const = _validation_metrics(
+        scores, const = validation_metrics(
             combined, validation, tolerance, noise_sd, validation_weights
         )
         # r(x) is linear in the predictive distribution, so the mixture's μ_r is exactly

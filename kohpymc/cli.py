@@ -27,21 +27,36 @@ def _quiet_libraries() -> None:
     warnings.filterwarnings("ignore", message="The effective sample size per chain")
 
 
-def _study(args: argparse.Namespace) -> int:
+def _load(args: argparse.Namespace):
+    """The study file, or None after printing the error (exit status 2)."""
     from kohpymc.config import StudyConfigError, load_study
-    from kohpymc.study import run_study
 
     try:
-        spec = load_study(args.study)
+        return load_study(args.study)
     except (StudyConfigError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
-        return 2
-    kwargs = spec.run_kwargs()
+        return None
+
+
+def _sampler_overrides(args: argparse.Namespace, sampling: dict) -> dict:
+    """``[sampling]`` of the file with the command line's --draws/--tune/--chains/--seed."""
+    out = dict(sampling)
     for key in ("draws", "tune", "chains"):
         if getattr(args, key) is not None:
-            kwargs[key] = getattr(args, key)
+            out[key] = getattr(args, key)
     if args.seed is not None:
-        kwargs["random_seed"] = args.seed
+        out["random_seed"] = args.seed
+    return out
+
+
+def _study(args: argparse.Namespace) -> int:
+    from kohpymc.study import run_study
+
+    spec = _load(args)
+    if spec is None:
+        return 2
+    kwargs = spec.run_kwargs()
+    kwargs.update(_sampler_overrides(args, spec.sampling))
     out = Path(args.out) if args.out else spec.out_dir
     print(
         f"study {spec.source}: physics {spec.physics.name!r} "
@@ -76,21 +91,16 @@ def _discover(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from kohpymc.config import StudyConfigError, load_study
     from kohpymc.discovery import discover
     from kohpymc.plots import plot_residuals_before_after
     from kohpymc.study import write_atomic
 
-    try:
-        spec = load_study(args.study)
-    except (StudyConfigError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    spec = _load(args)
+    if spec is None:
         return 2
-    sampling = {k: v for k, v in spec.sampling.items() if k in ("draws", "tune", "chains")}
-    for key in ("draws", "tune", "chains"):
-        if getattr(args, key) is not None:
-            sampling[key] = getattr(args, key)
-    seed = args.seed if args.seed is not None else spec.sampling.get("random_seed")
+    merged = _sampler_overrides(args, spec.sampling)
+    sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
+    seed = merged.get("random_seed")
     try:
         report = discover(
             spec.physics,

@@ -31,6 +31,11 @@ class CandidateTerm:
         Inputs the term depends on.
     function : callable
         ``function(inputs) -> array`` with one value per row.
+    decay_scale : float, optional
+        For ``exp(-x / s)`` terms: the scale ``s`` the column was built with.  When the
+        term is added to a model (:func:`kohpymc.discovery.augmented_physics`) the scale
+        becomes a calibrated parameter, so a fixed grid of scales only has to find the
+        right order of magnitude.
 
     Examples
     --------
@@ -45,6 +50,7 @@ class CandidateTerm:
     name: str
     inputs: tuple[str, ...]
     function: TermFunction
+    decay_scale: float | None = None
 
     @property
     def expression(self) -> str:
@@ -73,7 +79,7 @@ def candidate_library(
     interactions: bool = True,
     exponentials: bool = True,
     logarithms: bool = True,
-    exponential_scales: Sequence[float] = (0.1, 0.3, 1.0),
+    exponential_scales: Sequence[float] = (0.05, 0.1, 0.2, 0.4, 0.8),
     extra: Mapping[str, tuple[Sequence[str], TermFunction]] | None = None,
 ) -> list[CandidateTerm]:
     """Candidate terms from the named inputs (and user terms).
@@ -134,6 +140,7 @@ def candidate_library(
                         f"exp(-{k}/{_fmt(s)})",
                         (k,),
                         lambda d, k=k, s=s: np.exp(-np.asarray(d[k]) / s),
+                        decay_scale=s,
                     )
                 )
         if logarithms and np.min(col) > 0:

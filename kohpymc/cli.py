@@ -87,68 +87,72 @@ def _study(args: argparse.Namespace) -> int:
 
 def _discover(args: argparse.Namespace) -> int:
     import json
+    import shutil
+    import tempfile
 
     import matplotlib.pyplot as plt
     import numpy as np
 
     from kohpymc.discovery import discover
+    from kohpymc.physics import PhysicsModelError
     from kohpymc.plots import plot_residuals_before_after
-    from kohpymc.study import write_atomic
 
     spec = _load(args)
     if spec is None:
         return 2
     merged = _sampler_overrides(args, spec.sampling)
     sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
-    seed = merged.get("random_seed")
     try:
         report = discover(
             spec.physics,
             spec.calibration,
             spec.validation,
             tolerance=spec.tolerance,
-            random_seed=seed,
+            random_seed=merged.get("random_seed"),
             progress=None if args.quiet else lambda msg: print(msg, flush=True),
             **sampling,
         )
-    except (ValueError, KeyError, TypeError) as err:
+    except (ValueError, KeyError, TypeError, NotImplementedError, PhysicsModelError) as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
-    payload = report.to_dict()
-    text = json.dumps(payload, indent=2)
+    text = json.dumps(report.to_dict(), indent=2)
     print(text)
-    if args.json:
-        write_atomic(Path(args.json), lambda p: p.write_text(text + "\n"))
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_atomic(out / "report.json", lambda p: p.write_text(text + "\n"))
-        write_atomic(out / "before.nc", lambda p: report.before.to_netcdf(str(p)))
-        write_atomic(out / "after.nc", lambda p: report.after.to_netcdf(str(p)))
-        cal = spec.calibration
-        key = report.inputs[0] if report.inputs else spec.physics.inputs[0]
-        resid = [
-            cal.y - report_physics.evaluate(cal.inputs, _posterior_mean(idata, report_physics))
-            for report_physics, idata in (
-                (spec.physics, report.before),
-                (report.physics, report.after),
+    targets: list[tuple[Path, Path]] = []  # (staged file, final path)
+    with tempfile.TemporaryDirectory(prefix=".kohpymc-discover-") as staging:
+        stage = Path(staging)
+        (stage / "report.json").write_text(text + "\n")
+        if args.json:
+            targets.append((stage / "report.json", Path(args.json)))
+        if args.out:
+            out = Path(args.out)
+            report.before.to_netcdf(str(stage / "before.nc"))
+            report.after.to_netcdf(str(stage / "after.nc"))
+            cal = spec.calibration
+            key = report.key_input
+            others = [k for k in report.inputs if k != key]
+            groups = None
+            if others:
+                groups = np.array([", ".join(f"{k}={cal.inputs[k][i]:g}" for k in others)
+                                   for i in range(cal.n)])  # fmt: skip
+            fig = plot_residuals_before_after(
+                cal.inputs[key],
+                report.residuals["before"],
+                report.residuals["after"],
+                x_name=key,
+                groups=groups,
+                noise_sd=cal.noise_sd,
             )
-        ]
-        others = [k for k in report.inputs if k != key]
-        groups = None
-        if others:
-            groups = np.array([", ".join(f"{k}={cal.inputs[k][i]:g}" for k in others)
-                               for i in range(cal.n)])  # fmt: skip
-        fig = plot_residuals_before_after(
-            cal.inputs[key], resid[0], resid[1], x_name=key, groups=groups, noise_sd=cal.noise_sd
-        )
-        write_atomic(out / "residuals.png", lambda p: fig.savefig(p, dpi=120, format="png"))
-        plt.close(fig)
+            fig.savefig(stage / "residuals.png", dpi=120)
+            plt.close(fig)
+            for name in ("report.json", "before.nc", "after.nc", "residuals.png"):
+                targets.append((stage / name, out / name))
+        # every file exists: now move them into place
+        for staged, final in targets:
+            final.parent.mkdir(parents=True, exist_ok=True)
+            tmp = final.with_name(f".{final.name}.part")
+            shutil.copyfile(staged, tmp)
+            tmp.replace(final)
     return 0
-
-
-def _posterior_mean(idata, physics) -> dict[str, float]:
-    return {k: float(idata.posterior[k].mean()) for k in physics.parameters}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

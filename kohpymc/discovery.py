@@ -38,6 +38,7 @@ __all__ = [
     "select_terms",
     "DiscoveryReport",
     "augmented_physics",
+    "disagreement_regions",
     "discover",
 ]
 
@@ -224,25 +225,36 @@ class DiscoveryReport:
     Attributes
     ----------
     significant : bool
-        Whether a missing effect was found (criterion: posterior probability of "nothing
-        missing" below ``threshold``).
+        Whether a missing effect was found (posterior probability of "nothing missing"
+        below ``threshold``).
     effect : str or None
         The added term(s), e.g. ``"c * x * P"``.
     inputs : list of str
         Inputs the added term depends on.
     where : list of dict
-        Input ranges of the calibration rows with standardised residual beyond 2 and of the
-        validation rows with reliability below 0.5 (``{"input", "from", "to"}``).
+        Ranges of the named inputs where the model as given fails
+        (``{"input", "from", "to", "data", "rows"}``, see :func:`discover`).
     validation : dict
-        ``{"before": {...}, "after": {...}}`` with ``mu_r``, ``rmse``, ``coverage90``.
-    parameters : dict
-        Posterior means of the physics parameters before and after.
+        ``{"before": {...}, "after": {...}}`` with ``mu_r``, ``mu_r_mcse``, ``rmse``,
+        ``coverage90``.
+    parameters, parameters_sd : dict
+        Posterior means and sds of the parameters before and after.
     selection : TermSelection
         The term comparison.
+    input_probability : dict input -> float
+        Posterior probability that the missing effect depends on each input.
+    threshold : float
+        The significance threshold used.
     physics : PhysicsModel
         The augmented model (the original one when nothing is missing).
     before, after : InferenceData
         Calibrations with predictions at the validation inputs.
+    key_input : str
+        The input along which the added term (before: the squared residual) varies most
+        (largest first-order variance share), for plotting.
+    residuals : dict
+        ``{"before": array, "after": array}``: calibration residuals from the
+        posterior-mean model.
     """
 
     significant: bool
@@ -251,13 +263,27 @@ class DiscoveryReport:
     where: list[dict]
     validation: dict
     parameters: dict
+    parameters_sd: dict
     selection: TermSelection
+    input_probability: dict
+    threshold: float
     physics: Any
     before: Any
     after: Any
+    key_input: str
+    residuals: dict
 
     def to_dict(self) -> dict:
-        """The JSON report."""
+        """The JSON report.
+
+        Examples
+        --------
+        >>> sel = TermSelection((), 0.9, {}, [((), 0.9)])
+        >>> r = DiscoveryReport(False, None, [], [], {}, {}, {}, sel, {}, 0.01, None,
+        ...                     None, None, "x", {})
+        >>> r.to_dict()["significant"], r.to_dict()["effect"]
+        (False, None)
+        """
         return {
             "significant": self.significant,
             "effect": self.effect,
@@ -265,7 +291,12 @@ class DiscoveryReport:
             "where": self.where,
             "validation": self.validation,
             "parameters": self.parameters,
-            "probability_nothing_missing": self.selection.probability_none,
+            "parameters_sd": self.parameters_sd,
+            "criterion": {
+                "probability_nothing_missing": self.selection.probability_none,
+                "threshold": self.threshold,
+            },
+            "input_probability": self.input_probability,
             "rejected_candidates": self.selection.rejected,
             "top_subsets": [
                 {"terms": list(s), "probability": p} for s, p in self.selection.subsets[:5]
@@ -276,8 +307,11 @@ class DiscoveryReport:
 def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
     """``G(x; θ) + Σ_k c_k φ_k(x)`` as a new :class:`~kohpymc.PhysicsModel`.
 
-    The coefficients are parameters ``c_<k>`` with ``Normal(0, coefficient_sd[k])`` priors;
-    a user Jacobian of ``physics`` is extended with the columns ``φ_k``.
+    The coefficients are parameters ``c_<k>`` with ``Normal(0, coefficient_sd[k])`` priors.
+    A decaying exponential ``exp(-x / s)`` (a term with ``decay_scale``) gets its scale as
+    a parameter ``tau_<k>`` too, with a ``LogNormal(log s, 0.7)`` prior (a factor 2 either
+    way within one sd).  The physics function is called with its own inputs and
+    parameters only; a user Jacobian of ``physics`` is extended with the term columns.
 
     Examples
     --------
@@ -293,20 +327,32 @@ def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
     22.0
     """
     from kohpymc.physics import PhysicsModel
-    from kohpymc.priors import Normal
+    from kohpymc.priors import LogNormal, Normal
 
     if physics.backend != "numpy":
         raise NotImplementedError("augmenting a pytensor-backend physics model is not supported")
-    names = [f"c_{k + 1}" for k in range(len(terms))]
-    clash = set(names) & set(physics.parameters)
+    coefs = [f"c_{k + 1}" for k in range(len(terms))]
+    taus = {
+        k: f"tau_{k + 1}" for k, t in enumerate(terms) if getattr(t, "decay_scale", None)
+    }  # fmt: skip
+    clash = (set(coefs) | set(taus.values())) & set(physics.parameters)
     if clash:
         raise ValueError(f"augmented model: parameter name(s) {sorted(clash)} already used")
     original = physics.function
+    own = list(physics.parameters)
     inputs = list(dict.fromkeys(list(physics.inputs) + [i for t in terms for i in t.inputs]))
 
+    def column(k, t, x, params):
+        if k in taus:
+            return np.exp(-np.asarray(x[t.inputs[0]], dtype=float) / params[taus[k]])
+        return t(x)
+
     def function(x, params):
-        base = original({k: x[k] for k in physics.inputs}, params)
-        extra = sum(params[c] * t(x) for c, t in zip(names, terms, strict=True))
+        base = original({k: x[k] for k in physics.inputs}, {k: params[k] for k in own})
+        extra = sum(
+            params[c] * column(k, t, x, params)
+            for k, (c, t) in enumerate(zip(coefs, terms, strict=True))
+        )
         return base + extra
 
     jacobian = None
@@ -314,13 +360,21 @@ def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
         user = physics.jacobian
 
         def jacobian(x, params):
-            J = user({k: x[k] for k in physics.inputs}, params)
+            J = user({k: x[k] for k in physics.inputs}, {k: params[k] for k in own})
             if isinstance(J, dict):
                 J = np.column_stack([np.asarray(J[p], dtype=float) for p in physics.parameters])
-            return np.column_stack([np.asarray(J, dtype=float)] + [t(x) for t in terms])
+            cols = [np.asarray(J, dtype=float).reshape(-1, len(own))]
+            cols += [column(k, t, x, params) for k, t in enumerate(terms)]
+            for k, tau in taus.items():  # d/dτ c exp(-x/τ) = c x / τ² exp(-x/τ)
+                xk = np.asarray(x[terms[k].inputs[0]], dtype=float)
+                cols.append(params[coefs[k]] * xk / params[tau] ** 2 * np.exp(-xk / params[tau]))
+            return np.column_stack(cols)
 
     params = dict(physics.parameters)
-    params.update({c: Normal(0.0, float(s)) for c, s in zip(names, coefficient_sd, strict=True)})
+    params.update({c: Normal(0.0, float(s)) for c, s in zip(coefs, coefficient_sd, strict=True)})
+    params.update(
+        {tau: LogNormal(float(np.log(terms[k].decay_scale)), 0.7) for k, tau in taus.items()}
+    )
     return PhysicsModel(
         function,
         params,
@@ -328,22 +382,112 @@ def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
         jacobian=jacobian,
         fd_scheme=physics.fd_scheme,
         name=f"{physics.name} + "
-        + " + ".join(_named(c, t) for c, t in zip(names, terms, strict=True)),
+        + " + ".join(
+            _named(c, t, taus.get(k)) for k, (c, t) in enumerate(zip(coefs, terms, strict=True))
+        ),
     )
 
 
-def _named(coefficient: str, term) -> str:
-    """``"c_1 * x * P"``: the term's expression with its coefficient's name."""
-    return term.expression.replace("c *", f"{coefficient} *", 1)
+def _named(coefficient: str, term, tau: str | None = None) -> str:
+    """``"c_1 * x * P"``: the term's expression with its coefficient's (and scale's) name."""
+    text = term.expression.replace("c *", f"{coefficient} *", 1)
+    if tau is not None:
+        text = f"{coefficient} * exp(-{term.inputs[0]}/{tau})"
+    return text
 
 
-def _failure_ranges(frame_inputs, mask, names, source: str) -> list[dict]:
-    out = []
-    if not np.any(mask):
-        return out
-    for k in names:
-        vals = np.asarray(frame_inputs[k], dtype=float)[mask]
-        out.append({"input": k, "from": float(vals.min()), "to": float(vals.max()), "data": source})
+def disagreement_regions(
+    values: np.ndarray,
+    flagged: Any,
+    *,
+    input_name: str,
+    source: str,
+    max_bins: int = 8,
+    min_rows: int = 3,
+) -> list[dict]:
+    """Ranges of one input where the model disagrees with the data.
+
+    The rows are sorted by ``values`` and cut into at most ``max_bins`` bins of equal
+    row count (at least ``min_rows`` each, rows with equal values kept together);
+    ``flagged(rows)`` decides per bin (an index array) whether the model fails there.
+    Adjacent failing bins are merged into one range.
+
+    Parameters
+    ----------
+    values : array (n,)
+        The input's value per row.
+    flagged : callable index array -> bool
+        The per-bin criterion (see :func:`discover`).
+    input_name, source : str
+        Copied into each range (``"input"``, ``"data"``).
+    max_bins, min_rows : int
+        Binning.
+
+    Returns
+    -------
+    list of dict
+        ``{"input", "from", "to", "data", "rows"}`` per failing range.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> x = np.arange(12.0)
+    >>> z = np.where(x >= 9, 5.0, 0.0)
+    >>> disagreement_regions(x, lambda rows: bool(np.mean(z[rows] ** 2) > 4),
+    ...                      input_name="x", source="calibration", max_bins=4)
+    [{'input': 'x', 'from': 9.0, 'to': 11.0, 'data': 'calibration', 'rows': 3}]
+    """
+    values = np.asarray(values, dtype=float)
+    order = np.argsort(values, kind="stable")
+    n = values.size
+    n_bins = int(max(1, min(max_bins, n // max(min_rows, 1))))
+    cuts = [0]
+    for b in range(1, n_bins):
+        c = int(round(b * n / n_bins))
+        while 0 < c < n and values[order[c]] == values[order[c - 1]]:
+            c += 1  # keep equal values in one bin
+        if c - cuts[-1] >= min_rows and n - c >= min_rows:
+            cuts.append(c)
+    cuts.append(n)
+    bins = [order[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
+    out: list[dict] = []
+    previous = False
+    for rows in bins:
+        fails = bool(flagged(rows))
+        if fails:
+            lo, hi = float(values[rows].min()), float(values[rows].max())
+            if previous:  # extend the running range
+                out[-1]["to"] = hi
+                out[-1]["rows"] += int(rows.size)
+            else:
+                out.append(
+                    {"input": input_name, "from": lo, "to": hi, "data": source,
+                     "rows": int(rows.size)}
+                )  # fmt: skip
+        previous = fails
+    return out
+
+
+def _main_effect_share(values: np.ndarray, f: np.ndarray, max_bins: int = 8) -> float:
+    """Share of the variance of ``f`` explained by bins of one input (first-order index)."""
+    total = float(np.var(f))
+    if total == 0 or np.ptp(values) == 0:
+        return 0.0
+    order = np.argsort(values, kind="stable")
+    parts = np.array_split(order, min(max_bins, values.size))
+    means = np.array([f[p].mean() for p in parts if p.size])
+    sizes = np.array([p.size for p in parts if p.size])
+    return float(np.sum(sizes * (means - f.mean()) ** 2) / sizes.sum() / total)
+
+
+def _evaluate_or_explain(model, inputs, params, what: str) -> np.ndarray:
+    """``model.evaluate`` with a clear error naming the model and the data."""
+    try:
+        out = np.asarray(model.evaluate(inputs, params), dtype=float)
+    except Exception as err:  # noqa: BLE001 - re-raised with context
+        raise ValueError(f"physics model {model.name!r} fails on the {what}: {err}") from err
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"physics model {model.name!r} is not finite on the {what}")
     return out
 
 
@@ -357,6 +501,7 @@ def discover(
     extra_terms: Any = None,
     max_terms: int = 2,
     threshold: float = 0.01,
+    region_level: float = 0.01,
     draws: int = 1000,
     tune: int = 1000,
     chains: int = 4,
@@ -365,16 +510,29 @@ def discover(
 ) -> DiscoveryReport:
     """Find, name and add a missing effect; show the validation gap before and after.
 
-    1. *Where*: calibrate the physics model as given (no discrepancy), standardised
-       residuals on the calibration data and reliability r(x) on the validation data.
-    2. *What*: :func:`select_terms` over the candidate library built from every input in
-       the data (physics inputs and any other recorded columns), linearised at the
-       posterior mean.  The effect is significant when the posterior probability of
-       "nothing missing" is below ``threshold`` (default 0.01, i.e. evidence of more
-       than 99 : 1 at even prior odds).
-    3. *Add*: the selected term(s) with calibrated coefficients (:func:`augmented_physics`),
-       recalibrated jointly with θ.
-    4. *Gap*: μ_r, RMSE and 90 % coverage on the validation data before and after.
+    1. *Where*: calibrate the physics model as given (no discrepancy); standardised
+       residuals ``z = (y - G(x; θ̄)) / σ`` on the calibration data and reliability
+       r(x) on the validation data (θ̄ the posterior mean).
+    2. *Whether and what*: :func:`select_terms` over the candidate library built from
+       every input column of the calibration data, linearised at θ̄.  **Criterion:** a
+       missing effect is reported only when the posterior probability of "nothing
+       missing" is below ``threshold`` (default 0.01: evidence of more than 99 : 1 at
+       even prior odds, with the prior mass of "something missing" split over all
+       candidate subsets, so a larger library does not raise the false-alarm rate).
+       The inputs of the selected term(s) are the named inputs; ``input_probability``
+       gives, for every input, the posterior probability that the missing effect
+       depends on it.
+    3. *Where, as ranges*: for each named input the rows are cut into up to 8 bins of
+       equal count; a calibration bin fails when ``Σ z²`` exceeds its χ² quantile at
+       ``region_level / 8`` (Bonferroni over the bins), a validation bin when its mean
+       reliability is below 0.5.  Adjacent failing bins are merged.
+    4. *Add*: the selected term(s) with coefficients ``c_k`` (normal priors scaled to
+       the residual) are added (:func:`augmented_physics`) and calibrated jointly with θ.
+    5. *Gap*: μ_r, RMSE and 90 % coverage on the validation data before and after.
+
+    All inputs are checked before any sampling (empty or non-finite candidate library,
+    too few rows); the augmented model is evaluated once before it is recalibrated.
+    Nothing is written to disk.
 
     Parameters
     ----------
@@ -393,6 +551,8 @@ def discover(
         Largest number of terms added together.
     threshold : float
         Significance threshold on the probability of "nothing missing".
+    region_level : float
+        Family-wise level of the per-bin χ² test that marks failing ranges.
     draws, tune, chains, random_seed :
         Sampler settings of both calibrations.
     progress : callable, optional
@@ -411,6 +571,8 @@ def discover(
     >>> report.effect, report.inputs  # doctest: +SKIP
     ('c * x * P', ['x', 'P'])
     """
+    from scipy.stats import chi2
+
     from kohpymc.calibration import calibrate, predict
     from kohpymc.candidates import candidate_library, design_matrix
     from kohpymc.study import validation_metrics
@@ -418,8 +580,42 @@ def discover(
     say = progress or (lambda _m: None)
     if not np.isfinite(tolerance) or tolerance <= 0:
         raise ValueError(f"tolerance must be a positive number, got {tolerance!r}")
-    sampler = {"draws": draws, "tune": tune, "chains": chains}
+    if not 0 < threshold < 1:
+        raise ValueError(f"threshold must be in (0, 1), got {threshold!r}")
+    if physics.backend != "numpy":
+        raise NotImplementedError(
+            "discovery augments the physics function; a pytensor-backend model is not supported"
+        )
     params = list(physics.parameters)
+    needed = len(params) + 3  # θ, one coefficient, the noise, and one degree of freedom
+    if calibration.n < needed:
+        raise ValueError(
+            f"too few data points: the calibration data has {calibration.n} rows, at least "
+            f"{needed} are needed to fit {len(params)} physics parameter(s) and any candidate "
+            "term"
+        )
+    if candidates is None:
+        candidates = candidate_library(calibration.inputs, extra=extra_terms)
+    candidates = list(candidates)
+    if not candidates:
+        raise ValueError("the candidate library is empty")
+    try:
+        Phi = design_matrix(candidates, calibration.inputs)
+    except ValueError as err:
+        raise ValueError(f"candidate library on the calibration data: {err}") from err
+    centre = {k: float(physics.parameters[k].mean()) for k in params}
+    for what, data in (("calibration", calibration), ("validation", validation)):
+        missing = [k for k in physics.inputs if k not in data.inputs]
+        if missing:
+            raise KeyError(f"the {what} data lacks the physics input(s) {missing}")
+        try:  # input-dependent failures show at once, not after the first calibration
+            physics.evaluate(data.inputs, centre, check_finite=False)
+        except Exception as err:  # noqa: BLE001 - re-raised with context
+            raise ValueError(
+                f"physics model {physics.name!r} fails on the {what} inputs "
+                f"(at the prior mean): {err}"
+            ) from err
+    sampler = {"draws": draws, "tune": tune, "chains": chains}
 
     def run(model, seed_offset):
         seed = None if random_seed is None else random_seed + seed_offset
@@ -433,76 +629,123 @@ def discover(
         idata.add_groups(predictions_constant_data=const)
         return idata, scores, const
 
+    def moments(idata, names):
+        post = idata.posterior
+        return (
+            {k: float(post[k].mean()) for k in names},
+            {k: float(post[k].std()) for k in names},
+        )
+
     say("calibrating the model as given ...")
     before, scores_before, const_before = run(physics, 0)
-    theta = {k: float(before.posterior[k].mean()) for k in params}
-    g_hat = physics.evaluate(calibration.inputs, theta)
+    theta, theta_sd_post = moments(before, params)
+    g_hat = _evaluate_or_explain(physics, calibration.inputs, theta, "calibration inputs")
     post = before.posterior
     sigma = calibration.noise_sd
     if sigma is None:
         sigma = float(post["sigma_obs"].mean()) if "sigma_obs" in post else None
     resid = calibration.y - g_hat
-    z = resid / np.sqrt(np.var(resid - resid.mean()) if sigma is None else sigma**2)
+    z = resid / (float(np.std(resid)) if sigma is None else sigma)
 
     say("comparing candidate terms ...")
-    if candidates is None:
-        candidates = candidate_library(calibration.inputs, extra=extra_terms)
-    candidates = list(candidates)
-    if not candidates:
-        raise ValueError("the candidate library is empty")
-    Phi = design_matrix(candidates, calibration.inputs)
     J = physics.jacobian_matrix(calibration.inputs, theta)
-    theta_sd = [float(physics.parameters[k].sd()) for k in params]
     selection = select_terms(
         resid,
         J,
         Phi,
         [t.name for t in candidates],
         noise_sd=sigma,
-        parameter_sd=theta_sd,
+        parameter_sd=[float(physics.parameters[k].sd()) for k in params],
         max_terms=max_terms,
     )
+    by_name = {t.name: t for t in candidates}
+    all_inputs = list(dict.fromkeys(i for t in candidates for i in t.inputs))
+    input_probability = {
+        k: float(
+            sum(p for subset, p in selection.subsets if any(k in by_name[n].inputs for n in subset))
+        )
+        for k in all_inputs
+    }
     significant = bool(selection.best) and selection.probability_none < threshold
-    before_params = {k: theta[k] for k in params}
+    common = {
+        "selection": selection,
+        "input_probability": input_probability,
+        "threshold": threshold,
+        "before": before,
+    }
     if not significant:
         say(f"nothing missing (P = {selection.probability_none:.3g} that nothing is missing)")
+        share = {k: _main_effect_share(calibration.inputs[k], z**2) for k in physics.inputs}
         return DiscoveryReport(
             significant=False,
             effect=None,
             inputs=[],
             where=[],
             validation={"before": scores_before, "after": dict(scores_before)},
-            parameters={"before": before_params, "after": dict(before_params)},
-            selection=selection,
+            parameters={"before": theta, "after": dict(theta)},
+            parameters_sd={"before": theta_sd_post, "after": dict(theta_sd_post)},
             physics=physics,
-            before=before,
             after=before,
+            key_input=max(share, key=share.get),
+            residuals={"before": resid, "after": resid},
+            **common,
         )
-    chosen = [t for t in candidates if t.name in selection.best]
+    chosen = [by_name[n] for n in selection.best]
     named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
     effect = " + ".join(t.expression for t in chosen)
     say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")
+
     rel = const_before["reliability"].values
-    where = _failure_ranges(calibration.inputs, np.abs(z) > 2.0, named_inputs, "calibration")
-    where += _failure_ranges(validation.inputs, rel < 0.5, named_inputs, "validation")
+    where: list[dict] = []
+    for k in named_inputs:
+        where += disagreement_regions(
+            calibration.inputs[k],
+            lambda rows: chi2.sf(float(np.sum(z[rows] ** 2)), rows.size) < region_level / 8,
+            input_name=k,
+            source="calibration",
+        )
+        where += disagreement_regions(
+            validation.inputs[k],
+            lambda rows: float(np.mean(rel[rows])) < 0.5,
+            input_name=k,
+            source="validation",
+        )
+
     scale = max(2.0 * float(np.std(resid)), sigma or 0.0)
     coef_sd = [scale / max(float(np.std(t(calibration.inputs))), 1e-300) for t in chosen]
     augmented = augmented_physics(physics, chosen, coef_sd)
+    start = {  # θ̄, no added term, scales at their prior centre
+        k: theta[k] if k in theta else (0.0 if k.startswith("c_") else prior.mean())
+        for k, prior in augmented.parameters.items()
+    }
+    for what, data in (("calibration", calibration), ("validation", validation)):
+        _evaluate_or_explain(augmented, data.inputs, start, f"{what} inputs (augmented model)")
     say(f"recalibrating {augmented.name} ...")
     after, scores_after, _ = run(augmented, 1)
-    after_params = {k: float(after.posterior[k].mean()) for k in params}
-    for c in augmented.parameters:
-        if c not in physics.parameters:
-            after_params[c] = float(after.posterior[c].mean())
+    new_names = [c for c in augmented.parameters if c not in physics.parameters]
+    after_mean, after_sd = moments(after, params + new_names)
+    g_after = _evaluate_or_explain(augmented, calibration.inputs, after_mean, "calibration inputs")
+    added = g_after - physics.evaluate(calibration.inputs, {k: after_mean[k] for k in params})
+    share = {k: _main_effect_share(calibration.inputs[k], added) for k in named_inputs}
+    pieces = []
+    for k, t in enumerate(chosen):
+        tau = f"tau_{k + 1}"
+        if tau in after_mean:  # the decay scale was calibrated: report its value
+            pieces.append(f"c * exp(-{t.inputs[0]}/{after_mean[tau]:.3g})")
+        else:
+            pieces.append(t.expression)
+    effect = " + ".join(pieces)
     return DiscoveryReport(
         significant=True,
         effect=effect,
         inputs=named_inputs,
         where=where,
         validation={"before": scores_before, "after": scores_after},
-        parameters={"before": before_params, "after": after_params},
-        selection=selection,
+        parameters={"before": theta, "after": after_mean},
+        parameters_sd={"before": theta_sd_post, "after": after_sd},
         physics=augmented,
-        before=before,
         after=after,
+        key_input=max(share, key=share.get),
+        residuals={"before": resid, "after": calibration.y - g_after},
+        **common,
     )

@@ -15,8 +15,8 @@ def test_library_contents_and_inputs():
     assert {"t", "t^2", "t^3", "V", "V*t"} - set(terms) == {"V*t"} and "t*V" in terms
     assert "log(t)" not in terms and "log(V)" in terms  # t includes 0
     exps = [n for n in terms if n.startswith("exp(-t/")]
-    assert exps == ["exp(-t/10)", "exp(-t/30)", "exp(-t/100)"]
-    np.testing.assert_allclose(terms["exp(-t/30)"](data), np.exp(-data["t"] / 30.0))
+    assert exps == ["exp(-t/5)", "exp(-t/10)", "exp(-t/20)", "exp(-t/40)", "exp(-t/80)"]
+    np.testing.assert_allclose(terms["exp(-t/20)"](data), np.exp(-data["t"] / 20.0))
     assert terms["t*V"].inputs == ("t", "V")
     assert terms["t*V"].expression == "c * t * V"
 

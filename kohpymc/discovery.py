@@ -666,7 +666,10 @@ def discover(
         )
         for k in all_inputs
     }
-    significant = bool(selection.best) and selection.probability_none < threshold
+    significant = selection.probability_none < threshold
+    # the most probable non-empty subset (the overall best when something is missing, unless
+    # the mass is spread so thin over many subsets that "nothing" still ranks first)
+    best = next((subset for subset, _ in selection.subsets if subset), ())
     common = {
         "selection": selection,
         "input_probability": input_probability,
@@ -690,7 +693,7 @@ def discover(
             residuals={"before": resid, "after": resid},
             **common,
         )
-    chosen = [by_name[n] for n in selection.best]
+    chosen = [by_name[n] for n in best]
     named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
     effect = " + ".join(t.expression for t in chosen)
     say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")

@@ -56,3 +56,14 @@ def test_discover_command_writes_report_and_files(tmp_path, write_study):
     assert {"report.json", "before.nc", "after.nc", "residuals.png"} <= {
         p.name for p in out.iterdir()
     }
+
+
+def test_discover_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, write_study):
+    path = write_study(tmp_path)
+    calib = tmp_path / "calib.csv"
+    calib.write_text("\n".join(calib.read_text().splitlines()[:4]) + "\n")  # 3 rows
+    out, report = tmp_path / "found", tmp_path / "report.json"
+    assert main(["discover", str(path), "--json", str(report), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and "too few data points" in err and "3 rows" in err
+    assert not out.exists() and not report.exists()

@@ -9,7 +9,7 @@ from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 #: notebooks that sample many formulations: executed under the ``slow`` marker
-SLOW = {"04_paper_beam_study.ipynb"}
+SLOW = {"04_paper_beam_study.ipynb", "06_discovery.ipynb"}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)

@@ -32,6 +32,7 @@ formulations and sampler settings::
     draws = 1000
     tune = 1000
     chains = 4
+    cores = 2                         # chains run in parallel processes (PyMC's default: 1)
     seed = 2026
 
     [output]                          # optional; the CLI's --out wins
@@ -83,7 +84,7 @@ _SECTIONS: dict[str, set[str]] = {
     "data": {"calibration", "validation", "noise_sd", "replicates"},
     "validation": {"tolerance", "weights"},
     "formulations": None,  # free labels
-    "sampling": {"draws", "tune", "chains", "seed", "target_accept", "method"},
+    "sampling": {"draws", "tune", "chains", "cores", "seed", "target_accept", "method"},
     "output": {"dir"},
 }  # fmt: skip
 
@@ -370,7 +371,7 @@ def load_study(path: str | Path) -> StudySpec:
     sampling_doc = dict(doc.get("sampling", {}))
     if "seed" in sampling_doc:
         sampling_doc["random_seed"] = sampling_doc.pop("seed")
-    for key in ("draws", "tune", "chains"):
+    for key in ("draws", "tune", "chains", "cores"):
         if key in sampling_doc and (
             not isinstance(sampling_doc[key], int) or sampling_doc[key] < 1
         ):

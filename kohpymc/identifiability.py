@@ -464,7 +464,9 @@ def _likelihood_parts(model):
         and isinstance(mu.owner.op.scalar_op, Second)
     ):
         mu = mu.owner.inputs[1]
-    return mu, second, op_name.startswith("MvNormal")
+    from pytensor.tensor.random.basic import MvNormalRV
+
+    return mu, second, isinstance(node.op, MvNormalRV) or op_name.startswith("MvNormal")
 
 
 def _free_names(model, rvs) -> list[tuple[Any, str, int | None]]:

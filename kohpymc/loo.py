@@ -22,6 +22,7 @@ import pytensor
 import xarray as xr
 from pymc.model.transform.conditioning import remove_value_transforms
 from pytensor.graph.traversal import ancestors
+from pytensor.tensor.random.basic import MvNormalRV
 
 __all__ = ["gaussian_loo_log_density", "loo_log_likelihood"]
 
@@ -108,7 +109,7 @@ def loo_log_likelihood(
     """
     umodel = remove_value_transforms(model)
     rv = umodel[var_name]
-    if type(rv.owner.op).__name__ != "MvNormalRV":
+    if not isinstance(rv.owner.op, MvNormalRV):
         raise TypeError(f"{var_name!r} is not a multivariate normal ({rv.owner.op})")
     mu, cov = rv.owner.inputs[-2:]
     outs = umodel.replace_rvs_by_values([mu, cov])

@@ -20,15 +20,30 @@ from typing import Any
 import numpy as np
 import pymc as pm
 import pytensor.tensor as pt
+from pymc.gp.util import JITTER_DEFAULT
 
 from kohpymc.discrepancy.base import Discrepancy, ModelContext, Predictor
 from kohpymc.discrepancy.functions import LinearBasis, MeanSpec, as_function, marginalizable
+from kohpymc.gaussian import GaussianLikelihood
 from kohpymc.priors import HalfNormal, Prior, as_prior
 
 __all__ = ["GaussianProcess", "CovarianceFactory"]
 
 #: ``factory(ctx, active_dims) -> pm.gp.cov.Covariance``
 CovarianceFactory = Callable[[ModelContext, list[int]], Any]
+
+
+def _marginal_likelihood(gp: pm.gp.Marginal, ctx: ModelContext, X: pt.TensorVariable) -> None:
+    """Observe ``y ~ N(m(X), K(X) + σ_obs² I)`` as ``gp.marginal_likelihood`` would.
+
+    Same mean, covariance and 1e-6 jitter, and ``gp.conditional`` works afterwards; the
+    likelihood is :class:`~kohpymc.gaussian.GaussianLikelihood` (one LAPACK pass per
+    gradient instead of PyMC's Cholesky-and-solve graph).
+    """
+    noise = pm.gp.cov.WhiteNoise(ctx.noise_sd)
+    mu, cov = gp._build_marginal_likelihood(X=X, noise_func=noise, jitter=JITTER_DEFAULT)
+    gp.X, gp.y, gp.sigma = X, ctx.y, noise
+    GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
 
 
 class _KOHMean(pm.gp.mean.Mean):
@@ -160,7 +175,7 @@ class GaussianProcess(Discrepancy):
             gp = pm.gp.Marginal(
                 mean_func=_KOHMean(ctx.physics_mean, prior_mean), cov_func=cov + basis_cov
             )
-            gp.marginal_likelihood("y", X=X, y=ctx.y, sigma=ctx.noise_sd, dims=ctx.obs_dim)
+            _marginal_likelihood(gp, ctx, X)
             B = spec.design(ctx, X)  # type: ignore[union-attr]
             c0 = cov(X) + (ctx.noise_sd**2 + 1e-6) * pt.eye(ctx.X.shape[0])
             chol = pt.linalg.cholesky(c0)
@@ -174,7 +189,7 @@ class GaussianProcess(Discrepancy):
         else:
             mean_fn = spec.build(ctx, "delta_mean")
             gp = pm.gp.Marginal(mean_func=_KOHMean(ctx.physics_mean, mean_fn), cov_func=cov)
-            gp.marginal_likelihood("y", X=X, y=ctx.y, sigma=ctx.noise_sd, dims=ctx.obs_dim)
+            _marginal_likelihood(gp, ctx, X)
 
         def predict(X_new: pt.TensorVariable, G_new: pt.TensorVariable) -> pt.TensorVariable:
             del G_new  # the GP mean evaluates the physics at X_new itself

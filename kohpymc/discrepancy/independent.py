@@ -20,6 +20,7 @@ import pytensor.tensor as pt
 
 from kohpymc.discrepancy.base import Discrepancy, ModelContext, Predictor
 from kohpymc.discrepancy.functions import MeanSpec, marginalizable
+from kohpymc.gaussian import GaussianLikelihood
 
 __all__ = ["IndependentDiscrepancy"]
 
@@ -52,7 +53,9 @@ class IndependentDiscrepancy(Discrepancy):
             m0, s0 = spec.gaussian_prior(ctx)  # type: ignore[union-attr, misc]
             diag = variance * pt.ones_like(ctx.G)
             cov = pt.diag(diag) + pt.dot(B * s0**2, B.T)
-            pm.MvNormal("y", mu=ctx.G + pt.dot(B, m0), cov=cov, observed=ctx.y, dims=ctx.obs_dim)
+            GaussianLikelihood(
+                "y", mu=ctx.G + pt.dot(B, m0), cov=cov, observed=ctx.y, dims=ctx.obs_dim
+            )
             mean_fn = spec.build_marginalized(  # type: ignore[union-attr]
                 ctx, self.mean_name, B, B / diag[:, None], (ctx.y - ctx.G) / diag
             )

@@ -30,6 +30,7 @@ import logging
 import time
 import warnings
 from collections.abc import Sequence
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -48,6 +49,7 @@ __all__ = [
     "LOAD_SCALE",
     "euler_bernoulli",
     "euler_bernoulli_jacobian",
+    "euler_bernoulli_symbolic",
     "timoshenko",
     "true_discrepancy",
     "physics_model",
@@ -115,19 +117,47 @@ def true_discrepancy(inputs: dict, E: float = TRUE_E) -> np.ndarray:
     return LOAD_SCALE * load * shear / (6.0 * E * INERTIA)
 
 
-def physics_model(*, jacobian: bool = True) -> PhysicsModel:
+def euler_bernoulli_symbolic(inputs: dict, params: dict) -> Any:
+    """:func:`euler_bernoulli` written for symbolic (PyTensor) inputs and parameters.
+
+    Examples
+    --------
+    >>> import pytensor.tensor as pt
+    >>> float(euler_bernoulli_symbolic({"x": 400.0, "P": 2.5}, {"E": pt.constant(200.0)}).eval())
+    12.0
+    """
+    x, load = inputs["x"], inputs["P"]
+    return LOAD_SCALE * load * (3.0 * LENGTH - x) * x**2 / (6.0 * params["E"] * INERTIA)
+
+
+def physics_model(
+    *, jacobian: bool = True, backend: Literal["numpy", "pytensor"] = "numpy"
+) -> PhysicsModel:
     """The Euler–Bernoulli model with ``E ~ Uniform(50, 300)`` GPa.
 
     Parameters
     ----------
     jacobian : bool
         Use the analytic ``∂u/∂E``; ``False`` exercises finite differences.
+    backend : {"numpy", "pytensor"}
+        ``"pytensor"``: the same formula as a PyTensor expression (autodiff, and the
+        whole model compiles natively with nutpie / NUMBA mode).
 
     Examples
     --------
     >>> physics_model().parameter_names
     ('E',)
+    >>> physics_model(backend="pytensor").backend
+    'pytensor'
     """
+    if backend == "pytensor":
+        return PhysicsModel(
+            euler_bernoulli_symbolic,
+            {"E": Uniform(50.0, 300.0)},
+            inputs=["x", "P"],
+            backend="pytensor",
+            name="euler_bernoulli",
+        )
     return PhysicsModel(
         euler_bernoulli,
         {"E": Uniform(50.0, 300.0)},

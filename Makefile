@@ -7,7 +7,9 @@ STAMP := $(VENV)/.installed
 # spinning worker threads made a GP calibration 4x slower (174 s vs 44 s, beam M4).
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: demo test test-slow lint format clean
+BENCH_STAMP := $(VENV)/.installed-bench
+
+.PHONY: demo test test-slow bench lint format clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -24,6 +26,15 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow
+
+$(BENCH_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[dev,bench]"
+	@touch $(BENCH_STAMP)
+
+# kohpymc vs random-walk Metropolis and surmise, study wall time, n = 9,120 GP (~30 min);
+# tables in benchmarks/results/
+bench: $(BENCH_STAMP)
+	$(PY) -m benchmarks.run
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check kohpymc tests

@@ -1,0 +1,1 @@
+"""Benchmarks of kohpymc against reference samplers (``make bench``)."""

@@ -9,7 +9,9 @@ from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 #: notebooks that sample many formulations: executed under the ``slow`` marker
-SLOW = {"04_paper_beam_study.ipynb", "06_discovery.ipynb"}
+SLOW = {"04_paper_beam_study.ipynb", "05_dielectric_study.ipynb", "06_discovery.ipynb"}
+#: per-notebook sampler sizes for the test run (the dielectric calibrations cost ~3 s a draw)
+SMALL = {"05_dielectric_study.ipynb": {"KOHPYMC_NB_DRAWS": "10", "KOHPYMC_NB_TUNE": "20"}}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
@@ -27,6 +29,8 @@ def test_notebook_runs_with_small_draws(path, monkeypatch):
     monkeypatch.setenv("KOHPYMC_NB_DRAWS", os.environ.get("KOHPYMC_NB_DRAWS", "150"))
     monkeypatch.setenv("KOHPYMC_NB_CHAINS", "2")
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    for key, value in SMALL.get(path.name, {}).items():
+        monkeypatch.setenv(key, value)
     nb = nbformat.read(path, as_version=4)
     NotebookClient(
         nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}

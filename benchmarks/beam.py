@@ -149,15 +149,20 @@ def run_study(
             progress=None,
         )
     wall = time.perf_counter() - start
-    rhat, divergences = [], 0
+    rhat, ess, divergences = [], [], 0
     for idata in result.results.values():
         rhat.append(float(az.rhat(idata, var_names=["E"])["E"]))
+        ess.append(float(az.ess(idata, var_names=["E"])["E"]))
         divergences += int(idata.sample_stats["diverging"].sum())
     return {
+        "draws": draws,
+        "tune": tune,
+        "chains": chains,
         "wall_s": wall,
         "formulations": list(result.results),
         "calibration_s": {k: round(float(v), 2) for k, v in result.wall_time_s.items()},
         "rhat_max_E": max(rhat),
+        "ess_bulk_min_E": min(ess),
         "divergences": divergences,
         "mu_r": {k: round(float(v), 3) for k, v in result.table["mu_r"].dropna().items()},
     }

@@ -173,7 +173,9 @@ def calibrate(
             idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
     elif "y" in idata.log_likelihood and idata.log_likelihood["y"].ndim == 2:
         # correlated rows (GP): exact leave-one-out conditionals as the pointwise values
-        pointwise = loo_log_likelihood(idata.posterior, model, "y", obs_dim=OBS_DIM)
+        # (a formulation may supply its own, e.g. GridGP's structured one)
+        loo = getattr(discrepancy, "pointwise_log_likelihood", loo_log_likelihood)
+        pointwise = loo(idata.posterior, model, "y", obs_dim=OBS_DIM)
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
     _attach_input_coords(idata, OBS_DIM, data.inputs)
     param_names = list(physics.parameters)

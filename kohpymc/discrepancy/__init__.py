@@ -4,6 +4,7 @@ from kohpymc.discrepancy.base import Discrepancy, ModelContext
 from kohpymc.discrepancy.constant import ConstantBias
 from kohpymc.discrepancy.functions import LinearBasis, ParametricFunction
 from kohpymc.discrepancy.gp import GaussianProcess
+from kohpymc.discrepancy.grid import GridGP
 from kohpymc.discrepancy.iid import IIDGaussian
 from kohpymc.discrepancy.input_dependent import InputDependentGaussian
 from kohpymc.discrepancy.none import NoDiscrepancy
@@ -17,6 +18,7 @@ __all__ = [
     "IIDGaussian",
     "InputDependentGaussian",
     "GaussianProcess",
+    "GridGP",
     "NonStationaryGP",
     "DecayingVariance",
     "LinearBasis",

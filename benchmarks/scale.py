@@ -77,6 +77,8 @@ import pytensor.tensor as pt
 import scipy.linalg
 from pytensor.compile.builders import OpFromGraph
 
+from kohpymc.discrepancy import grid as _grid
+
 #: Boltzmann constant, eV/K
 KB = 8.617333262e-5
 VOLTAGES = np.array([10.0, 20.0, 30.0])
@@ -237,16 +239,8 @@ def replicate_constant(data: GridData) -> float:
     )
 
 
-def _se(x: np.ndarray, ls: Any) -> Any:
-    d2 = (x[:, None] - x[None, :]) ** 2
-    return pt.exp(-0.5 * d2 / ls**2), d2
-
-
-def _mode_mult(X: Any, mats: list[Any]) -> Any:
-    """``X ×_k M_kᵀ`` for every axis k (``tensordot`` cycles the axes back to order)."""
-    for M in mats:
-        X = pt.tensordot(X, M, axes=[[0], [0]])
-    return X
+# the squared-exponential factor and the Kronecker mode products are those of the library's GridGP
+_se, _mode_mult = _grid._se, _grid._mode_mult
 
 
 def _kron_parts(

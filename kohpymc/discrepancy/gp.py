@@ -137,8 +137,8 @@ class GaussianProcess(Discrepancy):
         """Inputs of the kernel and the mean."""
         return tuple(dict.fromkeys(self.gp_inputs + self.mean.inputs))
 
-    def stationary_kernel(self, ctx: ModelContext, active_dims: list[int]):
-        """``η² · ExpQuad(ls)`` over ``active_dims`` (creates ``delta_eta``, ``delta_ls``)."""
+    def hyperparameters(self, ctx: ModelContext) -> tuple[Any, Any]:
+        """Create ``delta_eta`` and ``delta_ls`` (one length scale per kernel input)."""
         model = pm.modelcontext(None)
         model.add_coord("gp_input", list(self.gp_inputs))
         if self.lengthscale_prior is not None:
@@ -147,6 +147,11 @@ class GaussianProcess(Discrepancy):
             spans = np.array([ctx.span[k] for k in self.gp_inputs])
             ls = pm.InverseGamma("delta_ls", alpha=4.0, beta=2.0 * spans, dims="gp_input")
         eta = (self.amplitude_prior or HalfNormal(ctx.y_scale)).create("delta_eta")
+        return eta, ls
+
+    def stationary_kernel(self, ctx: ModelContext, active_dims: list[int]):
+        """``η² · ExpQuad(ls)`` over ``active_dims`` (creates ``delta_eta``, ``delta_ls``)."""
+        eta, ls = self.hyperparameters(ctx)
         d = len(ctx.input_names)
         return eta**2 * pm.gp.cov.ExpQuad(d, ls=ls, active_dims=active_dims)
 

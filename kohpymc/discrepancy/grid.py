@@ -43,7 +43,7 @@ from pytensor.graph.traversal import ancestors
 from kohpymc.discrepancy.base import ModelContext, Predictor
 from kohpymc.discrepancy.functions import LinearBasis, marginalizable
 from kohpymc.discrepancy.gp import GaussianProcess
-from kohpymc.priors import HalfNormal, Prior
+from kohpymc.priors import Prior
 
 __all__ = ["GridGP", "GridLayout", "grid_layout", "grid_loo_log_density", "kron_gp_loglik"]
 
@@ -453,18 +453,6 @@ class GridGP(GaussianProcess):
     def inputs(self) -> tuple[str, ...]:
         """Kernel inputs."""
         return self.gp_inputs
-
-    def hyperparameters(self, ctx: ModelContext) -> tuple[Any, Any]:
-        """Create ``delta_eta`` and ``delta_ls`` with the priors of :class:`GaussianProcess`."""
-        model = pm.modelcontext(None)
-        model.add_coord("gp_input", list(self.gp_inputs))
-        if self.lengthscale_prior is not None:
-            ls = self.lengthscale_prior.create("delta_ls", dims="gp_input")
-        else:
-            spans = np.array([ctx.span[k] for k in self.gp_inputs])
-            ls = pm.InverseGamma("delta_ls", alpha=4.0, beta=2.0 * spans, dims="gp_input")
-        eta = (self.amplitude_prior or HalfNormal(ctx.y_scale)).create("delta_eta")
-        return eta, ls
 
     def _check(self, ctx: ModelContext) -> tuple[GridLayout, float]:
         outside = [k for k in ctx.input_names if k not in self.gp_inputs]

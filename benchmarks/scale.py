@@ -75,7 +75,6 @@ import pymc as pm
 import pytensor
 import pytensor.tensor as pt
 import scipy.linalg
-from pytensor.compile.builders import OpFromGraph
 
 from kohpymc.discrepancy import grid as _grid
 
@@ -239,86 +238,9 @@ def replicate_constant(data: GridData) -> float:
     )
 
 
-# the squared-exponential factor and the Kronecker mode products are those of the library's GridGP
-_se, _mode_mult = _grid._se, _grid._mode_mult
-
-
-def _kron_parts(
-    R: Any, eta: Any, ls: Any, grids: tuple[np.ndarray, ...], noise_var: float
-) -> tuple[Any, Any, Any, Any]:
-    """Log-density and its gradients ``(L, ∂L/∂R, ∂L/∂η, ∂L/∂ℓ)`` from per-factor eigh."""
-    d = len(grids)
-    kernels = [_se(g, ls[k]) for k, g in enumerate(grids)]
-    Ks = [K for K, _ in kernels]
-    eig = [pt.linalg.eigh(K) for K in Ks]
-    lam = [w for w, _ in eig]
-    Qs = [v for _, v in eig]
-
-    def outer(vectors: list[Any]) -> Any:
-        out = vectors[0]
-        for v in vectors[1:]:
-            out = out[..., None] * v
-        return out
-
-    lam_all = eta**2 * outer(lam)
-    D = lam_all + noise_var
-    Rt = _mode_mult(R, Qs)  # R in the eigenbasis
-    At = Rt / D  # α = (K + s² I)⁻¹ R in the eigenbasis
-    n = int(np.prod([len(g) for g in grids]))
-    value = -0.5 * (pt.sum(Rt * At) + pt.sum(pt.log(D)) + n * np.log(2 * np.pi))
-    alpha = _mode_mult(At, [Q.T for Q in Qs])
-
-    # ∂L/∂p = ½ (αᵀ ∂K/∂p α - tr((K + s² I)⁻¹ ∂K/∂p)); ∂K/∂η = 2K/η
-    g_eta = (pt.sum(At**2 * lam_all) - pt.sum(lam_all / D)) / eta
-    g_ls = []
-    for k in range(d):
-        dK = Ks[k] * kernels[k][1] / ls[k] ** 3  # ∂K_k/∂ℓ_k = K_k ∘ Δ²/ℓ³
-        c_k = pt.sum(Qs[k] * pt.dot(dK, Qs[k]), axis=0)  # diag(Q_kᵀ ∂K_k Q_k)
-        trace = pt.sum(outer([c_k if j == k else lam[j] for j in range(d)]) / D)
-        quad = pt.sum(alpha * _mode_mult(alpha, [dK if j == k else Ks[j] for j in range(d)]))
-        g_ls.append(0.5 * eta**2 * (quad - trace))
-    return value, -alpha, g_eta, pt.stack(g_ls)
-
-
-def kron_gp_loglik(
-    R: Any, grids: tuple[np.ndarray, ...], eta: Any, ls: Any, noise_var: float
-) -> Any:
-    """``log N(vec R | 0, η² ⊗_k K_k(ℓ_k) + s² I)`` with its exact analytic gradient.
-
-    Parameters
-    ----------
-    R : TensorVariable
-        Residual on the grid, shape ``(len(g) for g in grids)``.
-    grids : tuple of ndarray
-        1-D input axis per kernel factor (squared-exponential on each).
-    eta : TensorVariable
-        GP amplitude η.
-    ls : TensorVariable
-        Length scales, one per factor.
-    noise_var : float
-        ``s²`` (``σ²/r`` for replicate means).
-
-    Returns
-    -------
-    TensorVariable
-        The log-density, as an inlined ``OpFromGraph`` whose ``lop_overrides`` returns
-        the analytic gradients, so ``pt.grad`` never differentiates through ``eigh``;
-        once inlined at compile time, value and gradient share the eigendecompositions.
-    """
-    R_in = pt.tensor("R", shape=(None,) * len(grids), dtype="float64")
-    eta_in = pt.scalar("eta", dtype="float64")
-    ls_in = pt.vector("ls", dtype="float64")
-    outs = _kron_parts(R_in, eta_in, ls_in, grids, noise_var)
-
-    def lop(inputs: list[Any], outputs: list[Any], output_grads: list[Any]) -> list[Any]:
-        # the same graph on the gradient OpFromGraph's inputs: once both are inlined,
-        # the merge pass computes the shared eigendecompositions once
-        (gz,) = output_grads
-        return [gz * g for g in _kron_parts(*inputs[:3], grids, noise_var)[1:]]
-
-    op = OpFromGraph([R_in, eta_in, ls_in], [outs[0]], lop_overrides=lop, inline=True)
-    R = pt.as_tensor_variable(R, dtype="float64")
-    return op(R, pt.as_tensor_variable(eta, dtype="float64"), ls)
+#: ``log N(vec R | 0, η² ⊗_k K_k(ℓ_k) + s² I)`` with its analytic gradient: the library's
+#: (GridGP's) Kronecker log density with no intercept term
+kron_gp_loglik = _grid.kron_gp_loglik
 
 
 def dense_loglik(data: GridData, params: dict[str, Any], jitter: float = 0.0) -> float:

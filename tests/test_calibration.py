@@ -127,12 +127,12 @@ def test_recovery_when_the_model_is_right(beam_physics):
     from kohpymc import ConstantBias
 
     data = _eb_data(150.0, bias=1.0)
-    idata = calibrate(beam_physics, data, ConstantBias(), random_seed=SEED, warn=False)
+    idata = calibrate(beam_physics, data, ConstantBias(), random_seed=SEED, cores=2, warn=False)
     for name, truth in (("E", 150.0), ("delta", 1.0)):
         draws = idata.posterior[name].values
         assert abs(draws.mean() - truth) <= 3 * draws.std()
     free = CalibrationData(data.inputs, data.y - 1.0)
-    idata0 = calibrate(beam_physics, free, random_seed=SEED, warn=False)
+    idata0 = calibrate(beam_physics, free, random_seed=SEED, cores=2, warn=False)
     for name, truth in (("E", 150.0), ("sigma_obs", np.sqrt(0.1))):
         draws = idata0.posterior[name].values
         assert abs(draws.mean() - truth) <= 3 * draws.std()
@@ -192,7 +192,7 @@ def test_nonstationary_gp_on_time_series_with_shrinking_noise():
     with warnings.catch_warnings():
         warnings.simplefilter("error", SamplerTroubleWarning)
         idata = calibrate(
-            physics, data, NonStationaryGP(["t"], time="t", mean=[]), random_seed=SEED
+            physics, data, NonStationaryGP(["t"], time="t", mean=[]), random_seed=SEED, cores=2
         )
     table = sampler_diagnostics(idata)
     assert table.attrs["divergences"] == 0

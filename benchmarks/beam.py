@@ -114,12 +114,19 @@ def run_kohpymc(
 
 
 def run_study(
-    *, draws: int = 1000, tune: int = 1000, chains: int = 2, seed: int = 2026
+    *,
+    draws: int = 1000,
+    tune: int = 1000,
+    chains: int = 2,
+    seed: int = 2026,
+    numba: bool = False,
 ) -> dict[str, Any]:
     """The whole beam study (M0–M4, validation, combination) timed end to end.
 
     Runs :func:`kohpymc.run_study` on the shipped beam study (``beam_study.toml``'s
-    data and formulations) with chains in parallel, writing nothing.
+    data and formulations) with chains in parallel, writing nothing.  ``numba=True``
+    swaps in the same physics as a PyTensor expression and samples with
+    ``mode="NUMBA"`` (the shipped file has a numpy function and PyTensor's C backend).
 
     Returns
     -------
@@ -132,11 +139,13 @@ def run_study(
     from kohpymc.config import load_study
 
     study = load_study(Path(beam.__file__).with_name("beam_study.toml"))
+    physics = beam.physics_model(backend="pytensor") if numba else study.physics
+    extra = {"mode": "NUMBA"} if numba else {}
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = kp.run_study(
-            study.physics,
+            physics,
             study.calibration,
             study.validation,
             study.formulations,
@@ -147,6 +156,7 @@ def run_study(
             cores=chains,
             random_seed=seed,
             progress=None,
+            **extra,
         )
     wall = time.perf_counter() - start
     rhat, ess, divergences = [], [], 0
@@ -155,6 +165,7 @@ def run_study(
         ess.append(float(az.ess(idata, var_names=["E"])["E"]))
         divergences += int(idata.sample_stats["diverging"].sum())
     return {
+        "variant": "PyTensor physics, NUMBA mode" if numba else "shipped file (numpy physics, C)",
         "draws": draws,
         "tune": tune,
         "chains": chains,

@@ -33,6 +33,7 @@ formulations and sampler settings::
     tune = 1000
     chains = 4
     cores = 2                         # chains run in parallel processes (PyMC's default: 1)
+    # mode = "NUMBA"                  # PyTensor compile mode of NUTS's log density (see calibrate)
     seed = 2026
 
     [output]                          # optional; the CLI's --out wins
@@ -55,6 +56,7 @@ from typing import Any
 
 import pandas as pd
 
+from kohpymc.calibration import COMPILE_MODES
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy import (
     ConstantBias,
@@ -84,7 +86,7 @@ _SECTIONS: dict[str, set[str]] = {
     "data": {"calibration", "validation", "noise_sd", "replicates"},
     "validation": {"tolerance", "weights"},
     "formulations": None,  # free labels
-    "sampling": {"draws", "tune", "chains", "cores", "seed", "target_accept", "method"},
+    "sampling": {"draws", "tune", "chains", "cores", "seed", "target_accept", "method", "mode"},
     "output": {"dir"},
 }  # fmt: skip
 
@@ -378,6 +380,12 @@ def load_study(path: str | Path) -> StudySpec:
             raise _err(
                 path, f"sampling.{key}", f"must be a positive integer, got {sampling_doc[key]!r}"
             )
+    if "mode" in sampling_doc and sampling_doc["mode"] not in COMPILE_MODES:
+        raise _err(
+            path,
+            "sampling.mode",
+            f"must be one of {list(COMPILE_MODES)}, got {sampling_doc['mode']!r}",
+        )
     out = doc.get("output", {}).get("dir")
     out_dir = (base / out) if out else base / f"{path.stem}_results"
     return StudySpec(

@@ -66,6 +66,7 @@ def test_shipped_beam_study_matches_the_generator():
         ({'M0 = "none"': 'M0 = { type = "gp", bogus = 1 }'}, "[formulations.M0]", "bogus"),
         ({'inputs = ["x", "P"]': 'inputs = ["x", "Q"]'}, "[data.calibration]", "Q"),
         ({"draws = 100": "draws = 0"}, "[sampling.draws]", "positive integer"),
+        ({"draws = 100": 'draws = 100\nmode = "numba"'}, "[sampling.mode]", "'numba'"),
     ],
 )
 def test_bad_study_files_name_file_and_key(tmp_path, write_study, replace, key, words):
@@ -74,6 +75,11 @@ def test_bad_study_files_name_file_and_key(tmp_path, write_study, replace, key, 
         load_study(path)
     message = str(info.value)
     assert str(path) in message and key in message and words in message
+
+
+def test_compile_mode_is_read(tmp_path, write_study):
+    spec = load_study(write_study(tmp_path, **{"draws = 100": 'draws = 100\nmode = "NUMBA"'}))
+    assert spec.sampling["mode"] == "NUMBA"
 
 
 def test_broken_physics_file_names_the_import_error(tmp_path, write_study):

@@ -6,6 +6,8 @@ check and the pointwise log-likelihood — with
 
 * ``pymc``: PyMC's NUTS, the numpy physics function with its analytic Jacobian (what
   ``kohpymc study`` runs), chains in parallel processes (``cores=2``);
+* ``pymc-numba``: PyMC's NUTS with the physics as a PyTensor expression and
+  ``mode="NUMBA"`` (the log density and gradient compiled by numba);
 * ``nutpie``: nutpie's NUTS (Rust) with the physics as a PyTensor expression, so the
   whole log density compiles to one numba function.
 
@@ -51,7 +53,7 @@ def _summary(idata: az.InferenceData, sampling_s: float) -> dict[str, float]:
 
 def run_kohpymc(
     label: str,
-    sampler: Literal["pymc", "nutpie"] = "pymc",
+    sampler: Literal["pymc", "pymc-numba", "nutpie"] = "pymc",
     *,
     draws: int = 2000,
     tune: int = 1000,
@@ -64,7 +66,7 @@ def run_kohpymc(
     ----------
     label : str
         ``"M0"`` ... ``"M5"`` (:func:`benchmarks.baselines.beam_formulations`).
-    sampler : {"pymc", "nutpie"}
+    sampler : {"pymc", "pymc-numba", "nutpie"}
         NUTS implementation (see the module docstring).
     draws, tune, chains, seed :
         Passed to :func:`kohpymc.calibrate`.
@@ -78,7 +80,8 @@ def run_kohpymc(
     """
     data = load_beam_data()
     discrepancy = beam_formulations()[label]
-    physics = beam.physics_model(backend="pytensor" if sampler == "nutpie" else "numpy")
+    physics = beam.physics_model(backend="numpy" if sampler == "pymc" else "pytensor")
+    extra = {"mode": "NUMBA"} if sampler == "pymc-numba" else {}
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -91,8 +94,9 @@ def run_kohpymc(
             chains=chains,
             cores=chains,
             random_seed=seed,
-            nuts_sampler=sampler,
+            nuts_sampler="nutpie" if sampler == "nutpie" else "pymc",
             warn=False,
+            **extra,
         )
     wall = time.perf_counter() - start
     sampling = float(idata.posterior.attrs["sampling_time"])

@@ -6,7 +6,7 @@ Run from the repository root::
 
 In one process and on the same data it runs, per beam formulation M0–M5,
 
-* kohpymc with PyMC's NUTS and with nutpie (:mod:`benchmarks.beam`),
+* kohpymc with PyMC's NUTS (C backend and NUMBA mode) and with nutpie (:mod:`benchmarks.beam`),
 * the paper's sampler, random-walk Metropolis on a numpy log posterior of the same model
   (:mod:`benchmarks.baselines`, 2 chains × 250,000 draws),
 * surmise's calibrator for M0 (known noise; :mod:`benchmarks.surmise_baseline`),
@@ -89,7 +89,7 @@ def beam_table(quick: bool = False, seed: int = 2026) -> pd.DataFrame:
             "divergences": 0,
         }
         rows.append(rwm)
-        for sampler in ("pymc", "nutpie"):
+        for sampler in ("pymc", "pymc-numba", "nutpie"):
             row = run_kohpymc(label, sampler, draws=nuts_draws, tune=1000, seed=seed)
             row["ratio_vs_rwm"] = row["ess_per_s_E"] / rwm["ess_per_s_E"]
             rows.append(row)

@@ -124,6 +124,7 @@ def run_study(
     chains: int = 2,
     seed: int = 2026,
     numba: bool = False,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """The whole beam study (M0–M4, validation, combination) timed end to end.
 
@@ -131,6 +132,8 @@ def run_study(
     data and formulations) with chains in parallel, writing nothing.  ``numba=True``
     swaps in the same physics as a PyTensor expression and samples with
     ``mode="NUMBA"`` (the shipped file has a numpy function and PyTensor's C backend).
+    ``workers=2`` calibrates two formulations at a time, each with its chains in
+    sequence (``cores=1``), instead of one formulation with its chains in parallel.
 
     Returns
     -------
@@ -157,7 +160,8 @@ def run_study(
             draws=draws,
             tune=tune,
             chains=chains,
-            cores=chains,
+            cores=1 if workers > 1 else chains,
+            workers=workers,
             random_seed=seed,
             progress=None,
             **extra,
@@ -169,7 +173,8 @@ def run_study(
         ess.append(float(az.ess(idata, var_names=["E"])["E"]))
         divergences += int(idata.sample_stats["diverging"].sum())
     return {
-        "variant": "PyTensor physics, NUMBA mode" if numba else "shipped file (numpy physics, C)",
+        "variant": ("PyTensor physics, NUMBA mode" if numba else "shipped file (numpy physics, C)")
+        + (f", {workers} formulations at a time" if workers > 1 else ""),
         "draws": draws,
         "tune": tune,
         "chains": chains,

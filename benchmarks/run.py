@@ -146,12 +146,19 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         print("whole beam study (M0–M4 + validation + combination):", flush=True)
         # the shipped file as it is; the physics as a PyTensor expression compiled by numba
-        # (its first run pays numba's compilation, in-process and on disk); PyMC's default
-        # warm-up (1000) and a shorter one (500) that these small models need
+        # (its first run pays numba's compilation, in-process and on disk); one formulation
+        # at a time with parallel chains, or two at a time with sequential chains; PyMC's
+        # default warm-up (1000) and a shorter one (500) that these small models need
         draws = 300 if args.quick else 1000
         runs = [
-            run_study(draws=draws, tune=tune, numba=numba)
-            for numba, tune in ((False, 1000), (False, 500), (True, 1000), (True, 500))
+            run_study(draws=draws, tune=tune, numba=numba, workers=workers)
+            for numba, tune, workers in (
+                (False, 1000, 1),
+                (False, 1000, 2),
+                (True, 1000, 1),
+                (True, 1000, 2),
+                (True, 500, 2),
+            )
         ]
         (out / "study.json").write_text(json.dumps(runs, indent=2))
         print(json.dumps(runs, indent=2), flush=True)

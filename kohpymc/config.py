@@ -34,6 +34,7 @@ formulations and sampler settings::
     chains = 4
     cores = 2                         # chains run in parallel processes (PyMC's default: 1)
     # mode = "NUMBA"                  # PyTensor compile mode of NUTS's log density (see calibrate)
+    # workers = 2                     # formulations calibrated at once (see run_study)
     seed = 2026
 
     [output]                          # optional; the CLI's --out wins
@@ -86,7 +87,9 @@ _SECTIONS: dict[str, set[str]] = {
     "data": {"calibration", "validation", "noise_sd", "replicates"},
     "validation": {"tolerance", "weights"},
     "formulations": None,  # free labels
-    "sampling": {"draws", "tune", "chains", "cores", "seed", "target_accept", "method", "mode"},
+    "sampling": {
+        "draws", "tune", "chains", "cores", "workers", "seed", "target_accept", "method", "mode",
+    },
     "output": {"dir"},
 }  # fmt: skip
 
@@ -373,7 +376,7 @@ def load_study(path: str | Path) -> StudySpec:
     sampling_doc = dict(doc.get("sampling", {}))
     if "seed" in sampling_doc:
         sampling_doc["random_seed"] = sampling_doc.pop("seed")
-    for key in ("draws", "tune", "chains", "cores"):
+    for key in ("draws", "tune", "chains", "cores", "workers"):
         if key in sampling_doc and (
             not isinstance(sampling_doc[key], int) or sampling_doc[key] < 1
         ):

@@ -263,6 +263,89 @@ def _write_atomic(path: Path, write: Callable[[Path], None], files: list[Path]) 
     files.append(write_atomic(path, write))
 
 
+@dataclass
+class _Job:
+    """What every formulation's calibration in a study shares."""
+
+    physics: PhysicsModel
+    calibration: CalibrationData
+    validation: CalibrationData
+    tolerance: float
+    validation_weights: Sequence[float] | None
+    random_seed: int | None
+    settings: dict[str, Any]
+
+
+def _calibrate_one(job: _Job, label: str, disc: Discrepancy) -> tuple:
+    """Calibrate, predict at the validation inputs and score one formulation."""
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SamplerTroubleWarning)
+        idata = calibrate(
+            job.physics,
+            job.calibration,
+            disc,
+            random_seed=_seed(job.random_seed, label, 0),
+            check_identifiability=False,
+            **job.settings,
+        )
+    pred = predict(
+        idata,
+        job.physics,
+        job.calibration,
+        disc,
+        job.validation,
+        random_seed=_seed(job.random_seed, label, 1),
+    )
+    noise_sd = _noise_sd_for_validation(job.validation, job.calibration, idata)
+    scores, const = validation_metrics(
+        pred, job.validation, job.tolerance, noise_sd, job.validation_weights
+    )
+    return idata, pred, scores, const, time.perf_counter() - start
+
+
+def _calibrate_one_safely(job: _Job, label: str, disc: Discrepancy) -> tuple[Any, str | None]:
+    try:
+        return _calibrate_one(job, label, disc), None
+    except Exception as err:  # noqa: BLE001 - reported, the study goes on
+        return None, f"{type(err).__name__}: {err}"
+
+
+#: the study a forked worker process reads (set before the workers fork)
+_FORKED: tuple[_Job, dict[str, Discrepancy]] | None = None
+
+
+def _forked_worker(label: str) -> tuple[str, Any, str | None]:
+    assert _FORKED is not None
+    job, formulations = _FORKED
+    outcome, error = _calibrate_one_safely(job, label, formulations[label])
+    return label, outcome, error
+
+
+def _run_forked(job: _Job, formulations: dict[str, Discrepancy], labels: list[str], workers: int):
+    """Yield ``(label, outcome, error)`` as formulations finish in ``workers`` processes.
+
+    The processes are forked, so the physics function, data and formulations need not be
+    picklable (only the results travel back).
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    global _FORKED
+    try:
+        context = multiprocessing.get_context("fork")
+    except ValueError as err:  # pragma: no cover - Windows
+        raise ValueError("workers > 1 needs the 'fork' start method (Linux, macOS)") from err
+    _FORKED = (job, formulations)
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+            futures = [pool.submit(_forked_worker, label) for label in labels]
+            for future in as_completed(futures):
+                yield future.result()
+    finally:
+        _FORKED = None
+
+
 def run_study(
     physics: PhysicsModel,
     calibration: CalibrationData,
@@ -281,6 +364,7 @@ def run_study(
     reference: Mapping[str, float] | None = None,
     progress: Callable[[str], None] | None = None,
     progressbar: bool = False,
+    workers: int = 1,
     **calibrate_kwargs: Any,
 ) -> StudyResult:
     """Check, calibrate, validate and weigh a set of discrepancy formulations.
@@ -315,6 +399,13 @@ def run_study(
         Called with one line of text per step (e.g. ``print``).
     progressbar : bool
         Show PyMC's sampling progress bar.
+    workers : int
+        Formulations calibrated at the same time, each in its own (forked) process.
+        The results are the same as with ``workers=1`` (every formulation's seed comes
+        from ``random_seed`` and its label).  With ``workers`` equal to the number of
+        cores, pass ``cores=1`` so the chains of each run one after the other; this also
+        overlaps the single-threaded compilation and prediction steps of different
+        formulations.
     **calibrate_kwargs :
         Further keywords for :func:`kohpymc.calibrate`.
 
@@ -333,6 +424,8 @@ def run_study(
     """
     say = progress or (lambda _msg: None)
     _check_inputs(physics, validation, tolerance)
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
     if formulations is None:
         formulations = default_formulations(physics.inputs)
     formulations = dict(formulations)
@@ -362,46 +455,49 @@ def run_study(
                 stacklevel=2,
             )
 
+    job = _Job(
+        physics=physics,
+        calibration=calibration,
+        validation=validation,
+        tolerance=tolerance,
+        validation_weights=validation_weights,
+        random_seed=random_seed,
+        settings=dict(
+            draws=draws,
+            tune=tune,
+            chains=chains,
+            target_accept=target_accept,
+            progressbar=progressbar,
+            **calibrate_kwargs,
+        ),
+    )
+    todo = [label for label in formulations if label not in failures]
+    position = {label: i + 1 for i, label in enumerate(formulations)}
+    outcomes: dict[str, tuple[Any, str | None]] = {}
+    if workers > 1 and len(todo) > 1:
+        say(f"calibrating {len(todo)} formulation(s), {workers} at a time")
+        for label, outcome, error in _run_forked(job, formulations, todo, workers):
+            outcomes[label] = (outcome, error)
+            say(f"[{position[label]}/{len(formulations)}] {label} finished")
+    else:
+        for label in todo:
+            disc = formulations[label]
+            say(
+                f"[{position[label]}/{len(formulations)}] {label} ({disc.description}): "
+                "calibrating ..."
+            )
+            outcomes[label] = _calibrate_one_safely(job, label, disc)
+
     results: dict[str, az.InferenceData] = {}
     metrics: dict[str, dict[str, float]] = {}
     wall: dict[str, float] = {}
-    for i, (label, disc) in enumerate(formulations.items()):
-        if label in failures:
+    for label in todo:  # the formulations' order, whatever order they finished in
+        outcome, error = outcomes[label]
+        if error is not None:
+            failures[label] = error
+            say(f"  {label} FAILED: {error}")
             continue
-        say(f"[{i + 1}/{len(formulations)}] {label} ({disc.description}): calibrating ...")
-        start = time.perf_counter()
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", SamplerTroubleWarning)
-                idata = calibrate(
-                    physics,
-                    calibration,
-                    disc,
-                    draws=draws,
-                    tune=tune,
-                    chains=chains,
-                    target_accept=target_accept,
-                    random_seed=_seed(random_seed, label, 0),
-                    check_identifiability=False,
-                    progressbar=progressbar,
-                    **calibrate_kwargs,
-                )
-            pred = predict(
-                idata,
-                physics,
-                calibration,
-                disc,
-                validation,
-                random_seed=_seed(random_seed, label, 1),
-            )
-            noise_sd = _noise_sd_for_validation(validation, calibration, idata)
-            scores, const = validation_metrics(
-                pred, validation, tolerance, noise_sd, validation_weights
-            )
-        except Exception as err:  # noqa: BLE001 - reported, the study goes on
-            failures[label] = f"{type(err).__name__}: {err}"
-            say(f"  {label} FAILED: {failures[label]}")
-            continue
+        idata, pred, scores, const, seconds = outcome
         idata.extend(pred)
         idata.add_groups(predictions_constant_data=const)
         if label in identifiability:
@@ -409,12 +505,12 @@ def run_study(
         idata.attrs.update({k: float(v) for k, v in scores.items()})
         results[label] = idata
         metrics[label] = scores
-        wall[label] = time.perf_counter() - start
+        wall[label] = seconds
         problems = json.loads(idata.attrs["sampler_problems"])
         say(
             f"  {label}: mu_r = {scores['mu_r']:.3f} ± {scores['mu_r_mcse']:.3f}, "
             f"RMSE {scores['rmse']:.3g}, 90% coverage {scores['coverage90']:.2f}, "
-            f"{wall[label]:.0f} s" + (f"; sampler: {'; '.join(problems)}" if problems else "")
+            f"{seconds:.0f} s" + (f"; sampler: {'; '.join(problems)}" if problems else "")
         )
     if not results:
         raise RuntimeError(

@@ -67,6 +67,7 @@ def test_shipped_beam_study_matches_the_generator():
         ({'inputs = ["x", "P"]': 'inputs = ["x", "Q"]'}, "[data.calibration]", "Q"),
         ({"draws = 100": "draws = 0"}, "[sampling.draws]", "positive integer"),
         ({"draws = 100": 'draws = 100\nmode = "numba"'}, "[sampling.mode]", "'numba'"),
+        ({"draws = 100": "draws = 100\nworkers = 0"}, "[sampling.workers]", "positive integer"),
     ],
 )
 def test_bad_study_files_name_file_and_key(tmp_path, write_study, replace, key, words):

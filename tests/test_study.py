@@ -37,17 +37,31 @@ def small_study(beam_physics, beam_data, beam_validation, tmp_path_factory):
 
 
 def test_same_seed_gives_identical_tables(small_study, beam_physics, beam_data, beam_validation):
+    """The same seed gives the same table, also with the formulations calibrated two at a
+    time in forked processes (where the failing one is reported the same way)."""
     first, _ = small_study
     again = run_study(
         beam_physics,
         beam_data,
         beam_validation,
-        {"M0": NoDiscrepancy(), "M1": ConstantBias()},
+        {"M0": NoDiscrepancy(), "M1": ConstantBias(), "bad": GaussianProcess(["no_such_input"])},
         tolerance=0.75,
         random_seed=3,
+        workers=2,
+        cores=1,
         **SMALL,
     )
-    pd.testing.assert_frame_equal(first.table.drop(index="bad"), again.table)
+    pd.testing.assert_frame_equal(first.table, again.table)
+    assert list(again.results) == ["M0", "M1"] and set(again.failures) == {"bad"}
+    for label in ("M0", "M1"):
+        np.testing.assert_array_equal(
+            first.results[label].posterior["E"].values, again.results[label].posterior["E"].values
+        )
+
+
+def test_workers_must_be_a_positive_integer(beam_physics, beam_data, beam_validation):
+    with pytest.raises(ValueError, match="workers must be a positive integer, got 0"):
+        run_study(beam_physics, beam_data, beam_validation, tolerance=0.75, workers=0)
 
 
 def test_failed_formulation_is_reported_and_others_kept(small_study):

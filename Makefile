@@ -31,7 +31,7 @@ $(BENCH_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[dev,bench]"
 	@touch $(BENCH_STAMP)
 
-# kohpymc vs random-walk Metropolis and surmise, study wall time, n = 9,120 GP (~35 min);
+# kohpymc vs random-walk Metropolis and surmise, study wall time, n = 9,120 GP (~20 min);
 # tables in benchmarks/results/
 bench: $(BENCH_STAMP)
 	$(PY) -m benchmarks.run

@@ -168,6 +168,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         print("n = 9,120 GP discrepancy:", flush=True)
         result = scale.main(["--cores", "2"] + (["--quick"] if args.quick else []))
+        # the same data through the library: one kohpymc.calibrate call with GridGP
+        result["library"] = scale.run_library(args.quick, cores=2)
         (out / "scale.json").write_text(json.dumps(result, indent=2, default=str))
     return 0
 

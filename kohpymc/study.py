@@ -339,9 +339,12 @@ def _run_forked(job: _Job, formulations: dict[str, Discrepancy], labels: list[st
     _FORKED = (job, formulations)
     try:
         with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-            futures = [pool.submit(_forked_worker, label) for label in labels]
+            futures = {pool.submit(_forked_worker, label): label for label in labels}
             for future in as_completed(futures):
-                yield future.result()
+                try:
+                    yield future.result()
+                except Exception as err:  # noqa: BLE001 - e.g. a worker killed by the OS
+                    yield futures[future], None, f"worker process: {type(err).__name__}: {err}"
     finally:
         _FORKED = None
 

@@ -1,14 +1,17 @@
-"""Calibration: physics + discrepancy + data -> PyMC model -> ArviZ InferenceData.
+"""Calibration: physics + discrepancy + data -> PyMC model -> a :class:`Calibration`.
 
 ``y_D = G(x; θ) + δ(x) + ε`` (paper Eqs. 1–2) with ``ε ~ N(0, σ_obs²)``.
 
 * :func:`kohpymc.model.build_model` returns the PyMC model (inspect or extend it).
 * :func:`calibrate` builds and samples it (NUTS, or SMC for gradient-free runs) and
-  returns an InferenceData with posterior, sample_stats, log_likelihood,
-  observed_data and the data's input values as coordinates of the ``obs`` dimension.
-* :func:`predict` draws ``y_m = G + δ`` (``"y_model"``) and ``y_m + ε``
-  (``"y_pred"``) at new inputs (paper Eq. 20), plus the physics part (``"physics"``)
-  and the discrepancy part (``"discrepancy"``), into a ``predictions`` group.
+  returns a :class:`Calibration`: the physics, data, formulation, built model and its
+  InferenceData (``.idata``: posterior, sample_stats, log_likelihood, observed_data, the
+  data's input values as coordinates of the ``obs`` dimension), with the sampler's
+  problems and the identifiability report as Python objects.
+* :func:`predict` (or :meth:`Calibration.predict`) draws ``y_m = G + δ``
+  (``"y_model"``) and ``y_m + ε`` (``"y_pred"``) at new inputs (paper Eq. 20), plus the
+  physics part (``"physics"``) and the discrepancy part (``"discrepancy"``), into a
+  ``predictions`` group.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import json
 import time
 import warnings
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import arviz as az
@@ -27,13 +31,17 @@ from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.discrepancy.none import NoDiscrepancy
-from kohpymc.identifiability import IdentifiabilityWarning, model_taylor_check
-from kohpymc.loo import loo_log_likelihood
-from kohpymc.model import OBS_DIM, PRED_DIM, build_model, new_input_matrix
+from kohpymc.identifiability import (
+    IdentifiabilityReport,
+    IdentifiabilityWarning,
+    model_taylor_check,
+)
+from kohpymc.loo import pointwise_log_likelihood
+from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
 
-__all__ = ["calibrate", "predict"]
+__all__ = ["Calibration", "calibrate", "predict", "COMPILE_MODES"]
 
 #: PyTensor compile modes :func:`calibrate` accepts for PyMC's NUTS
 COMPILE_MODES = ("NUMBA", "FAST_RUN")
@@ -45,6 +53,151 @@ def _attach_input_coords(idata: az.InferenceData, dim: str, inputs: Mapping[str,
         if dim in ds.dims:
             extra = {k: (dim, np.asarray(v)) for k, v in inputs.items() if k not in ds.variables}
             idata[group] = ds.assign_coords(extra)
+
+
+@dataclass
+class Calibration:
+    """One calibrated formulation: the set-up, the built model and its posterior.
+
+    Attributes
+    ----------
+    physics : PhysicsModel
+    data : CalibrationData
+        The calibration data.
+    formulation : Discrepancy
+    built : CalibrationModel
+        The sampled PyMC model with its formulation's record.
+    idata : arviz.InferenceData
+        ``posterior, sample_stats, log_likelihood, observed_data``; ``attrs`` hold
+        plain scalars only (formulation label, physics name, method, wall time).
+    problems : list of str
+        Sampler trouble (r̂, divergences, ESS), empty when none.
+    identifiability : IdentifiabilityReport or None
+        The Taylor check at the prior centre (``None`` when skipped).
+    noise_sd_prior : Prior or None
+        Prior of σ_obs used (``None``: the default or a known noise sd).
+
+    Examples
+    --------
+    >>> import kohpymc as kp
+    >>> from kohpymc.examples import beam
+    >>> cal = kp.calibrate(beam.physics_model(), beam.generate_data(seed=1),
+    ...                    kp.ConstantBias(), draws=200, chains=2, random_seed=1)  # doctest: +SKIP
+    >>> cal.label, cal.idata.posterior["E"].dims  # doctest: +SKIP
+    ('M1', ('chain', 'draw'))
+    >>> cal.predict({"x": [3.0], "P": [3.0]}).predictions["y_model"].dims  # doctest: +SKIP
+    ('chain', 'draw', 'pred')
+    """
+
+    physics: PhysicsModel
+    data: CalibrationData
+    formulation: Discrepancy
+    built: CalibrationModel
+    idata: az.InferenceData
+    problems: list[str] = field(default_factory=list)
+    identifiability: IdentifiabilityReport | None = None
+    noise_sd_prior: Prior | dict[str, Any] | None = None
+
+    @property
+    def label(self) -> str:
+        """The formulation's label (``"M0"`` ... )."""
+        return self.formulation.label
+
+    @property
+    def model(self):
+        """The sampled ``pm.Model``."""
+        return self.built.model
+
+    @property
+    def posterior(self):
+        """``idata.posterior``."""
+        return self.idata.posterior
+
+    def predict(
+        self, new_inputs: Any, *, random_seed: int | None = None, progressbar: bool = False
+    ) -> az.InferenceData:
+        """Posterior predictions at new inputs: see :func:`predict`."""
+        return predict(self, new_inputs, random_seed=random_seed, progressbar=progressbar)
+
+    def provenance(self) -> dict[str, Any]:
+        """Attributes for a file: this calibration's set-up and results as plain values.
+
+        Lists and reports are JSON strings here (NetCDF attributes hold scalars).
+        """
+        out: dict[str, Any] = dict(self.idata.attrs)
+        out["discrepancy"] = json.dumps(_plain_or_repr(self.formulation))
+        out["physics_parameters"] = json.dumps(list(self.physics.parameters))
+        out["inputs"] = json.dumps(list(self.built.input_names))
+        out["sampler_problems"] = json.dumps(self.problems)
+        if self.identifiability is not None:
+            out["identifiability"] = json.dumps(self.identifiability.to_dict())
+        return out
+
+    def to_netcdf(self, path: Any) -> Any:
+        """Write the InferenceData with :meth:`provenance` as its attributes."""
+        idata = self.idata.copy()
+        idata.attrs = self.provenance()
+        return idata.to_netcdf(str(path))
+
+
+def _plain_or_repr(formulation: Discrepancy) -> Any:
+    try:
+        return formulation.to_dict()
+    except TypeError:
+        return repr(formulation)
+
+
+def _compile_mode_kwargs(mode, method, nuts_sampler, sample_kwargs: dict[str, Any]) -> None:
+    """Put ``mode`` into PyMC's ``compile_kwargs`` (PyMC's own NUTS only)."""
+    if mode is None:
+        return
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"mode must be one of {list(COMPILE_MODES)} or None, got {mode!r}")
+    if method != "nuts" or nuts_sampler != "pymc":
+        raise ValueError(
+            "mode applies to PyMC's own NUTS (method='nuts', nuts_sampler='pymc'), "
+            f"not method={method!r}, nuts_sampler={nuts_sampler!r}"
+        )
+    compile_kwargs = dict(sample_kwargs.pop("compile_kwargs", None) or {})
+    compile_kwargs["mode"] = mode
+    sample_kwargs["compile_kwargs"] = compile_kwargs
+
+
+def _identifiability(plain: CalibrationModel, physics: PhysicsModel, warn: bool):
+    """The Taylor check at the prior centre, warning on a rank deficit."""
+    label = plain.formulation.label
+    try:
+        report = model_taylor_check(plain)
+    except ValueError as err:
+        warnings.warn(f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=3)
+        return None
+    if not report.identifiable and warn:
+        warnings.warn(
+            f"{label} with {physics.name!r} is not identifiable at the prior centre "
+            f"(rank {report.rank} of {len(report.names)}): "
+            + "; ".join(report.confounded())
+            + " (pass check_identifiability=False to skip this check)",
+            IdentifiabilityWarning,
+            stacklevel=3,
+        )
+    return report
+
+
+def _sample(model, method: str, settings: dict[str, Any], sample_kwargs: dict[str, Any]):
+    """Run NUTS or SMC; returns the InferenceData with a log_likelihood group."""
+    with model:
+        if method == "nuts":
+            idata = pm.sample(**settings, idata_kwargs={"log_likelihood": True}, **sample_kwargs)
+            if "log_likelihood" not in idata.groups():
+                pm.compute_log_likelihood(idata, progressbar=False)
+            return idata
+        if method == "smc":
+            settings = {k: v for k, v in settings.items() if k not in ("tune", "target_accept")}
+            settings.pop("nuts_sampler", None)
+            idata = pm.sample_smc(**settings, **sample_kwargs)
+            pm.compute_log_likelihood(idata, progressbar=False)
+            return idata
+    raise ValueError(f"method must be 'nuts' or 'smc', got {method!r}")
 
 
 def calibrate(
@@ -66,7 +219,7 @@ def calibrate(
     warn: bool = True,
     check_identifiability: bool = True,
     **sample_kwargs: Any,
-) -> az.InferenceData:
+) -> Calibration:
     """Calibrate a physics model under one discrepancy formulation.
 
     Parameters
@@ -96,145 +249,81 @@ def calibrate(
         Prior of σ_obs when the data carry no noise sd.
     warn : bool
         Issue a :class:`~kohpymc.diagnostics.SamplerTroubleWarning` on problems; they
-        are stored in ``idata.attrs["sampler_problems"]`` either way.
+        are in :attr:`Calibration.problems` either way.
     check_identifiability : bool
         Before sampling, run the Taylor check of the physics plus discrepancy mean
         (:func:`kohpymc.identifiability.check_formulation`) at the prior centre; a rank
         deficit gives an :class:`~kohpymc.identifiability.IdentifiabilityWarning` naming
-        the confounded combination.  The report is stored as JSON in
-        ``idata.attrs["identifiability"]``.
+        the confounded combination.  The report is :attr:`Calibration.identifiability`.
     **sample_kwargs :
         Any other keyword for :func:`pymc.sample` / :func:`pymc.sample_smc`.
 
     Returns
     -------
-    arviz.InferenceData
-        Groups ``posterior, sample_stats, log_likelihood, observed_data``; the ``obs``
-        dimension carries the input values as coordinates.  ``attrs`` hold the
-        formulation label, wall time and sampler problems (JSON list).
+    Calibration
+        With ``.idata``: groups ``posterior, sample_stats, log_likelihood,
+        observed_data``; the ``obs`` dimension carries the input values as coordinates.
 
     Examples
     --------
     >>> from kohpymc.examples import beam
     >>> from kohpymc.discrepancy import ConstantBias
-    >>> idata = calibrate(beam.physics_model(), beam.generate_data(seed=1), ConstantBias(),
-    ...                   draws=200, tune=200, chains=2, random_seed=1)  # doctest: +SKIP
-    >>> idata.posterior["E"].dims  # doctest: +SKIP
+    >>> cal = calibrate(beam.physics_model(), beam.generate_data(seed=1), ConstantBias(),
+    ...                 draws=200, tune=200, chains=2, random_seed=1)  # doctest: +SKIP
+    >>> cal.idata.posterior["E"].dims  # doctest: +SKIP
     ('chain', 'draw')
     """
-    if mode is not None:
-        if mode not in COMPILE_MODES:
-            raise ValueError(f"mode must be one of {list(COMPILE_MODES)} or None, got {mode!r}")
-        if method != "nuts" or nuts_sampler != "pymc":
-            raise ValueError(
-                "mode applies to PyMC's own NUTS (method='nuts', nuts_sampler='pymc'), "
-                f"not method={method!r}, nuts_sampler={nuts_sampler!r}"
-            )
-        compile_kwargs = dict(sample_kwargs.pop("compile_kwargs", None) or {})
-        compile_kwargs["mode"] = mode
-        sample_kwargs["compile_kwargs"] = compile_kwargs
+    _compile_mode_kwargs(mode, method, nuts_sampler, sample_kwargs)
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
-    model = build_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
-    # the direct (unmarginalized) form serves the identifiability check and, for M0–M3,
-    # the pointwise log-likelihood
-    plain = build_model(
+    built = compose_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
+    # the direct (unmarginalized) form serves the identifiability check and, when its rows
+    # are independent, the pointwise log-likelihood
+    plain = compose_model(
         physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
     )
-    identifiability = None
-    if check_identifiability:
-        try:
-            report = model_taylor_check(plain)
-        except ValueError as err:
-            warnings.warn(
-                f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=2
-            )
-        else:
-            identifiability = json.dumps(report.to_dict())
-            if not report.identifiable:
-                warnings.warn(
-                    f"{discrepancy.label} with {physics.name!r} is not identifiable at the "
-                    f"prior centre (rank {report.rank} of {len(report.names)}): "
-                    + "; ".join(report.confounded())
-                    + " (pass check_identifiability=False to skip this check)",
-                    IdentifiabilityWarning,
-                    stacklevel=2,
-                )
+    report = _identifiability(plain, physics, warn) if check_identifiability else None
+    settings = dict(
+        draws=draws,
+        tune=tune,
+        chains=chains,
+        cores=cores,
+        target_accept=target_accept or discrepancy.default_target_accept,
+        random_seed=random_seed,
+        nuts_sampler=nuts_sampler,
+        progressbar=progressbar,
+    )
     start = time.perf_counter()
-    with model:
-        if method == "nuts":
-            idata = pm.sample(
-                draws=draws,
-                tune=tune,
-                chains=chains,
-                cores=cores,
-                target_accept=target_accept or discrepancy.default_target_accept,
-                random_seed=random_seed,
-                nuts_sampler=nuts_sampler,
-                progressbar=progressbar,
-                idata_kwargs={"log_likelihood": True},
-                **sample_kwargs,
-            )
-            if "log_likelihood" not in idata.groups():
-                pm.compute_log_likelihood(idata, progressbar=False)
-        elif method == "smc":
-            idata = pm.sample_smc(
-                draws=draws,
-                chains=chains,
-                cores=cores,
-                random_seed=random_seed,
-                progressbar=progressbar,
-                **sample_kwargs,
-            )
-            pm.compute_log_likelihood(idata, progressbar=False)
-        else:
-            raise ValueError(f"method must be 'nuts' or 'smc', got {method!r}")
+    idata = _sample(built.model, method, settings, sample_kwargs)
     elapsed = time.perf_counter() - start
-    if discrepancy.independent_rows and "y" in idata.log_likelihood:
-        if idata.log_likelihood["y"].ndim == 2:  # marginalized: use the pointwise form
-            pointwise = pm.compute_log_likelihood(
-                idata, model=plain, extend_inferencedata=False, progressbar=False
-            )
-            idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
-    elif "y" in idata.log_likelihood and idata.log_likelihood["y"].ndim == 2:
-        # correlated rows (GP): exact leave-one-out conditionals as the pointwise values
-        # (a formulation may supply its own, e.g. GridGP's structured one)
-        loo = getattr(discrepancy, "pointwise_log_likelihood", loo_log_likelihood)
-        pointwise = loo(idata.posterior, model, "y", obs_dim=OBS_DIM)
+    pointwise = pointwise_log_likelihood(idata, built, plain)
+    if pointwise is not None:
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
     _attach_input_coords(idata, OBS_DIM, data.inputs)
-    param_names = list(physics.parameters)
     problems = convergence_problems(idata) if method == "nuts" else []
     idata.attrs.update(
         {
             "formulation": discrepancy.label,
             "formulation_description": discrepancy.description,
-            "discrepancy": repr(discrepancy),
             "physics": physics.name,
-            "physics_parameters": json.dumps(param_names),
-            "inputs": json.dumps(list(model.kohpymc["input_names"])),  # type: ignore[attr-defined]
             "noise_sd": -1.0 if data.noise_sd is None else float(data.noise_sd),
             "method": method,
             "compile_mode": mode or "default",
             "wall_time_s": elapsed,
-            "sampler_problems": json.dumps(problems),
         }
     )
-    if identifiability is not None:
-        idata.attrs["identifiability"] = identifiability
     if problems and warn:
         warnings.warn(
             f"{discrepancy.label} calibration of {physics.name!r}: " + "; ".join(problems),
             SamplerTroubleWarning,
             stacklevel=2,
         )
-    return idata
+    return Calibration(
+        physics, data, discrepancy, built, idata, problems, report, noise_sd_prior
+    )
 
 
 def predict(
-    idata: az.InferenceData,
-    physics: PhysicsModel,
-    data: CalibrationData,
-    discrepancy: Discrepancy | None,
+    calibration: Calibration,
     new_inputs: Any,
     *,
     random_seed: int | None = None,
@@ -247,10 +336,8 @@ def predict(
 
     Parameters
     ----------
-    idata : arviz.InferenceData
-        Result of :func:`calibrate` with the same physics, data and discrepancy.
-    physics, data, discrepancy :
-        The calibration set-up.
+    calibration : Calibration
+        Result of :func:`calibrate`.
     new_inputs : DataFrame, mapping or CalibrationData
         Where to predict; all model inputs are needed.
     random_seed : int, optional
@@ -266,25 +353,35 @@ def predict(
     Examples
     --------
     >>> from kohpymc.examples import beam
-    >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
-    >>> idata = calibrate(physics, data, draws=200, chains=2, random_seed=1)  # doctest: +SKIP
+    >>> cal = calibrate(beam.physics_model(), beam.generate_data(seed=1), draws=200,
+    ...                 chains=2, random_seed=1)  # doctest: +SKIP
     >>> new = beam.generate_data(loads=(3.5,), seed=2)
-    >>> pred = predict(idata, physics, data, None, new, random_seed=3)  # doctest: +SKIP
+    >>> pred = predict(cal, new, random_seed=3)  # doctest: +SKIP
     >>> pred.predictions["y_model"].dims  # doctest: +SKIP
     ('chain', 'draw', 'pred')
     """
-    discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
-    model = build_model(physics, data, discrepancy, new_inputs=new_inputs)
-    names = model.kohpymc["input_names"]  # type: ignore[attr-defined]
+    if not isinstance(calibration, Calibration):
+        raise TypeError(
+            f"predict takes the Calibration that kohpymc.calibrate returned, "
+            f"got {type(calibration).__name__}"
+        )
+    built = compose_model(
+        calibration.physics,
+        calibration.data,
+        calibration.formulation,
+        new_inputs=new_inputs,
+        noise_sd_prior=calibration.noise_sd_prior,
+    )
+    names = built.input_names
     Xn = new_input_matrix(new_inputs, names)
-    with model:
+    with built.model:
         pred = pm.sample_posterior_predictive(
-            idata,
+            calibration.idata,
             var_names=["physics", "discrepancy", "y_model", "y_pred"],
             predictions=True,
             random_seed=random_seed,
             progressbar=progressbar,
         )
     _attach_input_coords(pred, PRED_DIM, {k: Xn[:, j] for j, k in enumerate(names)})
-    pred.attrs["formulation"] = discrepancy.label
+    pred.attrs["formulation"] = calibration.label
     return pred

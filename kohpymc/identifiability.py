@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from kohpymc.model import build_model
+from kohpymc.model import compose_model
 
 __all__ = [
     "IdentifiabilityReport",
@@ -448,25 +448,20 @@ def taylor_check(
 # Checks of a calibration formulation, from its PyMC model
 
 
-def _likelihood_parts(model):
-    """``(mu, cov_or_sd, is_mv)`` of the observed ``y`` of a kohpymc model."""
-    y = model["y"]
-    node = y.owner
-    op_name = type(node.op).__name__
-    mu, second = node.inputs[2], node.inputs[3]
-    # MvNormal broadcasts mu against cov with `second(cov[..., -1], mu)`: look through it
-    from pytensor.scalar.basic import Second
-    from pytensor.tensor.elemwise import Elemwise
+def _likelihood_parts(built):
+    """``(mu, cov_or_sd, is_mv)`` of the observed ``y``, from the formulation's record."""
+    import pytensor.tensor as pt
 
-    while (
-        mu.owner is not None
-        and isinstance(mu.owner.op, Elemwise)
-        and isinstance(mu.owner.op.scalar_op, Second)
-    ):
-        mu = mu.owner.inputs[1]
-    from pytensor.tensor.random.basic import MvNormalRV
-
-    return mu, second, isinstance(node.op, MvNormalRV) or op_name.startswith("MvNormal")
+    record = built.likelihood
+    if record.covariance is not None:
+        return record.mean, record.covariance, True
+    if record.variance is not None:
+        return record.mean, pt.sqrt(record.variance), False
+    label = built.formulation.label or type(built.formulation).__name__
+    raise ValueError(
+        f"{label}: the Fisher check needs a Gaussian likelihood, and the formulation's "
+        "record gives neither a covariance nor variances"
+    )
 
 
 def _free_names(model, rvs) -> list[tuple[Any, str, int | None]]:
@@ -598,27 +593,31 @@ def check_formulation(
     >>> report.identifiable
     True
     """
-    model = build_model(physics, data, discrepancy, marginalize=False)
-    return model_taylor_check(model, point=point, rtol=rtol)
+    built = compose_model(physics, data, discrepancy, marginalize=False)
+    return model_taylor_check(built, point=point, rtol=rtol)
 
 
 def model_taylor_check(
-    model: Any, *, point: Mapping[str, Any] | str | None = None, rtol: float = RTOL
+    built: Any, *, point: Mapping[str, Any] | str | None = None, rtol: float = RTOL
 ) -> IdentifiabilityReport:
-    """:func:`check_formulation` on an already built unmarginalized kohpymc model.
+    """:func:`check_formulation` on an already built unmarginalized calibration model.
+
+    ``built`` is a :class:`~kohpymc.model.CalibrationModel`; the check differentiates
+    the mean its formulation's record gives.
 
     Examples
     --------
-    >>> from kohpymc import build_model
+    >>> from kohpymc.model import compose_model
     >>> from kohpymc.examples import beam
-    >>> model = build_model(beam.physics_model(), beam.generate_data(), marginalize=False)
-    >>> model_taylor_check(model).names
+    >>> built = compose_model(beam.physics_model(), beam.generate_data(), marginalize=False)
+    >>> model_taylor_check(built).names
     ['E']
     """
     import pytensor.graph as pg
 
+    model = built.model
     n = len(model.coords["obs"])
-    mu, _, _ = _likelihood_parts(model)
+    mu = built.likelihood.mean
     values = _design_point(model, point)
 
     ancestors = set(pg.ancestors([mu]))
@@ -668,8 +667,9 @@ def fisher_information_check(
     """
     if data.n > 2000:
         raise ValueError(f"the dense Fisher information needs n <= 2000 rows, got {data.n}")
-    model = build_model(physics, data, discrepancy, marginalize=False)
-    mu, second, is_mv = _likelihood_parts(model)
+    built = compose_model(physics, data, discrepancy, marginalize=False)
+    model = built.model
+    mu, second, is_mv = _likelihood_parts(built)
     values = _design_point(model, point)
     rvs = list(model.free_RVs)
     entries = _free_names(model, rvs)

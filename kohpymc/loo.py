@@ -17,14 +17,14 @@ joint log-likelihood; the group is marked ``attrs["pointwise"] = "loo_conditiona
 
 from __future__ import annotations
 
+import arviz as az
 import numpy as np
-import pytensor
+import pymc as pm
 import xarray as xr
-from pymc.model.transform.conditioning import remove_value_transforms
-from pytensor.graph.traversal import ancestors
-from pytensor.tensor.random.basic import MvNormalRV
 
-__all__ = ["gaussian_loo_log_density", "loo_log_likelihood"]
+from kohpymc.model import CalibrationModel
+
+__all__ = ["gaussian_loo_log_density", "loo_log_likelihood", "pointwise_log_likelihood"]
 
 
 def gaussian_loo_log_density(y: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -71,22 +71,20 @@ def gaussian_loo_log_density(y: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> 
 
 def loo_log_likelihood(
     posterior: xr.Dataset,
-    model,
-    var_name: str = "y",
+    built: CalibrationModel,
     *,
     obs_dim: str = "obs",
     chunk_size: int = 500,
 ) -> xr.Dataset:
-    """Exact leave-one-out log densities of an observed ``MvNormal`` per posterior draw.
+    """Exact leave-one-out log densities of a Gaussian likelihood per posterior draw.
 
     Parameters
     ----------
     posterior : xarray.Dataset
-        Posterior draws with dims ``(chain, draw)`` of every free variable of ``model``.
-    model : pymc.Model
-        The model whose observed variable ``var_name`` is a multivariate normal.
-    var_name : str
-        Name of the observed variable.
+        Posterior draws with dims ``(chain, draw)`` of every free variable of the model.
+    built : CalibrationModel
+        The model and its formulation's record, which must give the likelihood's
+        ``covariance`` (and ``mean``).
     obs_dim : str
         Name of the observation dimension of the result.
     chunk_size : int
@@ -95,37 +93,37 @@ def loo_log_likelihood(
     Returns
     -------
     xarray.Dataset
-        ``var_name`` with dims ``(chain, draw, obs_dim)``, ``attrs["pointwise"] =
-        "loo_conditional"``.
+        The observed variable with dims ``(chain, draw, obs_dim)``,
+        ``attrs["pointwise"] = "loo_conditional"``.
 
     Examples
     --------
-    >>> from kohpymc import calibrate, GaussianProcess  # doctest: +SKIP
+    >>> import kohpymc as kp  # doctest: +SKIP
     >>> from kohpymc.examples import beam  # doctest: +SKIP
-    >>> idata = calibrate(beam.physics_model(), beam.generate_data(seed=1),
-    ...                   GaussianProcess(["x"]), draws=100, chains=1)  # doctest: +SKIP
-    >>> idata.log_likelihood.attrs["pointwise"]  # doctest: +SKIP
+    >>> cal = kp.calibrate(beam.physics_model(), beam.generate_data(seed=1),
+    ...                    kp.GaussianProcess(["x"]), draws=100, chains=1)  # doctest: +SKIP
+    >>> cal.idata.log_likelihood.attrs["pointwise"]  # doctest: +SKIP
     'loo_conditional'
     """
-    umodel = remove_value_transforms(model)
-    rv = umodel[var_name]
-    if not isinstance(rv.owner.op, MvNormalRV):
-        raise TypeError(f"{var_name!r} is not a multivariate normal ({rv.owner.op})")
-    mu, cov = rv.owner.inputs[-2:]
-    outs = umodel.replace_rvs_by_values([mu, cov])
-    needed = [v for v in umodel.value_vars if v in ancestors(outs)]
-    fn = pytensor.function(needed, outs, on_unused_input="ignore")
-    observed = umodel.rvs_to_values[rv]
-    raw = observed.get_value() if hasattr(observed, "get_value") else observed.data
-    y = np.asarray(raw, dtype=float)
+    record = built.likelihood
+    if record.covariance is None:
+        raise ValueError(
+            f"{built.formulation.label or type(built.formulation).__name__}: exact "
+            "leave-one-out needs the likelihood's covariance, which its record does not give"
+        )
+    fn, names = built.natural_function([record.mean, record.covariance])
+    var_name = record.observed
+    y = np.asarray(built.model.rvs_to_values[built.model[var_name]].data, dtype=float)
     n = y.size
-    names = [v.name for v in needed]
     missing = [k for k in names if k not in posterior]
     if missing:
         raise KeyError(f"posterior lacks variable(s) {missing} needed by {var_name!r}")
-    stacked = {k: posterior[k].transpose("chain", "draw", ...).values for k in names}
     n_chain, n_draw = posterior.sizes["chain"], posterior.sizes["draw"]
-    flat = {k: v.reshape(n_chain * n_draw, *v.shape[2:]) for k, v in stacked.items()}
+    flat = {
+        k: posterior[k].transpose("chain", "draw", ...).values.reshape(n_chain * n_draw, -1)
+        for k in names
+    }
+    shapes = {k: posterior[k].shape[2:] for k in names}
     total = n_chain * n_draw
     out = np.empty((total, n))
     for start in range(0, total, chunk_size):
@@ -133,7 +131,7 @@ def loo_log_likelihood(
         mus = np.empty((stop - start, n))
         covs = np.empty((stop - start, n, n))
         for j, d in enumerate(range(start, stop)):
-            m, c = fn(*(flat[k][d] for k in names))
+            m, c = fn(*(flat[k][d].reshape(shapes[k]) for k in names))
             mus[j] = np.broadcast_to(m, (n,))
             covs[j] = c
         out[start:stop] = gaussian_loo_log_density(y, mus, covs)
@@ -142,3 +140,47 @@ def loo_log_likelihood(
     ds = xr.Dataset({var_name: (("chain", "draw", obs_dim), values)}, coords=coords)
     ds.attrs["pointwise"] = "loo_conditional"
     return ds
+
+
+def pointwise_log_likelihood(
+    idata: az.InferenceData, built: CalibrationModel, plain: CalibrationModel
+) -> xr.Dataset | None:
+    """Pointwise log-likelihood values for LOO, read off the formulations' records.
+
+    ``built`` is the sampled model and ``plain`` the same formulation without
+    integrated-out coefficients.  Returns ``None`` when PyMC's own log-likelihood group
+    is already pointwise.
+
+    Rows independent given the plain model's variables: PyMC's elementwise values of
+    the plain model.  Else the record's own ``pointwise`` function, else the exact
+    Gaussian leave-one-out conditionals from its covariance.
+
+    Raises
+    ------
+    ValueError
+        When the record gives none of these (naming the formulation).
+
+    Examples
+    --------
+    >>> ds = pointwise_log_likelihood(cal.idata, cal.built, plain)  # doctest: +SKIP
+    """
+    name = built.likelihood.observed
+    values = idata.log_likelihood[name] if "log_likelihood" in idata.groups() else None
+    already = values is not None and values.ndim == 3
+    if plain.likelihood.independent_rows:
+        if already and built.likelihood.independent_rows:
+            return None
+        return pm.compute_log_likelihood(
+            idata, model=plain.model, extend_inferencedata=False, progressbar=False
+        )
+    if built.likelihood.pointwise is not None:
+        return built.likelihood.pointwise(idata.posterior, built.model)
+    if built.likelihood.covariance is not None:
+        return loo_log_likelihood(idata.posterior, built)
+    if already:
+        return None
+    label = built.formulation.label or type(built.formulation).__name__
+    raise ValueError(
+        f"{label}: no pointwise log-likelihood: its Likelihood record sets neither "
+        "independent_rows, a covariance nor a pointwise function"
+    )

@@ -1,27 +1,38 @@
 """The PyMC model of ``y_D = G(x; θ) + δ(x) + ε`` for one discrepancy formulation.
 
-:func:`build_model` assembles data, physics parameters, the noise model and a
+:func:`compose_model` assembles data, physics parameters, the noise model and a
 formulation's likelihood into a ``pm.Model`` (optionally with prediction variables at new
-inputs).  Calibration, prediction and the identifiability checks all start from it.
+inputs) and returns it with the formulation's :class:`~kohpymc.discrepancy.Likelihood`
+record as a :class:`CalibrationModel`.  Calibration, prediction and the identifiability
+checks all start from it; :func:`build_model` returns just the ``pm.Model``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import pymc as pm
+import pytensor
 import pytensor.tensor as pt
 
 from kohpymc.data import CalibrationData
-from kohpymc.discrepancy.base import Discrepancy, ModelContext
+from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.none import NoDiscrepancy
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import HalfNormal, Prior, as_prior
 
-__all__ = ["build_model", "new_input_matrix", "OBS_DIM", "PRED_DIM"]
+__all__ = [
+    "CalibrationModel",
+    "build_model",
+    "compose_model",
+    "new_input_matrix",
+    "OBS_DIM",
+    "PRED_DIM",
+]
 
 OBS_DIM = "obs"
 PRED_DIM = "pred"
@@ -88,6 +99,146 @@ def _check_physics(physics: PhysicsModel, data: CalibrationData) -> None:
     physics.evaluate({k: data.inputs[k] for k in physics.inputs}, point)
 
 
+@dataclass(frozen=True)
+class CalibrationModel:
+    """A built calibration model and the record its formulation returned.
+
+    Attributes
+    ----------
+    model : pymc.Model
+        The PyMC model (observed ``"y"`` over dim ``"obs"``).
+    likelihood : Likelihood
+        What the formulation built (mean, covariance or variances, predictor, ...).
+    formulation : Discrepancy
+        The formulation.
+    input_names : tuple of str
+        Columns of the input matrix (physics inputs, then extra discrepancy inputs).
+    formulation_variables : tuple of str
+        Names of the model variables the formulation created.
+    """
+
+    model: pm.Model
+    likelihood: Likelihood
+    formulation: Discrepancy
+    input_names: tuple[str, ...]
+    formulation_variables: tuple[str, ...]
+
+    def natural_function(self, outputs: list[Any]) -> tuple[Any, list[str]]:
+        """Compile ``outputs`` as a function of the free variables they depend on.
+
+        Returns ``(fn, names)``: ``fn(*values)`` takes the natural-scale values of the
+        free variables ``names`` (in that order), as a posterior holds them.
+        """
+        from pytensor.graph.traversal import ancestors
+
+        upstream = set(ancestors(outputs))
+        free = [rv for rv in self.model.free_RVs if rv in upstream]
+        inputs = [rv.type(name=rv.name) for rv in free]
+        replaced = pytensor.clone_replace(list(outputs), replace=dict(zip(free, inputs, strict=True)))
+        fn = pytensor.function(inputs, replaced, on_unused_input="ignore")
+        return fn, [rv.name for rv in free]
+
+
+def _noise_sd(data: CalibrationData, noise_sd_prior: Any, y_scale: float):
+    """σ_obs: the data's known value, else a ``"sigma_obs"`` parameter."""
+    if data.noise_sd is not None:
+        return pt.as_tensor_variable(np.float64(data.noise_sd))
+    prior = as_prior(noise_sd_prior, name="sigma_obs") if noise_sd_prior else None
+    return (prior or HalfNormal(y_scale)).create("sigma_obs")
+
+
+def _checked_record(record: Any, discrepancy: Discrepancy, model: pm.Model) -> Likelihood:
+    """The formulation's record, or an error naming what the formulation did wrong."""
+    name = f"{type(discrepancy).__name__}.build"
+    if not isinstance(record, Likelihood):
+        raise TypeError(
+            f"{name} must return a kohpymc.discrepancy.Likelihood record, "
+            f"got {type(record).__name__}"
+        )
+    if record.observed not in model.named_vars or model[record.observed] not in model.observed_RVs:
+        raise ValueError(f"{name} did not add the observed variable {record.observed!r}")
+    return record
+
+
+def compose_model(
+    physics: PhysicsModel,
+    data: CalibrationData,
+    discrepancy: Discrepancy | None = None,
+    *,
+    new_inputs: Any = None,
+    noise_sd_prior: Prior | dict[str, Any] | None = None,
+    marginalize: bool = True,
+) -> CalibrationModel:
+    """Build the model of ``y_D = G(x; θ) + δ(x) + ε`` and keep the formulation's record.
+
+    Parameters are those of :func:`build_model`.
+
+    Returns
+    -------
+    CalibrationModel
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> from kohpymc.discrepancy import IIDGaussian
+    >>> built = compose_model(beam.physics_model(), beam.generate_data(seed=1), IIDGaussian(),
+    ...                       marginalize=False)
+    >>> sorted(built.formulation_variables), built.likelihood.independent_rows
+    (['delta_mean', 'delta_sd'], True)
+    """
+    discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
+    if not isinstance(discrepancy, Discrepancy):
+        raise TypeError(f"discrepancy must be a Discrepancy, got {type(discrepancy).__name__}")
+    names = _model_inputs(physics, discrepancy, data)
+    _check_physics(physics, data)
+    X = data.matrix(names)
+    center, scale, span = _scales(X, names)
+    y_sd = float(np.std(data.y))
+    y_scale = y_sd if y_sd > 0 else max(float(np.max(np.abs(data.y))), 1.0)
+    n_phys = len(physics.inputs)
+    with pm.Model(coords={OBS_DIM: np.arange(data.n)}) as model:
+        thetas = [prior.create(name) for name, prior in physics.parameters.items()]
+        theta = pt.stack([pt.as_tensor_variable(t, dtype="float64") for t in thetas])
+
+        def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
+            return physics.tensor(theta, Xt[:, :n_phys])
+
+        noise_sd = _noise_sd(data, noise_sd_prior, y_scale)
+        before = set(model.named_vars)
+        ctx = ModelContext(
+            input_names=names,
+            X=X,
+            y=data.y,
+            G=physics_mean(pt.as_tensor_variable(X)),
+            physics_mean=physics_mean,
+            noise_sd=noise_sd,
+            y_scale=y_scale,
+            center=center,
+            scale=scale,
+            span=span,
+            obs_dim=OBS_DIM,
+            marginalize=marginalize,
+        )
+        record = _checked_record(discrepancy.build(ctx), discrepancy, model)
+        created = tuple(
+            k for k in model.named_vars if k not in before and k != record.observed
+        )
+        if new_inputs is not None:
+            _add_predictions(model, record, physics_mean, noise_sd, new_inputs, names)
+    return CalibrationModel(model, record, discrepancy, names, created)
+
+
+def _add_predictions(model, record, physics_mean, noise_sd, new_inputs, names) -> None:
+    """``physics``, ``y_model``, ``discrepancy`` and ``y_pred`` over dim ``"pred"``."""
+    Xn_values = new_input_matrix(new_inputs, names)
+    model.add_coord(PRED_DIM, np.arange(Xn_values.shape[0]))
+    Xn = pt.as_tensor_variable(Xn_values)
+    G_new = pm.Deterministic("physics", physics_mean(Xn), dims=PRED_DIM)
+    y_model = pm.Deterministic("y_model", record.predictor(Xn, G_new), dims=PRED_DIM)
+    pm.Deterministic("discrepancy", y_model - G_new, dims=PRED_DIM)
+    pm.Normal("y_pred", mu=y_model, sigma=noise_sd, dims=PRED_DIM)
+
+
 def build_model(
     physics: PhysicsModel,
     data: CalibrationData,
@@ -107,7 +258,7 @@ def build_model(
         Calibration data; its ``noise_sd`` (given or from replicates) fixes σ_obs,
         otherwise σ_obs is a parameter ``"sigma_obs"``.
     discrepancy : Discrepancy, optional
-        One of the formulations M0–M5; default :class:`NoDiscrepancy`.
+        A registered formulation (M0–M6, ...); default :class:`NoDiscrepancy`.
     new_inputs : DataFrame, mapping or CalibrationData, optional
         Also add prediction variables ``physics``, ``discrepancy``, ``y_model``,
         ``y_pred`` (dim ``"pred"``) at these inputs.
@@ -131,56 +282,11 @@ def build_model(
     >>> sorted(model.named_vars)
     ['E', 'delta', 'delta_white', 'y']
     """
-    discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
-    if not isinstance(discrepancy, Discrepancy):
-        raise TypeError(f"discrepancy must be a Discrepancy, got {type(discrepancy).__name__}")
-    names = _model_inputs(physics, discrepancy, data)
-    _check_physics(physics, data)
-    X = data.matrix(names)
-    center, scale, span = _scales(X, names)
-    y_sd = float(np.std(data.y))
-    y_scale = y_sd if y_sd > 0 else max(float(np.max(np.abs(data.y))), 1.0)
-    n_phys = len(physics.inputs)
-    coords = {OBS_DIM: np.arange(data.n)}
-    with pm.Model(coords=coords) as model:
-        thetas = [prior.create(name) for name, prior in physics.parameters.items()]
-        theta = pt.stack([pt.as_tensor_variable(t, dtype="float64") for t in thetas])
-
-        def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
-            return physics.tensor(theta, Xt[:, :n_phys])
-
-        if data.noise_sd is not None:
-            noise_sd = pt.as_tensor_variable(np.float64(data.noise_sd))
-        else:
-            prior = as_prior(noise_sd_prior, name="sigma_obs") if noise_sd_prior else None
-            noise_sd = (prior or HalfNormal(y_scale)).create("sigma_obs")
-        ctx = ModelContext(
-            input_names=names,
-            X=X,
-            y=data.y,
-            G=physics_mean(pt.as_tensor_variable(X)),
-            physics_mean=physics_mean,
-            noise_sd=noise_sd,
-            y_scale=y_scale,
-            center=center,
-            scale=scale,
-            span=span,
-            obs_dim=OBS_DIM,
-            marginalize=marginalize,
-        )
-        predictor = discrepancy.build(ctx)
-        if new_inputs is not None:
-            Xn_values = new_input_matrix(new_inputs, names)
-            model.add_coord(PRED_DIM, np.arange(Xn_values.shape[0]))
-            Xn = pt.as_tensor_variable(Xn_values)
-            G_new = pm.Deterministic("physics", physics_mean(Xn), dims=PRED_DIM)
-            y_model = pm.Deterministic("y_model", predictor(Xn, G_new), dims=PRED_DIM)
-            pm.Deterministic("discrepancy", y_model - G_new, dims=PRED_DIM)
-            pm.Normal("y_pred", mu=y_model, sigma=noise_sd, dims=PRED_DIM)
-    model.kohpymc = {  # type: ignore[attr-defined]
-        "input_names": names,
-        "formulation": discrepancy.label,
-        "center": center,
-        "scale": scale,
-    }
-    return model
+    return compose_model(
+        physics,
+        data,
+        discrepancy,
+        new_inputs=new_inputs,
+        noise_sd_prior=noise_sd_prior,
+        marginalize=marginalize,
+    ).model

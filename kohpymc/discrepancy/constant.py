@@ -12,7 +12,7 @@ from kohpymc.priors import Prior, as_prior
 __all__ = ["ConstantBias"]
 
 
-class ConstantBias(IndependentDiscrepancy):
+class ConstantBias(IndependentDiscrepancy, kind="constant"):
     """M1: ``y_D ~ N(G(x; θ) + b, σ_obs² I)`` with an unknown constant ``b``.
 
     Parameters

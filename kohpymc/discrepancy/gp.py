@@ -22,7 +22,7 @@ import pymc as pm
 import pytensor.tensor as pt
 from pymc.gp.util import JITTER_DEFAULT
 
-from kohpymc.discrepancy.base import Discrepancy, ModelContext, Predictor
+from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.functions import LinearBasis, MeanSpec, as_function, marginalizable
 from kohpymc.gaussian import GaussianLikelihood
 from kohpymc.priors import HalfNormal, Prior, as_prior
@@ -33,17 +33,18 @@ __all__ = ["GaussianProcess", "CovarianceFactory"]
 CovarianceFactory = Callable[[ModelContext, list[int]], Any]
 
 
-def _marginal_likelihood(gp: pm.gp.Marginal, ctx: ModelContext, X: pt.TensorVariable) -> None:
+def _marginal_likelihood(gp: pm.gp.Marginal, ctx: ModelContext, X: pt.TensorVariable):
     """Observe ``y ~ N(m(X), K(X) + σ_obs² I)`` as ``gp.marginal_likelihood`` would.
 
     Same mean, covariance and 1e-6 jitter, and ``gp.conditional`` works afterwards; the
     likelihood is :class:`~kohpymc.gaussian.GaussianLikelihood` (one LAPACK pass per
-    gradient instead of PyMC's Cholesky-and-solve graph).
+    gradient instead of PyMC's Cholesky-and-solve graph).  Returns ``(mean, cov)``.
     """
     noise = pm.gp.cov.WhiteNoise(ctx.noise_sd)
     mu, cov = gp._build_marginal_likelihood(X=X, noise_func=noise, jitter=JITTER_DEFAULT)
     gp.X, gp.y, gp.sigma = X, ctx.y, noise
     GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
+    return mu, cov
 
 
 class _KOHMean(pm.gp.mean.Mean):
@@ -75,7 +76,7 @@ class _BasisCovariance(pm.gp.cov.Covariance):
         return pt.dot(B * self.s0**2, Bs.T)
 
 
-class GaussianProcess(Discrepancy):
+class GaussianProcess(Discrepancy, kind="gp"):
     """M4: GP discrepancy, stationary SE kernel with ARD length scales, parametric mean.
 
     Parameters
@@ -103,6 +104,8 @@ class GaussianProcess(Discrepancy):
 
     label = "M4"
     description = "stationary GP"
+    study_defaults = {"inputs": "inputs"}
+    code_only = ("covariance",)
     #: After the mean coefficients are integrated out, the amplitude / length-scale /
     #: physics-parameter geometry of a GP discrepancy (a long length scale lets the GP
     #: mimic smooth physics) still needs smaller steps: 0.9 left 1-3 divergences in 4000
@@ -161,7 +164,7 @@ class GaussianProcess(Discrepancy):
             return self.covariance_factory(ctx, active_dims)
         return self.stationary_kernel(ctx, active_dims)
 
-    def build(self, ctx: ModelContext) -> Predictor:
+    def build(self, ctx: ModelContext) -> Likelihood:
         """Marginal GP likelihood ``N(G + m, K + σ_obs² I)``; predictor is the conditional.
 
         With a linear mean whose coefficients have normal priors (the default) the
@@ -180,7 +183,7 @@ class GaussianProcess(Discrepancy):
             gp = pm.gp.Marginal(
                 mean_func=_KOHMean(ctx.physics_mean, prior_mean), cov_func=cov + basis_cov
             )
-            _marginal_likelihood(gp, ctx, X)
+            mu, total = _marginal_likelihood(gp, ctx, X)
             B = spec.design(ctx, X)  # type: ignore[union-attr]
             c0 = cov(X) + (ctx.noise_sd**2 + 1e-6) * pt.eye(ctx.X.shape[0])
             chol = pt.linalg.cholesky(c0)
@@ -194,13 +197,13 @@ class GaussianProcess(Discrepancy):
         else:
             mean_fn = spec.build(ctx, "delta_mean")
             gp = pm.gp.Marginal(mean_func=_KOHMean(ctx.physics_mean, mean_fn), cov_func=cov)
-            _marginal_likelihood(gp, ctx, X)
+            mu, total = _marginal_likelihood(gp, ctx, X)
 
         def predict(X_new: pt.TensorVariable, G_new: pt.TensorVariable) -> pt.TensorVariable:
             del G_new  # the GP mean evaluates the physics at X_new itself
             return gp.conditional("gp_conditional", X_new, dims="pred")
 
-        return predict
+        return Likelihood(predict, mean=mu, covariance=total)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(inputs={list(self.gp_inputs)}, mean={self.mean})"

@@ -40,7 +40,7 @@ from pytensor.compile.builders import OpFromGraph
 from pytensor.graph.basic import Constant
 from pytensor.graph.traversal import ancestors
 
-from kohpymc.discrepancy.base import ModelContext, Predictor
+from kohpymc.discrepancy.base import Likelihood, ModelContext
 from kohpymc.discrepancy.functions import LinearBasis, marginalizable
 from kohpymc.discrepancy.gp import GaussianProcess
 from kohpymc.priors import Prior
@@ -383,7 +383,7 @@ def grid_loo_log_density(
 # --------------------------------------------------------------------------- formulation
 
 
-class GridGP(GaussianProcess):
+class GridGP(GaussianProcess, kind="grid_gp"):
     """M4 on gridded data: exact Kronecker GP likelihood with replicate reduction.
 
     The same model as :class:`~kohpymc.discrepancy.gp.GaussianProcess` with the default
@@ -470,7 +470,7 @@ class GridGP(GaussianProcess):
         cols = [ctx.column(k) for k in self.gp_inputs]
         return grid_layout(ctx.X[:, cols], self.gp_inputs), sigma
 
-    def build(self, ctx: ModelContext) -> Predictor:
+    def build(self, ctx: ModelContext) -> Likelihood:
         """Exact replicate-reduced Kronecker likelihood ``"y"``; predictor as the GP's.
 
         Raises
@@ -506,8 +506,7 @@ class GridGP(GaussianProcess):
             const = -0.5 * (r - 1) * m * np.log(2 * np.pi * var) - 0.5 * m * np.log(r)
             return kron_gp_loglik(Rbar, axes, eta, ls, s2, c) + const - ss / (2 * var)
 
-        model = pm.modelcontext(None)
-        model.kohpymc_grid = {"layout": layout, "noise_var": var, "c": c}  # type: ignore[attr-defined]
+        info = {"layout": layout, "noise_var": var, "c": c}
         pm.CustomDist(
             "y",
             mu,
@@ -546,25 +545,32 @@ class GridGP(GaussianProcess):
             sd = pt.sqrt(pt.maximum(cond_var, 0.0) + JITTER_DEFAULT)
             return pm.Normal("gp_conditional", mu=cond_mean, sigma=sd, dims="pred")
 
-        return predict
+        def pointwise(posterior: xr.Dataset, model: pm.Model) -> xr.Dataset:
+            return self.pointwise_log_likelihood(posterior, model, info)
+
+        return Likelihood(predict, mean=mu, pointwise=pointwise)
 
     def pointwise_log_likelihood(
-        self, posterior: xr.Dataset, model: pm.Model, var_name: str = "y", *, obs_dim: str = "obs"
+        self,
+        posterior: xr.Dataset,
+        model: pm.Model,
+        info: dict[str, Any],
+        var_name: str = "y",
+        *,
+        obs_dim: str = "obs",
     ) -> xr.Dataset:
         """Exact leave-one-out log densities per draw (as :func:`kohpymc.loo.loo_log_likelihood`).
 
-        ``model`` must have been built with this formulation; see
-        :func:`grid_loo_log_density`.  Used by :func:`kohpymc.calibrate`.
+        ``model`` must have been built with this formulation and ``info`` is the grid
+        layout, noise variance and mean-prior variance of that build (the record's
+        ``pointwise`` passes them); see :func:`grid_loo_log_density`.
 
         Examples
         --------
-        >>> ds = GridGP(["x"]).pointwise_log_likelihood(idata.posterior, model)  # doctest: +SKIP
+        >>> ds = cal.likelihood.pointwise(cal.idata.posterior, cal.model)  # doctest: +SKIP
         >>> ds["y"].dims  # doctest: +SKIP
         ('chain', 'draw', 'obs')
         """
-        info = getattr(model, "kohpymc_grid", None)
-        if info is None:
-            raise ValueError("pointwise_log_likelihood needs a model built with GridGP")
         umodel = remove_value_transforms(model)
         rv = umodel[var_name]
         outs = umodel.replace_rvs_by_values(list(rv.owner.inputs[2:5]))  # mu, eta, ls

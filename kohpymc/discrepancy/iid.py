@@ -12,7 +12,7 @@ from kohpymc.priors import HalfNormal, Prior, as_prior
 __all__ = ["IIDGaussian"]
 
 
-class IIDGaussian(IndependentDiscrepancy):
+class IIDGaussian(IndependentDiscrepancy, kind="iid"):
     """M2: ``y_D ~ N(G(x; θ) + μ_δ, (σ_obs² + σ_δ²) I)``.
 
     Parameters

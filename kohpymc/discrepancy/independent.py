@@ -18,7 +18,7 @@ from typing import ClassVar
 import pymc as pm
 import pytensor.tensor as pt
 
-from kohpymc.discrepancy.base import Discrepancy, ModelContext, Predictor
+from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.functions import MeanSpec, marginalizable
 from kohpymc.gaussian import GaussianLikelihood
 
@@ -30,7 +30,6 @@ Component = Callable[[pt.TensorVariable], pt.TensorVariable] | None
 class IndependentDiscrepancy(Discrepancy):
     """Base for δ independent across rows; subclasses give mean and variance functions."""
 
-    independent_rows = True
     #: name of the mean coefficients in the model
     mean_name: ClassVar[str] = "delta_mean"
 
@@ -42,8 +41,8 @@ class IndependentDiscrepancy(Discrepancy):
         """Create variance parameters; return ``σ_δ²(X)`` (``None``: no extra variance)."""
         return None
 
-    def build(self, ctx: ModelContext) -> Predictor:
-        """Add ``y ~ N(G + μ_δ, σ_obs² + σ_δ²)``; return the predictor of ``G + δ``."""
+    def build(self, ctx: ModelContext) -> Likelihood:
+        """Add ``y ~ N(G + μ_δ, σ_obs² + σ_δ²)``; return its record."""
         X = pt.as_tensor_variable(ctx.X)
         var_fn = self.variance_function(ctx)
         spec = self.mean_function(ctx)
@@ -53,9 +52,8 @@ class IndependentDiscrepancy(Discrepancy):
             m0, s0 = spec.gaussian_prior(ctx)  # type: ignore[union-attr, misc]
             diag = variance * pt.ones_like(ctx.G)
             cov = pt.diag(diag) + pt.dot(B * s0**2, B.T)
-            GaussianLikelihood(
-                "y", mu=ctx.G + pt.dot(B, m0), cov=cov, observed=ctx.y, dims=ctx.obs_dim
-            )
+            mu = ctx.G + pt.dot(B, m0)
+            GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
             mean_fn = spec.build_marginalized(  # type: ignore[union-attr]
                 ctx, self.mean_name, B, B / diag[:, None], (ctx.y - ctx.G) / diag
             )
@@ -63,6 +61,7 @@ class IndependentDiscrepancy(Discrepancy):
             mean_fn = None if spec is None else spec.build(ctx, self.mean_name)
             mu = ctx.G if mean_fn is None else ctx.G + mean_fn(X)
             pm.Normal("y", mu=mu, sigma=pt.sqrt(variance), observed=ctx.y, dims=ctx.obs_dim)
+            cov = None
 
         def predict(X_new: pt.TensorVariable, G_new: pt.TensorVariable) -> pt.TensorVariable:
             mean = G_new if mean_fn is None else G_new + mean_fn(X_new)
@@ -71,4 +70,8 @@ class IndependentDiscrepancy(Discrepancy):
             spread = pm.Normal("delta_random", mu=0.0, sigma=pt.sqrt(var_fn(X_new)), dims="pred")
             return mean + spread
 
-        return predict
+        if cov is not None:  # coefficients integrated out: rows correlated through them
+            return Likelihood(predict, mean=mu, covariance=cov)
+        return Likelihood(
+            predict, mean=mu, variance=variance * pt.ones_like(ctx.G), independent_rows=True
+        )

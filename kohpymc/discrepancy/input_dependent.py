@@ -20,7 +20,7 @@ from kohpymc.discrepancy.independent import Component, IndependentDiscrepancy
 __all__ = ["InputDependentGaussian"]
 
 
-class InputDependentGaussian(IndependentDiscrepancy):
+class InputDependentGaussian(IndependentDiscrepancy, kind="input_dependent"):
     """M3: ``y_D ~ N(G + μ_δ(x; φ), [σ_obs² + σ_δ²(x; ϕ)] I)``.
 
     Parameters
@@ -45,6 +45,7 @@ class InputDependentGaussian(IndependentDiscrepancy):
 
     label = "M3"
     description = "input-dependent Gaussian"
+    study_defaults = {"mean": "inputs"}
 
     def __init__(
         self,

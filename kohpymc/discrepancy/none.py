@@ -7,7 +7,7 @@ from kohpymc.discrepancy.independent import IndependentDiscrepancy
 __all__ = ["NoDiscrepancy"]
 
 
-class NoDiscrepancy(IndependentDiscrepancy):
+class NoDiscrepancy(IndependentDiscrepancy, kind="none"):
     """M0: the physics model alone, ``y_D ~ N(G(x; θ), σ_obs²)``.
 
     Examples

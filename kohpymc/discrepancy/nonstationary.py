@@ -72,7 +72,7 @@ class DecayingVariance(pm.gp.cov.Covariance):
         return pt.switch(same, (self.w1 * pt.exp(-self.w2 * t))[:, None], 0.0)
 
 
-class NonStationaryGP(GaussianProcess):
+class NonStationaryGP(GaussianProcess, kind="nonstationary_gp"):
     """M5: GP discrepancy with the non-stationary covariance of Eq. (14).
 
     Parameters
@@ -96,6 +96,7 @@ class NonStationaryGP(GaussianProcess):
 
     label = "M5"
     description = "non-stationary GP"
+    study_defaults = {"inputs": "inputs", "time": "time"}
 
     def __init__(
         self,

@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test test-slow bench lint format clean
+.PHONY: demo test test-slow bench lint format typecheck clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -36,13 +36,24 @@ $(BENCH_STAMP): $(STAMP)
 bench: $(BENCH_STAMP)
 	$(PY) -m benchmarks.run
 
+LINT_PATHS := kohpymc tests benchmarks notebooks tools
+# Temporary (issue 14): files being edited on other branches right now. Once those branches
+# are merged, run `ruff format` / `ruff check --fix` on them and empty this list.
+LINT_EXCLUDE := notebooks/05_dielectric_study.ipynb
+RUFF_EXCLUDE := $(foreach f,$(LINT_EXCLUDE),--extend-exclude $(f))
+
 lint: $(STAMP)
-	$(VENV)/bin/ruff check kohpymc tests
-	$(VENV)/bin/ruff format --check kohpymc tests
+	$(VENV)/bin/ruff check $(RUFF_EXCLUDE) $(LINT_PATHS)
+	$(VENV)/bin/ruff format --check $(RUFF_EXCLUDE) $(LINT_PATHS)
 
 format: $(STAMP)
-	$(VENV)/bin/ruff format kohpymc tests
-	$(VENV)/bin/ruff check --fix kohpymc tests
+	$(VENV)/bin/ruff format $(RUFF_EXCLUDE) $(LINT_PATHS)
+	$(VENV)/bin/ruff check --fix $(RUFF_EXCLUDE) $(LINT_PATHS)
+
+# mypy on kohpymc: fails if a file has more errors than tools/typecheck_baseline.json allows
+# (`$(PY) tools/typecheck.py --update` rewrites the baseline once errors are fixed)
+typecheck: $(STAMP)
+	$(PY) tools/typecheck.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

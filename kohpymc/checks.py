@@ -1,0 +1,78 @@
+"""Input checks shared by the API, study files, studies and discovery (one place).
+
+Every check raises with a message naming the data file (when known) and what is wrong,
+before any sampling.  The study-file reader adds the file and key on top.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from kohpymc.data import CalibrationData
+from kohpymc.physics import PhysicsModel
+
+__all__ = ["check_tolerance", "check_physics_runs", "check_validation_data"]
+
+
+def _where(data: CalibrationData) -> str:
+    return f" ({data.source})" if data.source else ""
+
+
+def check_tolerance(tolerance: Any) -> float:
+    """ε of the reliability metric as a float, or ``ValueError``.
+
+    Examples
+    --------
+    >>> check_tolerance(0.5)
+    0.5
+    >>> check_tolerance(-1)
+    Traceback (most recent call last):
+    ...
+    ValueError: validation tolerance must be a positive number, got -1
+    """
+    ok = isinstance(tolerance, int | float) and not isinstance(tolerance, bool)
+    if not ok or not math.isfinite(tolerance) or tolerance <= 0:
+        raise ValueError(f"validation tolerance must be a positive number, got {tolerance!r}")
+    return float(tolerance)
+
+
+def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) -> None:
+    """The data have the physics inputs and the model runs there at the prior mean.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> check_physics_runs(beam.physics_model(), beam.generate_data(seed=1), "calibration")
+    """
+    missing = [k for k in physics.inputs if k not in data.inputs]
+    if missing:
+        raise KeyError(
+            f"{what} data{_where(data)} lack input column(s) {missing} of the physics model "
+            f"{physics.name!r}"
+        )
+    try:
+        physics.evaluate({k: data.inputs[k] for k in physics.inputs}, physics.prior_mean())
+    except Exception as err:
+        raise ValueError(
+            f"{what} data{_where(data)}: the physics model {physics.name!r} fails on the "
+            f"{what} inputs: {err}"
+        ) from err
+
+
+def check_validation_data(
+    physics: PhysicsModel, validation: CalibrationData, tolerance: Any
+) -> float:
+    """Tolerance, non-empty validation data, physics running on them; returns ε.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> check_validation_data(beam.physics_model(), beam.generate_data(seed=2), 0.75)
+    0.75
+    """
+    eps = check_tolerance(tolerance)
+    if validation.n == 0:
+        raise ValueError(f"validation data{_where(validation)} are empty")
+    check_physics_runs(physics, validation, "validation")
+    return eps

@@ -10,6 +10,7 @@ import numpy as np
 from kohpymc.data import CalibrationData
 from kohpymc.examples.dielectric.constants import PRIOR_RANGES
 from kohpymc.examples.dielectric.current import charging_current, charging_current_jacobian
+from kohpymc.initialization import multistart_least_squares
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Uniform
 
@@ -61,14 +62,16 @@ def least_squares_fit(
     sampler started at the prior centre does not find the data.  The fit does not use
     :data:`TRUE_PARAMS`.
 
-    Each start (a scrambled Sobol point of the box, scaled to the unit cube) is first
-    fitted on log currents, ``ln G - ln max(y, floor)``, which is well scaled wherever
-    the current is, then the best log fit is refined on the currents themselves,
-    ``(G - y) / σ`` (stage one stops at relative tolerances 1e-4, stage two at
-    SciPy's defaults).  Both stages use :func:`scipy.optimize.least_squares` (trust
-    region reflective, 2-point differences) inside the box shrunk by ``margin`` × its
-    width on each side, so the result is strictly inside the prior support and can be
-    passed as ``initvals`` even where the fit runs into a bound.
+    A call of :func:`kohpymc.initialization.multistart_least_squares` on
+    :func:`physics_model`: each start (a scrambled Sobol point of the box, scaled to the
+    unit cube) is first fitted on log currents, ``ln max(G, 1e-300) - ln max(y, σ)``,
+    which is well scaled wherever the current is, then the best log fit is refined on
+    the currents themselves, ``(G - y) / σ`` (stage one stops at relative tolerances
+    1e-4, stage two at SciPy's defaults).  Both stages use
+    :func:`scipy.optimize.least_squares` (trust region reflective, 2-point differences)
+    inside the box shrunk by ``margin`` × its width on each side, so the result is
+    strictly inside the prior support and can be passed as ``initvals`` even where the
+    fit runs into a bound.
 
     Parameters
     ----------
@@ -99,36 +102,22 @@ def least_squares_fit(
     >>> bool(rms < 10 * NOISE_SD)
     True
     """
-    from scipy.optimize import least_squares
-    from scipy.stats import qmc
-
     if n_starts < 1:
         raise ValueError(f"n_starts must be >= 1, got {n_starts}")
-    if not 0.0 <= margin < 0.5:
-        raise ValueError(f"margin must be in [0, 0.5), got {margin}")
-    names = list(PRIOR_RANGES)
-    lower = np.array([PRIOR_RANGES[k][0] for k in names])
-    width = np.array([PRIOR_RANGES[k][1] for k in names]) - lower
-    rows = {k: np.asarray(data.inputs[k], dtype=float) for k in ("V", "T", "t")}
     y = np.asarray(data.y, dtype=float)
-    sd = float(data.noise_sd) if data.noise_sd is not None else float(np.std(y)) or 1.0
-    log_y = np.log(np.maximum(y, sd))
+    floor = float(data.noise_sd) if data.noise_sd is not None else float(np.std(y)) or 1.0
+    result = multistart_least_squares(
+        physics_model(),
+        data,
+        starts=n_starts,
+        seed=seed,
+        transform=_log_current,
+        data_transform=lambda values: np.log(np.maximum(values, floor)),
+        margin=margin,
+    )
+    return result.params
 
-    def current(u: np.ndarray) -> np.ndarray:
-        return charging_current(rows, dict(zip(names, lower + width * u, strict=True)))
 
-    def log_residual(u: np.ndarray) -> np.ndarray:
-        return np.log(np.maximum(current(u), 1e-300)) - log_y
-
-    def residual(u: np.ndarray) -> np.ndarray:
-        return (current(u) - y) / sd
-
-    box = (np.full(len(names), margin), np.full(len(names), 1.0 - margin))
-    n_sobol = 1 << max(0, int(np.ceil(np.log2(n_starts))))
-    starts = qmc.Sobol(len(names), seed=seed).random(n_sobol)[:n_starts]
-    starts = np.clip(starts, box[0], box[1])
-    # the log stage only has to land in the right basin: loose tolerances
-    log_fits = [least_squares(log_residual, u0, bounds=box, ftol=1e-4, xtol=1e-4) for u0 in starts]
-    best = min(log_fits, key=lambda r: r.cost)
-    fit = least_squares(residual, best.x, bounds=box)
-    return {k: float(v) for k, v in zip(names, lower + width * fit.x, strict=True)}
+def _log_current(values: np.ndarray) -> np.ndarray:
+    """``ln G`` of model currents, floored at 1e-300 so that no current is flat."""
+    return np.log(np.maximum(values, 1e-300))

@@ -11,9 +11,8 @@ space-filling set of starts and returns the best fit, to pass as ``initvals``:
 
 with ``B`` the search box of :func:`prior_box` (each prior's support, or its central
 ``coverage`` interval for unbounded priors) and ``σ`` the known noise sd of the data
-(else the sd of ``y``).  The model is calibrated without discrepancy here, so the fit is a
-starting point, not an estimate (the paper's Section 4 uses it the same way for the
-Taylor expansion point when the prior mean is poor).
+(else the sd of ``y``).  The model is fitted without discrepancy here, so the fit is a
+starting point for a sampler, not an estimate.
 
 Each parameter is mapped linearly onto ``[0, 1]`` over its box, so parameters of very
 different magnitudes (``A ~ 1e3``, ``τ ~ 1e-3``) are equally well conditioned for the

@@ -143,9 +143,7 @@ def run_study(
     """
     from pathlib import Path
 
-    from kohpymc.config import load_study
-
-    study = load_study(Path(beam.__file__).with_name("beam_study.toml"))
+    study = kp.load_study(Path(beam.__file__).with_name("beam_study.toml"))
     physics = beam.physics_model(backend="pytensor") if numba else study.physics
     extra = {"mode": "NUMBA"} if numba else {}
     start = time.perf_counter()

@@ -32,9 +32,8 @@ from typing import Any
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-
-from kohpymc.study import markdown_table  # noqa: E402
 
 LABELS = ("M0", "M1", "M2", "M3", "M4", "M5")
 COLUMNS = [
@@ -53,6 +52,41 @@ COLUMNS = [
     "ratio_vs_rwm",
     "ratio_vs_surmise",
 ]
+
+
+def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
+    """A GitHub pipe table of ``frame`` (index first), floats to ``digits`` significant digits.
+
+    Parameters
+    ----------
+    frame : pandas.DataFrame
+        Rows to print; the index name heads the first column (default "formulation").
+    digits : int
+        Significant digits of float cells; NaN cells are left empty.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> print(markdown_table(pd.DataFrame({"ess": [812.345, np.nan]}, index=["M0", "M1"]), 2))
+    | formulation | ess |
+    |---|---|
+    | M0 | 8.1e+02 |
+    | M1 |  |
+    """
+
+    def cell(value: Any) -> str:
+        if isinstance(value, float | np.floating):
+            return "" if np.isnan(value) else f"{value:.{digits}g}"
+        return str(value).replace("|", "\\|")
+
+    header = [frame.index.name or "formulation", *map(str, frame.columns)]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for index, row in frame.iterrows():
+        lines.append("| " + " | ".join([cell(index), *(cell(v) for v in row)]) + " |")
+    return "\n".join(lines)
 
 
 def _quiet() -> None:

@@ -18,7 +18,8 @@ the step by 5 when that half has fewer than 20 moves).  Each chain is one calibr
 call with its own seed (surmise runs one chain per call); pilots + kept draws are the
 sampling wall time ``wall_s``.
 
-Run ``python benchmarks/surmise_baseline.py`` for the benchmark row.
+Run ``python -m benchmarks.surmise_baseline`` (from the repository root) for the
+benchmark row.
 """
 
 from __future__ import annotations
@@ -35,12 +36,8 @@ import arviz as az
 import numpy as np
 from scipy import stats
 
-try:  # imported as part of the benchmarks package, or run from benchmarks/
-    from benchmarks.baselines import load_beam_data, summarize_E
-except ImportError:  # pragma: no cover
-    from baselines import load_beam_data, summarize_E  # type: ignore[no-redef]
-
-from kohpymc.data import CalibrationData
+import kohpymc as kp
+from benchmarks.baselines import load_beam_data, summarize_E
 from kohpymc.examples import beam
 
 __all__ = ["fit_emulator", "make_uniform_prior", "run_surmise", "surmise_version"]
@@ -86,7 +83,7 @@ def make_uniform_prior(lower: float, upper: float) -> type:
     return UniformPrior
 
 
-def fit_emulator(data: CalibrationData, n_runs: int = 80, seed: int = 0) -> Any:
+def fit_emulator(data: kp.CalibrationData, n_runs: int = 80, seed: int = 0) -> Any:
     """A PCGP emulator of the Euler–Bernoulli outputs at the data inputs over the E prior.
 
     Parameters
@@ -118,7 +115,7 @@ def fit_emulator(data: CalibrationData, n_runs: int = 80, seed: int = 0) -> Any:
 
 def _calibrate(
     emu: Any,
-    data: CalibrationData,
+    data: kp.CalibrationData,
     prior: type,
     *,
     samples: int,
@@ -157,7 +154,7 @@ def _calibrate(
 
 
 def run_surmise(
-    data: CalibrationData | None = None,
+    data: kp.CalibrationData | None = None,
     *,
     n_runs: int = 80,
     samples: int = 10_000,

@@ -1,4 +1,4 @@
-"""The benchmark baselines: numpy log posteriors vs PyMC, RWM and surmise vs quadrature."""
+"""The benchmark baselines: numpy reference posteriors vs PyMC, RWM and surmise vs quadrature."""
 
 from __future__ import annotations
 
@@ -12,14 +12,15 @@ from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import kohpymc as kp  # noqa: E402
 from benchmarks import baselines as bl  # noqa: E402
 from kohpymc.examples import beam  # noqa: E402
-from kohpymc.model import build_model  # noqa: E402
+from tests.reference import beam_posteriors as ref  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def data():
-    return bl.load_beam_data()
+    return ref.load_beam_data()
 
 
 @pytest.fixture(scope="module")
@@ -38,10 +39,10 @@ def m0_quadrature(data):
     return mean, sd
 
 
-@pytest.mark.parametrize("label", bl.LABELS)
+@pytest.mark.parametrize("label", ref.LABELS)
 def test_numpy_log_posterior_equals_pymc(label, data):
-    model = build_model(beam.physics_model(), data, bl.beam_formulations()[label])
-    post = bl.numpy_log_posterior(label, data)
+    model = kp.build_model(beam.physics_model(), data, ref.beam_formulations()[label])
+    post = ref.numpy_log_posterior(label, data)
     assert [v.name for v in model.value_vars] == [b.value for b in post.blocks]
     pymc_logp = model.compile_logp()
     rng = np.random.default_rng(11)
@@ -61,8 +62,8 @@ def test_numpy_log_posterior_equals_pymc(label, data):
 
 
 def test_white_coordinates_are_separable(data):
-    full = bl.numpy_log_posterior("M4", data, white=True)
-    reduced = bl.numpy_log_posterior("M4", data, white=False)
+    full = ref.numpy_log_posterior("M4", data, white=True)
+    reduced = ref.numpy_log_posterior("M4", data, white=False)
     vec = full.init + np.array([0.1, -0.2, 0.3, 0.5, -1.5])
     k = reduced.ndim
     normal = float(stats.norm.logpdf(vec[k:]).sum())

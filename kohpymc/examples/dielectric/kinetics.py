@@ -1,0 +1,231 @@
+"""Trapped-charge kinetics: the scalar ODE, its steady state and its semi-analytic solution.
+
+See the package docstring (Numerics) for the method.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from kohpymc.examples.dielectric.constants import (
+    _FEEDBACK,
+    _H,
+    _M0,
+    _Q,
+    MOBILITY,
+    THERMAL_VELOCITY,
+    THICKNESS,
+    _param,
+)
+from kohpymc.examples.dielectric.emission import _log_emission
+
+# quadrature grid n = n_ss expit(s)
+_S = np.linspace(-14.0, 18.0, 1281)
+_U = 1.0 / (1.0 + np.exp(-_S))
+_H_S = float(_S[1] - _S[0])
+_ROOT_ITERS = 60
+_N_TINY = 1e-250  # m^-3: trapped densities below this are treated as zero
+
+
+class _Kinetics:
+    """Per-setting coefficients of ``dn/dt = f(n)``, arrays shaped ``(G, 1)``.
+
+    ``params`` holds floats, or arrays of shape ``(G,)`` (one parameter set per setting,
+    used to solve several parameter sets at once).
+    """
+
+    def __init__(self, V: np.ndarray, T: np.ndarray, params: Mapping[str, Any]) -> None:
+        def column(name: str) -> np.ndarray:
+            return np.broadcast_to(_param(params, name), V.shape)[:, None]
+
+        phi, mass = column("phi_B"), column("m_eff")
+        self.E_app = (V / THICKNESS)[:, None]
+        self.a = _Q**2 / (8.0 * np.pi * _H * phi * mass)
+        self.b = 8.0 * np.pi * np.sqrt(2.0 * mass * _M0) * (_Q * phi) ** 1.5 / (3.0 * _Q * _H)
+        self.N_T = np.exp(column("ln_NT"))
+        drift = MOBILITY * np.maximum(np.abs(self.E_app), 1.0)
+        self.kappa = np.exp(column("ln_sigma")) * THERMAL_VELOCITY * THICKNESS / drift
+        self.log_e = _log_emission(V, T, params)[:, None]
+        self.e = np.exp(self.log_e)
+        #: largest charge: traps full or injecting field screened to zero
+        self.n_max = np.minimum(self.N_T, np.maximum(self.E_app, 0.0) / _FEEDBACK)
+
+    def take(self, idx: np.ndarray) -> _Kinetics:
+        new = object.__new__(_Kinetics)
+        new.__dict__.update(self.__dict__)
+        for name in ("E_app", "a", "b", "N_T", "kappa", "e", "log_e", "n_max"):
+            setattr(new, name, getattr(self, name)[idx])
+        return new
+
+    def rhs(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``f(n)``, ``f'(n)`` and the injection current ``J_FN(E_inj)`` (A/m²)."""
+        E = self.E_app - _FEEDBACK * n
+        Es = np.maximum(E, 1.0)  # J_FN(1 V/m) = 0 in floating point
+        J = self.a * Es**2 * np.exp(-self.b / Es)
+        dJ = -_FEEDBACK * J * (2.0 / Es + self.b / Es**2)
+        capture = -np.expm1(-self.kappa * (self.N_T - n))
+        dcapture = -self.kappa * (1.0 - capture)
+        scale = 1.0 / (_Q * THICKNESS)
+        f = scale * J * capture - self.e * n
+        fp = scale * (dJ * capture + J * dcapture) - self.e
+        return f, fp, J
+
+    def log_balance(self, n: np.ndarray, at_zero: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``h = ln(J_FN P_c / (q d)) - ln(e n)`` and ``dh/d ln n`` (V > 0 only).
+
+        With ``at_zero`` the first value is ``h + ln n = ln(f(0) / e)`` at ``n -> 0``.
+        """
+        E = self.E_app - _FEEDBACK * n
+        log_j = np.log(self.a) + 2.0 * np.log(E) - self.b / E
+        z = self.kappa * (self.N_T - n)
+        log_p = np.log(-np.expm1(-z))
+        h = log_j + log_p - np.log(_Q * THICKNESS) - self.log_e
+        if at_zero:
+            return h, np.zeros_like(h)
+        slope = -_FEEDBACK * (2.0 / E + self.b / E**2) - self.kappa / np.expm1(z)
+        return h - np.log(n), n * slope - 1.0
+
+
+def _steady_state(kin: _Kinetics) -> np.ndarray:
+    """Root ``n_ss`` of f, shape (G, 1), for settings with ``V > 0`` (else 0).
+
+    Newton on ``h(x) = ln(injection-capture rate) - ln(emission rate)`` at ``n = e^x``:
+    ``h`` is concave and decreasing (ln J_FN(E) and ln P_c are concave in n), so from
+    the right of the root Newton decreases monotonically onto it; a step past the
+    upper bound ``top = min(n_max, f(0)/e)`` is replaced by the midpoint toward it
+    (``h = -inf`` at ``n_max``) or by ``top`` itself (``h`` finite at ``f(0)/e``).
+    """
+    n_ss = np.zeros_like(kin.E_app)
+    live = np.flatnonzero(kin.E_app[:, 0] > 0)
+    if live.size == 0:
+        return n_ss
+    kin = kin.take(live)
+    with np.errstate(divide="ignore", over="ignore"):
+        h0, _ = kin.log_balance(np.full_like(kin.E_app, 1e-300), at_zero=True)
+        log_max = np.log(kin.n_max)
+    singular_top = log_max <= h0
+    log_top = np.where(singular_top, log_max, h0)
+    # n_ss <= top: nothing to solve where top is below 1e-250 m^-3 (no injection)
+    keep = np.flatnonzero(log_top[:, 0] > np.log(_N_TINY))
+    if keep.size == 0:
+        return n_ss
+    live, kin, log_top, singular_top = live[keep], kin.take(keep), log_top[keep], singular_top[keep]
+    top = np.exp(log_top)
+    x = log_top - np.log(2.0)
+    for _ in range(_ROOT_ITERS):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            h, dh = kin.log_balance(np.exp(x))
+            new = x - h / dh
+        bad = ~np.isfinite(new) | (new >= log_top)
+        if np.any(bad):
+            inside = np.where(singular_top, np.log(0.5 * (np.exp(x) + top)), log_top)
+            new = np.where(bad, inside, new)
+        done = np.all(np.abs(new - x) <= 1e-14 * np.maximum(1.0, np.abs(x)))
+        x = new
+        if done:
+            break
+    n_ss[live] = np.exp(x)
+    return n_ss
+
+
+def _settings(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    keys, inverse = np.unique(V + 1j * T, return_inverse=True)
+    return keys.real.copy(), keys.imag.copy(), inverse.reshape(-1)
+
+
+def _rows(inputs: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    V = np.asarray(inputs["V"], dtype=float).reshape(-1)
+    T = np.asarray(inputs["T"], dtype=float).reshape(-1)
+    t = np.asarray(inputs["t"], dtype=float).reshape(-1)
+    if not (V.size == T.size == t.size):
+        raise ValueError(f"inputs V, T, t of unequal length {V.size}, {T.size}, {t.size}")
+    if np.any(t < 0) or np.any(V < 0) or np.any(T <= 0):
+        raise ValueError("need t >= 0 s (voltage applied at t = 0), V >= 0 V and T > 0 K")
+    return V, T, t
+
+
+def _solve(inputs: Mapping[str, Any], params: Mapping[str, float]):
+    V, T, t = _rows(inputs)
+    Vs, Ts, inv = _settings(V, T)
+    return _solve_settings(_Kinetics(Vs, Ts, params), t, inv)
+
+
+def _solve_settings(kin: _Kinetics, t: np.ndarray, inv: np.ndarray):
+    """``n_t`` at times ``t`` of rows in settings ``inv``, and the rows' kinetics."""
+    n_settings = kin.E_app.shape[0]
+    n_ss = _steady_state(kin)
+    # settings without injection (V = 0, or a current below ~1e-240 A/m²) stay empty
+    live = n_ss > _N_TINY
+    safe = np.where(live, n_ss, 1.0)
+    # t(s) = ∫ g ds on the grid n = n_ss expit(s), g = dt/ds = (dn/ds) / f(n)
+    n_grid = safe * _U
+    f, fp, _ = kin.rhs(n_grid)
+    f = np.where(live, f, 1.0)
+    g = n_grid * (1.0 - _U) / f
+    dg = g * (1.0 - 2.0 * _U) - g**2 * np.where(live, fp, 0.0)
+    inc = 0.5 * _H_S * (g[:, 1:] + g[:, :-1]) + _H_S**2 / 12.0 * (dg[:, :-1] - dg[:, 1:])
+    f0, _, _ = kin.rhs(np.zeros_like(safe))
+    f0 = np.where(live, f0, 1.0)
+    t_first = 0.5 * n_grid[:, :1] * (1.0 / f0 + 1.0 / f[:, :1])
+    t_grid = np.concatenate([t_first, t_first + np.cumsum(inc, axis=1)], axis=1)
+    _, fp_ss, _ = kin.rhs(safe)
+    rate_ss = -fp_ss[:, 0]
+
+    # locate every row in its setting's grid
+    order = np.argsort(inv, kind="stable")
+    bounds = np.searchsorted(inv[order], np.arange(n_settings + 1))
+    j = np.empty(t.size, dtype=np.intp)
+    for k in range(n_settings):
+        rows = order[bounds[k] : bounds[k + 1]]
+        j[rows] = np.searchsorted(t_grid[k], t[rows], side="right") - 1
+    last = _S.size - 1
+    jc = np.clip(j, 0, last - 1)
+    t0, t1 = t_grid[inv, jc], t_grid[inv, jc + 1]
+    width = t1 - t0
+    x = np.clip((t - t0) / width, 0.0, 1.0)
+    m0, m1 = width / g[inv, jc], width / g[inv, jc + 1]
+    x2, x3 = x * x, x * x * x
+    s = (
+        (2 * x3 - 3 * x2 + 1) * _S[jc]
+        + (x3 - 2 * x2 + x) * m0
+        + (3 * x2 - 2 * x3) * _S[jc + 1]
+        + (x3 - x2) * m1
+    )
+    nss_row = n_ss[inv, 0]
+    n = nss_row / (1.0 + np.exp(-s))
+    # before the first node: cubic Hermite from n(0) = 0 with slopes f(0), f(n_first)
+    early = j < 0
+    if np.any(early):
+        tf = t_first[inv[early], 0]
+        y = t[early] / tf
+        n_first = nss_row[early] * _U[0]
+        d0 = f0[inv[early], 0] * tf
+        d1 = f[inv[early], 0] * tf
+        y2, y3 = y * y, y * y * y
+        n[early] = (y3 - 2 * y2 + y) * d0 + (3 * y2 - 2 * y3) * n_first + (y3 - y2) * d1
+    # after the last node: linear relaxation n_ss - n ∝ exp(-k (t - t_last))
+    late = j >= last
+    if np.any(late):
+        dt = t[late] - t_grid[inv[late], last]
+        gap = (1.0 - _U[-1]) * np.exp(-rate_ss[inv[late]] * dt)
+        n[late] = nss_row[late] * (1.0 - gap)
+    n = np.where(live[inv, 0], n, 0.0)
+    return n, kin.take(inv)
+
+
+def trapped_charge(inputs: Mapping[str, Any], params: Mapping[str, float]) -> np.ndarray:
+    """Trapped electron density ``n_t`` (m⁻³) at each row's (V, T, t).
+
+    Examples
+    --------
+    >>> from kohpymc.examples.dielectric import TRUE_PARAMS
+    >>> n = trapped_charge({"V": [20.0, 20.0], "T": [300.0, 300.0], "t": [0.0, 100.0]},
+    ...                    TRUE_PARAMS)
+    >>> float(n[0]), bool(n[1] > 1e22)
+    (0.0, True)
+    """
+    n, _ = _solve(inputs, params)
+    return n

@@ -1,0 +1,1 @@
+"""Independent reference computations for the tests (and the benchmarks that sample them)."""

@@ -2,29 +2,19 @@
 
 Kennedy–O'Hagan form ``y_D = G(x; θ) + δ(x) + ε`` with the discrepancy priors of
 Ling, Mullins & Mahadevan, "Selection of model discrepancy priors in Bayesian
-calibration".
+calibration".  This namespace is the user API; the modules hold the rest.
 """
 
 from importlib.metadata import PackageNotFoundError, version
 
-from kohpymc.calibration import calibrate, predict
+from kohpymc import discrepancy as _discrepancy
+from kohpymc.calibration import Calibration, calibrate, predict
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
-from kohpymc.config import StudySpec, load_study
+from kohpymc.config import StudyConfigError, StudySpec, load_study
 from kohpymc.data import CalibrationData, pooled_replicate_sd
-from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems, sampler_diagnostics
-from kohpymc.discrepancy import (
-    ConstantBias,
-    DecayingVariance,
-    Discrepancy,
-    GaussianProcess,
-    GridGP,
-    IIDGaussian,
-    InputDependentGaussian,
-    LinearBasis,
-    NoDiscrepancy,
-    NonStationaryGP,
-    ParametricFunction,
-)
+from kohpymc.diagnostics import SamplerTroubleWarning, sampler_diagnostics
+from kohpymc.discovery import DiscoveryReport, discover
+from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation class
 from kohpymc.identifiability import (
     IdentifiabilityReport,
     IdentifiabilityWarning,
@@ -32,11 +22,12 @@ from kohpymc.identifiability import (
     fisher_information_check,
     taylor_check,
 )
+from kohpymc.initialization import MultistartResult, multistart_least_squares, prior_box
 from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
-from kohpymc.reliability import Reliability, reliability
-from kohpymc.study import StudyResult, default_formulations, run_study
+from kohpymc.study import StudyResult, run_study
+from kohpymc.validation import Reliability, reliability
 
 try:
     __version__ = version("kohpymc")
@@ -44,6 +35,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
 __all__ = [
+    # physics, data, priors
     "PhysicsModel",
     "PhysicsModelError",
     "CalibrationData",
@@ -54,28 +46,25 @@ __all__ = [
     "LogNormal",
     "HalfNormal",
     "Custom",
-    "Discrepancy",
-    "NoDiscrepancy",
-    "ConstantBias",
-    "IIDGaussian",
-    "InputDependentGaussian",
-    "GaussianProcess",
-    "GridGP",
-    "NonStationaryGP",
-    "DecayingVariance",
-    "LinearBasis",
-    "ParametricFunction",
+    # discrepancy formulations (M0–M6, GridGP, ...) and how to write one
+    *_discrepancy.__all__,
+    # calibration
     "build_model",
     "calibrate",
+    "Calibration",
     "predict",
+    "multistart_least_squares",
+    "MultistartResult",
+    "prior_box",
     "sampler_diagnostics",
+    "SamplerTroubleWarning",
+    # identifiability
     "taylor_check",
     "check_formulation",
     "fisher_information_check",
     "IdentifiabilityReport",
     "IdentifiabilityWarning",
-    "convergence_problems",
-    "SamplerTroubleWarning",
+    # validation, weights, studies, discovery
     "reliability",
     "Reliability",
     "reliability_weights",
@@ -83,8 +72,10 @@ __all__ = [
     "loo_weights",
     "run_study",
     "StudyResult",
-    "default_formulations",
     "load_study",
     "StudySpec",
+    "StudyConfigError",
+    "discover",
+    "DiscoveryReport",
     "__version__",
 ]

@@ -27,6 +27,7 @@ import arviz as az
 import numpy as np
 import pymc as pm
 
+from kohpymc.checks import check_compile_mode
 from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.discrepancy.base import Discrepancy
@@ -41,10 +42,7 @@ from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, ne
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
 
-__all__ = ["Calibration", "calibrate", "predict", "COMPILE_MODES"]
-
-#: PyTensor compile modes :func:`calibrate` accepts for PyMC's NUTS
-COMPILE_MODES = ("NUMBA", "FAST_RUN")
+__all__ = ["Calibration", "calibrate", "predict"]
 
 
 def _attach_input_coords(idata: az.InferenceData, dim: str, inputs: Mapping[str, np.ndarray]):
@@ -149,10 +147,9 @@ def _plain_or_repr(formulation: Discrepancy) -> Any:
 
 def _compile_mode_kwargs(mode, method, nuts_sampler, sample_kwargs: dict[str, Any]) -> None:
     """Put ``mode`` into PyMC's ``compile_kwargs`` (PyMC's own NUTS only)."""
+    check_compile_mode(mode)
     if mode is None:
         return
-    if mode not in COMPILE_MODES:
-        raise ValueError(f"mode must be one of {list(COMPILE_MODES)} or None, got {mode!r}")
     if method != "nuts" or nuts_sampler != "pymc":
         raise ValueError(
             "mode applies to PyMC's own NUTS (method='nuts', nuts_sampler='pymc'), "
@@ -163,7 +160,7 @@ def _compile_mode_kwargs(mode, method, nuts_sampler, sample_kwargs: dict[str, An
     sample_kwargs["compile_kwargs"] = compile_kwargs
 
 
-def _identifiability(plain: CalibrationModel, physics: PhysicsModel, warn: bool):
+def _identifiability(plain: CalibrationModel, physics: PhysicsModel):
     """The Taylor check at the prior centre, warning on a rank deficit."""
     label = plain.formulation.label
     try:
@@ -171,7 +168,7 @@ def _identifiability(plain: CalibrationModel, physics: PhysicsModel, warn: bool)
     except ValueError as err:
         warnings.warn(f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=3)
         return None
-    if not report.identifiable and warn:
+    if not report.identifiable:
         warnings.warn(
             f"{label} with {physics.name!r} is not identifiable at the prior centre "
             f"(rank {report.rank} of {len(report.names)}): "
@@ -281,7 +278,7 @@ def calibrate(
     plain = compose_model(
         physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
     )
-    report = _identifiability(plain, physics, warn) if check_identifiability else None
+    report = _identifiability(plain, physics) if check_identifiability else None
     settings = dict(
         draws=draws,
         tune=tune,

@@ -12,7 +12,16 @@ from typing import Any
 from kohpymc.data import CalibrationData
 from kohpymc.physics import PhysicsModel
 
-__all__ = ["check_tolerance", "check_physics_runs", "check_validation_data"]
+__all__ = [
+    "COMPILE_MODES",
+    "check_compile_mode",
+    "check_tolerance",
+    "check_physics_runs",
+    "check_validation_data",
+]
+
+#: PyTensor compile modes for the log density of PyMC's NUTS
+COMPILE_MODES = ("NUMBA", "FAST_RUN")
 
 
 def _where(data: CalibrationData) -> str:
@@ -76,3 +85,14 @@ def check_validation_data(
         raise ValueError(f"validation data{_where(validation)} are empty")
     check_physics_runs(physics, validation, "validation")
     return eps
+
+
+def check_compile_mode(mode: Any) -> None:
+    """``mode`` is ``None`` or one of :data:`COMPILE_MODES`.
+
+    Examples
+    --------
+    >>> check_compile_mode("NUMBA")
+    """
+    if mode is not None and mode not in COMPILE_MODES:
+        raise ValueError(f"mode must be one of {list(COMPILE_MODES)} or None, got {mode!r}")

@@ -40,8 +40,10 @@ formulations and sampler settings::
     [output]                          # optional; the CLI's --out wins
     dir = "beam_study"
 
-Every problem is reported with the file and the key at fault.  Formulation types:
-``none``, ``constant``, ``iid``, ``input_dependent``, ``gp``, ``nonstationary_gp``.
+Every problem is reported with the file and the key at fault.  Formulation types are the
+registered kinds (:func:`kohpymc.formulation_kinds`: ``none``, ``constant``, ``iid``,
+``input_dependent``, ``gp``, ``nonstationary_gp``, ``grid_gp``, ``scaled_gp``, ...); the
+other keys of a formulation table are its constructor's options.
 """
 
 from __future__ import annotations
@@ -57,19 +59,11 @@ from typing import Any
 
 import pandas as pd
 
-from kohpymc.calibration import COMPILE_MODES
+from kohpymc.checks import check_compile_mode, check_physics_runs, check_tolerance
 from kohpymc.data import CalibrationData
-from kohpymc.discrepancy import (
-    ConstantBias,
-    Discrepancy,
-    GaussianProcess,
-    IIDGaussian,
-    InputDependentGaussian,
-    NoDiscrepancy,
-    NonStationaryGP,
-)
+from kohpymc.discrepancy import Discrepancy, FormulationSpecError, from_dict
+from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.physics import PhysicsModel
-from kohpymc.study import default_formulations
 
 __all__ = ["StudyConfigError", "StudySpec", "load_study"]
 
@@ -92,19 +86,6 @@ _SECTIONS: dict[str, set[str]] = {
     },
     "output": {"dir"},
 }  # fmt: skip
-
-_FORMULATION_KEYS: dict[str, set[str]] = {
-    "none": set(),
-    "constant": {"prior"},
-    "iid": {"mean_prior", "sd_prior"},
-    "input_dependent": {"mean", "log_variance", "link"},
-    "gp": {"inputs", "mean", "amplitude_prior", "lengthscale_prior"},
-    "nonstationary_gp": {
-        "inputs", "time", "mean", "amplitude_prior", "lengthscale_prior", "w1_prior",
-        "w2_prior",
-    },
-}  # fmt: skip
-
 
 @dataclass
 class StudySpec:
@@ -225,35 +206,16 @@ def _names(path: Path, key: str, value: Any) -> list[str]:
 def _formulation(
     path: Path, label: str, value: Any, inputs: list[str], time: str | None
 ) -> Discrepancy:
+    """One ``[formulations]`` entry through the formulation registry."""
     key = f"formulations.{label}"
-    if isinstance(value, str):
-        value = {"type": value}
-    if not isinstance(value, dict) or "type" not in value:
-        raise _err(path, key, "must be a type name or a table with 'type'")
-    kind = value["type"]
-    if kind not in _FORMULATION_KEYS:
-        raise _err(
-            path, f"{key}.type", f"unknown type {kind!r}; known: {sorted(_FORMULATION_KEYS)}"
-        )
-    opts = {k: v for k, v in value.items() if k != "type"}
-    _check_keys(path, key, opts, _FORMULATION_KEYS[kind])
-    for name_key in ("mean", "log_variance", "inputs"):
-        if name_key in opts:
-            opts[name_key] = _names(path, f"{key}.{name_key}", opts[name_key])
+    if isinstance(value, dict):
+        for name_key in ("mean", "log_variance", "inputs"):
+            if name_key in value and not isinstance(value[name_key], dict):
+                _names(path, f"{key}.{name_key}", value[name_key])
     try:
-        if kind == "none":
-            return NoDiscrepancy()
-        if kind == "constant":
-            return ConstantBias(**opts)
-        if kind == "iid":
-            return IIDGaussian(**opts)
-        if kind == "input_dependent":
-            return InputDependentGaussian(**{"mean": inputs, **opts})
-        if kind == "gp":
-            return GaussianProcess(**{"inputs": inputs, **opts})
-        return NonStationaryGP(**{"inputs": inputs, "time": time, **opts})
-    except (TypeError, ValueError, KeyError) as err:
-        raise _err(path, key, f"{type(err).__name__}: {err}") from err
+        return from_dict(value, inputs=inputs, time=time)
+    except FormulationSpecError as err:
+        raise _err(path, f"{key}.{err.key}" if err.key else key, str(err)) from err
 
 
 def load_study(path: str | Path) -> StudySpec:
@@ -344,17 +306,15 @@ def load_study(path: str | Path) -> StudySpec:
     if validation.n == 0:
         raise _err(path, "data.validation", f"{validation.source} has no rows")
     try:
-        physics.evaluate({k: validation.inputs[k] for k in inputs}, physics.prior_mean())
-    except Exception as err:
-        raise _err(
-            path, "data.validation",
-            f"the physics function fails on the inputs of {validation.source}: {err}",
-        ) from err  # fmt: skip
+        check_physics_runs(physics, validation, "validation")
+    except (KeyError, ValueError) as err:
+        raise _err(path, "data.validation", str(err).strip("'\"")) from err
 
     val = doc["validation"]
-    tolerance = _require(path, val, "validation", "tolerance")
-    if not isinstance(tolerance, int | float) or not tolerance > 0:
-        raise _err(path, "validation.tolerance", f"must be a positive number, got {tolerance!r}")
+    try:
+        tolerance = check_tolerance(_require(path, val, "validation", "tolerance"))
+    except ValueError as err:
+        raise _err(path, "validation.tolerance", str(err)) from err
     weights = None
     if "weights" in val:
         frame = pd.read_csv(validation.source)
@@ -383,12 +343,10 @@ def load_study(path: str | Path) -> StudySpec:
             raise _err(
                 path, f"sampling.{key}", f"must be a positive integer, got {sampling_doc[key]!r}"
             )
-    if "mode" in sampling_doc and sampling_doc["mode"] not in COMPILE_MODES:
-        raise _err(
-            path,
-            "sampling.mode",
-            f"must be one of {list(COMPILE_MODES)}, got {sampling_doc['mode']!r}",
-        )
+    try:
+        check_compile_mode(sampling_doc.get("mode"))
+    except ValueError as err:
+        raise _err(path, "sampling.mode", str(err)) from err
     out = doc.get("output", {}).get("dir")
     out_dir = (base / out) if out else base / f"{path.stem}_results"
     return StudySpec(

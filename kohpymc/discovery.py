@@ -31,7 +31,9 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from kohpymc.checks import check_physics_runs, check_validation_data
 from kohpymc.identifiability import analyse_matrix
+from kohpymc.validation import fit_and_score
 
 __all__ = [
     "TermSelection",
@@ -491,6 +493,44 @@ def _evaluate_or_explain(model, inputs, params, what: str) -> np.ndarray:
     return out
 
 
+def _checked_inputs(physics, calibration, validation, tolerance, threshold, candidates, extra):
+    """Check everything before any sampling; return the candidates and their design."""
+    from kohpymc.candidates import candidate_library, design_matrix
+
+    check_validation_data(physics, validation, tolerance)
+    if not 0 < threshold < 1:
+        raise ValueError(f"threshold must be in (0, 1), got {threshold!r}")
+    if physics.backend != "numpy":
+        raise NotImplementedError(
+            "discovery augments the physics function; a pytensor-backend model is not supported"
+        )
+    needed = len(physics.parameters) + 3  # θ, one coefficient, the noise, one more row
+    if calibration.n < needed:
+        raise ValueError(
+            f"too few data points: the calibration data has {calibration.n} rows, at least "
+            f"{needed} are needed to fit {len(physics.parameters)} physics parameter(s) and "
+            "any candidate term"
+        )
+    check_physics_runs(physics, calibration, "calibration")
+    candidates = list(candidate_library(calibration.inputs, extra=extra) if candidates is None
+                      else candidates)  # fmt: skip
+    if not candidates:
+        raise ValueError("the candidate library is empty")
+    try:
+        Phi = design_matrix(candidates, calibration.inputs)
+    except ValueError as err:
+        raise ValueError(f"candidate library on the calibration data: {err}") from err
+    return candidates, Phi
+
+
+def _moments(idata, names) -> tuple[dict[str, float], dict[str, float]]:
+    post = idata.posterior
+    return (
+        {k: float(post[k].mean()) for k in names},
+        {k: float(post[k].std()) for k in names},
+    )
+
+
 def discover(
     physics,
     calibration,
@@ -571,74 +611,23 @@ def discover(
     >>> report.effect, report.inputs  # doctest: +SKIP
     ('c * x * P', ['x', 'P'])
     """
-    from scipy.stats import chi2
-
-    from kohpymc.calibration import calibrate, predict
-    from kohpymc.candidates import candidate_library, design_matrix
-    from kohpymc.study import validation_metrics
-
     say = progress or (lambda _m: None)
-    if not np.isfinite(tolerance) or tolerance <= 0:
-        raise ValueError(f"tolerance must be a positive number, got {tolerance!r}")
-    if not 0 < threshold < 1:
-        raise ValueError(f"threshold must be in (0, 1), got {threshold!r}")
-    if physics.backend != "numpy":
-        raise NotImplementedError(
-            "discovery augments the physics function; a pytensor-backend model is not supported"
-        )
+    candidates, Phi = _checked_inputs(
+        physics, calibration, validation, tolerance, threshold, candidates, extra_terms
+    )
     params = list(physics.parameters)
-    needed = len(params) + 3  # θ, one coefficient, the noise, and one degree of freedom
-    if calibration.n < needed:
-        raise ValueError(
-            f"too few data points: the calibration data has {calibration.n} rows, at least "
-            f"{needed} are needed to fit {len(params)} physics parameter(s) and any candidate "
-            "term"
-        )
-    if candidates is None:
-        candidates = candidate_library(calibration.inputs, extra=extra_terms)
-    candidates = list(candidates)
-    if not candidates:
-        raise ValueError("the candidate library is empty")
-    try:
-        Phi = design_matrix(candidates, calibration.inputs)
-    except ValueError as err:
-        raise ValueError(f"candidate library on the calibration data: {err}") from err
-    centre = {k: float(physics.parameters[k].mean()) for k in params}
-    for what, data in (("calibration", calibration), ("validation", validation)):
-        missing = [k for k in physics.inputs if k not in data.inputs]
-        if missing:
-            raise KeyError(f"the {what} data lacks the physics input(s) {missing}")
-        try:  # input-dependent failures show at once, not after the first calibration
-            physics.evaluate(data.inputs, centre, check_finite=False)
-        except Exception as err:  # noqa: BLE001 - re-raised with context
-            raise ValueError(
-                f"physics model {physics.name!r} fails on the {what} inputs "
-                f"(at the prior mean): {err}"
-            ) from err
     sampler = {"draws": draws, "tune": tune, "chains": chains}
 
-    def run(model, seed_offset):
-        seed = None if random_seed is None else random_seed + seed_offset
-        idata = calibrate(model, calibration, None, random_seed=seed, warn=False, **sampler)
-        pred = predict(idata, model, calibration, None, validation, random_seed=seed)
-        noise = validation.noise_sd if validation.noise_sd is not None else calibration.noise_sd
-        if noise is None and "sigma_obs" in idata.posterior:
-            noise = float(idata.posterior["sigma_obs"].mean())
-        scores, const = validation_metrics(pred, validation, tolerance, noise, None)
-        idata.extend(pred)
-        idata.add_groups(predictions_constant_data=const)
-        return idata, scores, const
-
-    def moments(idata, names):
-        post = idata.posterior
-        return (
-            {k: float(post[k].mean()) for k in names},
-            {k: float(post[k].std()) for k in names},
-        )
+    def run(model, label):
+        scored = fit_and_score(
+            model, calibration, validation, None, tolerance=tolerance,
+            random_seed=random_seed, label=label, warn=False, **sampler,
+        )  # fmt: skip
+        return scored.combined_idata(), scored.scores, scored.constant
 
     say("calibrating the model as given ...")
-    before, scores_before, const_before = run(physics, 0)
-    theta, theta_sd_post = moments(before, params)
+    before, scores_before, const_before = run(physics, "as given")
+    theta, theta_sd_post = _moments(before, params)
     g_hat = _evaluate_or_explain(physics, calibration.inputs, theta, "calibration inputs")
     post = before.posterior
     sigma = calibration.noise_sd
@@ -698,6 +687,8 @@ def discover(
     effect = " + ".join(t.expression for t in chosen)
     say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")
 
+    from scipy.stats import chi2
+
     rel = const_before["reliability"].values
     where: list[dict] = []
     for k in named_inputs:
@@ -724,9 +715,9 @@ def discover(
     for what, data in (("calibration", calibration), ("validation", validation)):
         _evaluate_or_explain(augmented, data.inputs, start, f"{what} inputs (augmented model)")
     say(f"recalibrating {augmented.name} ...")
-    after, scores_after, _ = run(augmented, 1)
+    after, scores_after, _ = run(augmented, "augmented")
     new_names = [c for c in augmented.parameters if c not in physics.parameters]
-    after_mean, after_sd = moments(after, params + new_names)
+    after_mean, after_sd = _moments(after, params + new_names)
     g_after = _evaluate_or_explain(augmented, calibration.inputs, after_mean, "calibration inputs")
     added = g_after - physics.evaluate(calibration.inputs, {k: after_mean[k] for k in params})
     share = {k: _main_effect_share(calibration.inputs[k], added) for k in named_inputs}

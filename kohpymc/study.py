@@ -26,7 +26,6 @@ import json
 import os
 import time
 import warnings
-import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,60 +34,33 @@ from typing import Any
 import arviz as az
 import numpy as np
 import pandas as pd
-import xarray as xr
 
-from kohpymc.calibration import calibrate, predict
+from kohpymc.calibration import Calibration
+from kohpymc.checks import check_validation_data
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
 from kohpymc.data import CalibrationData
-from kohpymc.diagnostics import RHAT_MAX, SamplerTroubleWarning, sampler_diagnostics
-from kohpymc.discrepancy import (
-    ConstantBias,
-    Discrepancy,
-    GaussianProcess,
-    IIDGaussian,
-    InputDependentGaussian,
-    NoDiscrepancy,
-    NonStationaryGP,
-)
+from kohpymc.diagnostics import RHAT_MAX, sampler_diagnostics
+from kohpymc.discrepancy import Discrepancy
+from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
+from kohpymc.model import compose_model
 from kohpymc.physics import PhysicsModel
-from kohpymc.reliability import reliability
+from kohpymc.validation import (
+    Scored,
+    derived_seed,
+    fit_and_score,
+    validation_metrics,
+    validation_noise_sd,
+)
 
 __all__ = [
     "StudyResult",
     "run_study",
-    "default_formulations",
     "markdown_table",
-    "validation_metrics",
     "write_atomic",
 ]
 
 COMBINED = "combined"
-
-
-def default_formulations(
-    inputs: Sequence[str], *, time: str | None = None
-) -> dict[str, Discrepancy]:
-    """M0–M4 with means (and M3's log-variance) linear in ``inputs``; M5 if ``time`` given.
-
-    Examples
-    --------
-    >>> list(default_formulations(["x"]))
-    ['M0', 'M1', 'M2', 'M3', 'M4']
-    >>> list(default_formulations(["V", "t"], time="t"))[-1]
-    'M5'
-    """
-    inputs = list(inputs)
-    out: dict[str, Discrepancy] = {
-        "M0": NoDiscrepancy(),
-        "M1": ConstantBias(),
-        "M2": IIDGaussian(),
-        "M3": InputDependentGaussian(mean=inputs),
-        "M4": GaussianProcess(inputs),
-    }
-    if time is not None:
-        out["M5"] = NonStationaryGP(inputs, time=time)
-    return out
 
 
 @dataclass
@@ -119,6 +91,10 @@ class StudyResult:
         Sampling wall time per formulation (not in the table, which is reproducible).
     files : list of Path
         Files written.
+    calibrations : dict label -> Calibration
+        The calibrated formulations (for :func:`kohpymc.predict` at other inputs).
+    noise_sd : dict label -> float or None
+        σ of y_D used in each formulation's reliability integral.
     """
 
     results: dict[str, az.InferenceData]
@@ -130,6 +106,8 @@ class StudyResult:
     identifiability: dict[str, dict]
     wall_time_s: dict[str, float] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
+    calibrations: dict[str, Calibration] = field(default_factory=dict)
+    noise_sd: dict[str, float | None] = field(default_factory=dict)
 
     def summary(self) -> str:
         """The main columns of the table as text."""
@@ -170,73 +148,6 @@ def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
     return "\n".join(lines)
 
 
-def _check_inputs(physics: PhysicsModel, validation: CalibrationData, tolerance: float) -> None:
-    if not np.isfinite(tolerance) or tolerance <= 0:
-        raise ValueError(f"validation tolerance must be a positive number, got {tolerance!r}")
-    where = f" ({validation.source})" if validation.source else ""
-    if validation.n == 0:
-        raise ValueError(f"validation data{where} are empty")
-    missing = [k for k in physics.inputs if k not in validation.inputs]
-    if missing:
-        raise KeyError(
-            f"validation data{where} lack input column(s) {missing} of the physics model "
-            f"{physics.name!r}"
-        )
-    try:
-        physics.evaluate({k: validation.inputs[k] for k in physics.inputs}, physics.prior_mean())
-    except Exception as err:
-        raise ValueError(
-            f"validation data{where}: the physics model {physics.name!r} fails on the "
-            f"validation inputs: {err}"
-        ) from err
-
-
-def _seed(random_seed: int | None, label: str, purpose: int) -> int | None:
-    """A seed per (formulation, purpose), so adding a formulation changes no other's draws."""
-    if random_seed is None:
-        return None
-    key = (zlib.crc32(label.encode()), purpose)
-    return int(np.random.SeedSequence(random_seed, spawn_key=key).generate_state(1)[0])
-
-
-def validation_metrics(
-    pred: az.InferenceData, validation: CalibrationData, tolerance: float, noise_sd, weights
-) -> tuple[dict[str, float], xr.Dataset]:
-    """μ_r ± MCSE, RMSE of the posterior-mean ``y_model`` and 90 % coverage of ``y_pred``.
-
-    Returns the scores and a Dataset (``reliability``, ``y_validation`` over ``pred``) for
-    the ``predictions_constant_data`` group.
-    """
-    rel = reliability(pred, validation, tolerance, noise_sd=noise_sd, weights=weights)
-    ym = pred.predictions["y_model"].transpose(..., "pred").values
-    yp = pred.predictions["y_pred"].transpose(..., "pred").values
-    ym = ym.reshape(-1, ym.shape[-1])
-    yp = yp.reshape(-1, yp.shape[-1])
-    lo, hi = np.quantile(yp, [0.05, 0.95], axis=0)
-    metrics = {
-        "mu_r": rel.mu_r,
-        "mu_r_mcse": rel.mcse,
-        "rmse": float(np.sqrt(np.mean((ym.mean(axis=0) - validation.y) ** 2))),
-        "coverage90": float(np.mean((validation.y >= lo) & (validation.y <= hi))),
-    }
-    const = rel.to_dataset()
-    const["y_validation"] = xr.DataArray(validation.y, dims=("pred",))
-    return metrics, const
-
-
-def _noise_sd_for_validation(
-    validation: CalibrationData, calibration: CalibrationData, idata: az.InferenceData
-) -> float | None:
-    """σ of y_D: the validation data's, else the calibration data's, else calibrated σ_obs."""
-    if validation.noise_sd is not None or validation.replicates is not None:
-        return validation.noise_sd
-    if calibration.noise_sd is not None:
-        return calibration.noise_sd
-    if "sigma_obs" in idata.posterior:
-        return float(idata.posterior["sigma_obs"].mean())
-    return None
-
-
 def write_atomic(path: Path, write: Callable[[Path], None]) -> Path:
     """Write via ``write(tmp)`` to a hidden temporary name, then rename to ``path``.
 
@@ -275,55 +186,54 @@ class _Job:
     random_seed: int | None
     settings: dict[str, Any]
 
-
-def _calibrate_one(job: _Job, label: str, disc: Discrepancy) -> tuple:
-    """Calibrate, predict at the validation inputs and score one formulation."""
-    start = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", SamplerTroubleWarning)
-        idata = calibrate(
-            job.physics,
-            job.calibration,
-            disc,
-            random_seed=_seed(job.random_seed, label, 0),
-            check_identifiability=False,
-            **job.settings,
-        )
-    pred = predict(
-        idata,
-        job.physics,
-        job.calibration,
-        disc,
-        job.validation,
-        random_seed=_seed(job.random_seed, label, 1),
-    )
-    noise_sd = _noise_sd_for_validation(job.validation, job.calibration, idata)
-    scores, const = validation_metrics(
-        pred, job.validation, job.tolerance, noise_sd, job.validation_weights
-    )
-    return idata, pred, scores, const, time.perf_counter() - start
-
-
-def _calibrate_one_safely(job: _Job, label: str, disc: Discrepancy) -> tuple[Any, str | None]:
-    try:
-        return _calibrate_one(job, label, disc), None
-    except Exception as err:  # noqa: BLE001 - reported, the study goes on
-        return None, f"{type(err).__name__}: {err}"
+    def run(self, label: str, disc: Discrepancy) -> tuple[Scored | None, float, str | None]:
+        """Fit and score one formulation; an exception becomes its failure message."""
+        start = time.perf_counter()
+        try:
+            scored = fit_and_score(
+                self.physics,
+                self.calibration,
+                self.validation,
+                disc,
+                tolerance=self.tolerance,
+                validation_weights=self.validation_weights,
+                random_seed=self.random_seed,
+                label=label,
+                check_identifiability=False,
+                **self.settings,
+            )
+        except Exception as err:  # noqa: BLE001 - reported, the study goes on
+            return None, time.perf_counter() - start, f"{type(err).__name__}: {err}"
+        return scored, time.perf_counter() - start, None
 
 
 #: the study a forked worker process reads (set before the workers fork)
 _FORKED: tuple[_Job, dict[str, Discrepancy]] | None = None
 
 
-def _forked_worker(label: str) -> tuple[str, Any, str | None]:
+def _forked_worker(label: str) -> tuple[str, Any, float, str | None]:
+    """Runs in a forked process; sends back only picklable results (no model, no physics)."""
     assert _FORKED is not None
     job, formulations = _FORKED
-    outcome, error = _calibrate_one_safely(job, label, formulations[label])
-    return label, outcome, error
+    scored, seconds, error = job.run(label, formulations[label])
+    if scored is None:
+        return label, None, seconds, error
+    cal = scored.calibration
+    payload = (cal.idata, cal.problems, cal.identifiability, cal.noise_sd_prior)
+    rest = (scored.predictions, scored.scores, scored.constant, scored.noise_sd)
+    return label, (payload, rest), seconds, None
+
+
+def _rebuilt(job: _Job, disc: Discrepancy, payload: tuple) -> Scored:
+    """A worker's results as a Scored, with the model rebuilt here (building is cheap)."""
+    (idata, problems, report, noise_prior), rest = payload
+    built = compose_model(job.physics, job.calibration, disc, noise_sd_prior=noise_prior)
+    cal = Calibration(job.physics, job.calibration, disc, built, idata, problems, report, noise_prior)
+    return Scored(cal, *rest)
 
 
 def _run_forked(job: _Job, formulations: dict[str, Discrepancy], labels: list[str], workers: int):
-    """Yield ``(label, outcome, error)`` as formulations finish in ``workers`` processes.
+    """Yield ``(label, scored, seconds, error)`` as formulations finish in ``workers`` processes.
 
     The processes are forked, so the physics function, data and formulations need not be
     picklable (only the results travel back).
@@ -344,9 +254,98 @@ def _run_forked(job: _Job, formulations: dict[str, Discrepancy], labels: list[st
                 try:
                     yield future.result()
                 except Exception as err:  # noqa: BLE001 - e.g. a worker killed by the OS
-                    yield futures[future], None, f"worker process: {type(err).__name__}: {err}"
+                    error = f"worker process: {type(err).__name__}: {err}"
+                    yield futures[future], None, 0.0, error
     finally:
         _FORKED = None
+
+
+def _check_identifiability(physics, calibration, formulations, say):
+    """Taylor check of every formulation before any sampling: (reports, failures)."""
+    say(f"identifiability check of {len(formulations)} formulation(s) at the prior centre")
+    reports: dict[str, dict] = {}
+    failures: dict[str, str] = {}
+    for label, disc in formulations.items():
+        try:
+            report = check_formulation(physics, calibration, disc)
+        except Exception as err:  # noqa: BLE001 - reported, the study goes on
+            failures[label] = f"identifiability check failed: {type(err).__name__}: {err}"
+            say(f"  {label}: {failures[label]}")
+            continue
+        reports[label] = report.to_dict()
+        if report.identifiable:
+            say(f"  {label}: identifiable (rank {report.rank} of {len(report.names)})")
+        else:
+            text = "; ".join(report.confounded())
+            say(f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}): {text}")
+            warnings.warn(
+                f"{label} is not identifiable at the prior centre: {text}",
+                IdentifiabilityWarning,
+                stacklevel=3,
+            )
+    return reports, failures
+
+
+def _calibrate_all(job, formulations, todo, workers, say) -> dict[str, tuple]:
+    """``label -> (scored, seconds, error)`` for every formulation in ``todo``."""
+    position = {label: i + 1 for i, label in enumerate(formulations)}
+    outcomes: dict[str, tuple] = {}
+    if workers > 1 and len(todo) > 1:
+        say(f"calibrating {len(todo)} formulation(s), {workers} at a time")
+        for label, payload, seconds, error in _run_forked(job, formulations, todo, workers):
+            scored = None if payload is None else _rebuilt(job, formulations[label], payload)
+            outcomes[label] = (scored, seconds, error)
+            say(f"[{position[label]}/{len(formulations)}] {label} finished")
+        return outcomes
+    for label in todo:
+        disc = formulations[label]
+        say(f"[{position[label]}/{len(formulations)}] {label} ({disc.description}): calibrating ...")
+        outcomes[label] = job.run(label, disc)
+    return outcomes
+
+
+def _say_scores(say, label: str, scored: Scored, seconds: float) -> None:
+    scores, problems = scored.scores, scored.calibration.problems
+    say(
+        f"  {label}: mu_r = {scores['mu_r']:.3f} ± {scores['mu_r_mcse']:.3f}, "
+        f"RMSE {scores['rmse']:.3g}, 90% coverage {scores['coverage90']:.2f}, "
+        f"{seconds:.0f} s" + (f"; sampler: {'; '.join(problems)}" if problems else "")
+    )
+
+
+def _mixture(results, metrics, params, calibration, validation, tolerance, weights_v, seed):
+    """Reliability weights (Eq. 23) and the weighted mixture (Eq. 24) with its scores."""
+    positive = {k: m["mu_r"] for k, m in metrics.items()}
+    weights = reliability_weights(positive) if sum(positive.values()) > 0 else {}
+    if not weights:
+        return weights, None, None
+    combined = combine_posteriors(
+        results, weights, var_names=params, predictions=results, random_seed=seed
+    )
+    noise_sd = validation_noise_sd(validation, calibration, combined.posterior)
+    scores, const = validation_metrics(combined, validation, tolerance, noise_sd, weights_v)
+    # r(x) is linear in the predictive distribution, so the mixture's μ_r is exactly
+    # Σ w_i μ_r,i; use that rather than the resampled draws' noisier estimate
+    scores["mu_r"] = float(sum(w * metrics[k]["mu_r"] for k, w in weights.items()))
+    scores["mu_r_mcse"] = float(
+        np.sqrt(sum((w * metrics[k]["mu_r_mcse"]) ** 2 for k, w in weights.items()))
+    )
+    const.attrs.update({"mu_r": scores["mu_r"], "mu_r_mcse": scores["mu_r_mcse"]})
+    combined.add_groups(predictions_constant_data=const)
+    combined.attrs.update({k: float(v) for k, v in scores.items()})
+    return weights, combined, scores
+
+
+def _loo_comparison(results, say) -> pd.DataFrame | None:
+    if len(results) < 2:
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return loo_weights(results)
+    except Exception as err:  # noqa: BLE001 - LOO is a side comparison
+        say(f"LOO comparison skipped: {err}")
+        return None
 
 
 def run_study(
@@ -382,7 +381,7 @@ def run_study(
     calibration, validation : CalibrationData
         Calibration and validation measurements.
     formulations : mapping label -> Discrepancy, optional
-        Default :func:`default_formulations` over the physics inputs (M0–M4).
+        Default :func:`kohpymc.default_formulations` over the physics inputs (M0–M4).
     tolerance : float
         ε of the reliability metric (output units), > 0.
     validation_weights : sequence of float, optional
@@ -406,9 +405,7 @@ def run_study(
         Formulations calibrated at the same time, each in its own (forked) process.
         The results are the same as with ``workers=1`` (every formulation's seed comes
         from ``random_seed`` and its label).  With ``workers`` equal to the number of
-        cores, pass ``cores=1`` so the chains of each run one after the other; this also
-        overlaps the single-threaded compilation and prediction steps of different
-        formulations.
+        cores, pass ``cores=1`` so the chains of each run one after the other.
     **calibrate_kwargs :
         Further keywords for :func:`kohpymc.calibrate`.
 
@@ -426,136 +423,61 @@ def run_study(
     0.53
     """
     say = progress or (lambda _msg: None)
-    _check_inputs(physics, validation, tolerance)
+    tolerance = check_validation_data(physics, validation, tolerance)
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    if formulations is None:
-        formulations = default_formulations(physics.inputs)
-    formulations = dict(formulations)
+    formulations = dict(formulations or default_formulations(physics.inputs))
     if not formulations:
         raise ValueError("no formulations to run")
     params = list(physics.parameters)
-
-    say(f"identifiability check of {len(formulations)} formulation(s) at the prior centre")
-    identifiability: dict[str, dict] = {}
-    failures: dict[str, str] = {}
-    for label, disc in formulations.items():
-        try:
-            report = check_formulation(physics, calibration, disc)
-        except Exception as err:  # noqa: BLE001 - reported, the study goes on
-            failures[label] = f"identifiability check failed: {type(err).__name__}: {err}"
-            say(f"  {label}: {failures[label]}")
-            continue
-        identifiability[label] = report.to_dict()
-        if report.identifiable:
-            say(f"  {label}: identifiable (rank {report.rank} of {len(report.names)})")
-        else:
-            text = "; ".join(report.confounded())
-            say(f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}): {text}")
-            warnings.warn(
-                f"{label} is not identifiable at the prior centre: {text}",
-                IdentifiabilityWarning,
-                stacklevel=2,
-            )
-
+    identifiability, failures = _check_identifiability(physics, calibration, formulations, say)
+    settings = dict(draws=draws, tune=tune, chains=chains, target_accept=target_accept)
     job = _Job(
-        physics=physics,
-        calibration=calibration,
-        validation=validation,
-        tolerance=tolerance,
-        validation_weights=validation_weights,
-        random_seed=random_seed,
-        settings=dict(
-            draws=draws,
-            tune=tune,
-            chains=chains,
-            target_accept=target_accept,
-            progressbar=progressbar,
-            **calibrate_kwargs,
-        ),
+        physics,
+        calibration,
+        validation,
+        tolerance,
+        validation_weights,
+        random_seed,
+        {**settings, "progressbar": progressbar, **calibrate_kwargs},
     )
     todo = [label for label in formulations if label not in failures]
-    position = {label: i + 1 for i, label in enumerate(formulations)}
-    outcomes: dict[str, tuple[Any, str | None]] = {}
-    if workers > 1 and len(todo) > 1:
-        say(f"calibrating {len(todo)} formulation(s), {workers} at a time")
-        for label, outcome, error in _run_forked(job, formulations, todo, workers):
-            outcomes[label] = (outcome, error)
-            say(f"[{position[label]}/{len(formulations)}] {label} finished")
-    else:
-        for label in todo:
-            disc = formulations[label]
-            say(
-                f"[{position[label]}/{len(formulations)}] {label} ({disc.description}): "
-                "calibrating ..."
-            )
-            outcomes[label] = _calibrate_one_safely(job, label, disc)
+    outcomes = _calibrate_all(job, formulations, todo, workers, say)
 
     results: dict[str, az.InferenceData] = {}
-    metrics: dict[str, dict[str, float]] = {}
+    scored_by_label: dict[str, Scored] = {}
     wall: dict[str, float] = {}
     for label in todo:  # the formulations' order, whatever order they finished in
-        outcome, error = outcomes[label]
+        scored, seconds, error = outcomes[label]
         if error is not None:
             failures[label] = error
             say(f"  {label} FAILED: {error}")
             continue
-        idata, pred, scores, const, seconds = outcome
-        idata.extend(pred)
-        idata.add_groups(predictions_constant_data=const)
-        if label in identifiability:
-            idata.attrs["identifiability"] = json.dumps(identifiability[label])
-        idata.attrs.update({k: float(v) for k, v in scores.items()})
-        results[label] = idata
-        metrics[label] = scores
+        results[label] = scored.combined_idata()
+        scored_by_label[label] = scored
         wall[label] = seconds
-        problems = json.loads(idata.attrs["sampler_problems"])
-        say(
-            f"  {label}: mu_r = {scores['mu_r']:.3f} ± {scores['mu_r_mcse']:.3f}, "
-            f"RMSE {scores['rmse']:.3g}, 90% coverage {scores['coverage90']:.2f}, "
-            f"{seconds:.0f} s" + (f"; sampler: {'; '.join(problems)}" if problems else "")
-        )
+        _say_scores(say, label, scored, seconds)
     if not results:
         raise RuntimeError(
             "every formulation failed: " + "; ".join(f"{k}: {v}" for k, v in failures.items())
         )
-
-    positive = {k: m["mu_r"] for k, m in metrics.items()}
-    weights = reliability_weights(positive) if sum(positive.values()) > 0 else {}
-    loo = None
-    if len(results) >= 2:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                loo = loo_weights(results)
-        except Exception as err:  # noqa: BLE001 - LOO is a side comparison
-            say(f"LOO comparison skipped: {err}")
-    combined = None
-    if weights:
-        combined = combine_posteriors(
-            results,
-            weights,
-            var_names=params,
-            predictions=results,
-            random_seed=_seed(random_seed, COMBINED, 2),
-        )
-        noise_sd = _noise_sd_for_validation(validation, calibration, combined)
-        scores, const = validation_metrics(
-            combined, validation, tolerance, noise_sd, validation_weights
-        )
-        # r(x) is linear in the predictive distribution, so the mixture's μ_r is exactly
-        # Σ w_i μ_r,i; use that rather than the resampled draws' noisier estimate
-        labels = list(weights)
-        scores["mu_r"] = float(sum(weights[k] * metrics[k]["mu_r"] for k in labels))
-        scores["mu_r_mcse"] = float(
-            np.sqrt(sum((weights[k] * metrics[k]["mu_r_mcse"]) ** 2 for k in labels))
-        )
-        const.attrs.update({"mu_r": scores["mu_r"], "mu_r_mcse": scores["mu_r_mcse"]})
-        combined.add_groups(predictions_constant_data=const)
-        combined.attrs.update({k: float(v) for k, v in scores.items()})
-        metrics[COMBINED] = scores
-
-    table = _table(formulations, results, metrics, weights, loo, failures, identifiability, params)
+    metrics = {k: s.scores for k, s in scored_by_label.items()}
+    loo = _loo_comparison(results, say)
+    weights, combined, combined_scores = _mixture(
+        results,
+        metrics,
+        params,
+        calibration,
+        validation,
+        tolerance,
+        validation_weights,
+        derived_seed(random_seed, COMBINED, 2),
+    )
+    if combined_scores is not None:
+        metrics[COMBINED] = combined_scores
+    table = _table(
+        formulations, scored_by_label, results, metrics, weights, loo, failures, identifiability
+    )
     result = StudyResult(
         results=results,
         table=table,
@@ -565,6 +487,8 @@ def run_study(
         failures=failures,
         identifiability=identifiability,
         wall_time_s=wall,
+        calibrations={k: s.calibration for k, s in scored_by_label.items()},
+        noise_sd={k: s.noise_sd for k, s in scored_by_label.items()},
     )
     if out_dir is not None:
         _write(result, Path(out_dir), physics, validation, figures, reference)
@@ -572,7 +496,24 @@ def run_study(
     return result
 
 
-def _table(formulations, results, metrics, weights, loo, failures, identifiability, params):
+def _row(label, scored: Scored, results, identifiability) -> dict[str, Any]:
+    """Posterior summary, convergence and identifiability columns of one formulation."""
+    cal = scored.calibration
+    params = list(cal.physics.parameters)
+    diag = sampler_diagnostics(results[label], params)
+    row: dict[str, Any] = {}
+    for p in params:
+        row[f"{p}_mean"] = float(diag.loc[p, "mean"])
+        row[f"{p}_sd"] = float(diag.loc[p, "sd"])
+    row["r_hat_max"] = float(az.rhat(results[label].posterior).to_array().max())
+    row["ess_bulk_min"] = float(diag["ess_bulk"].min())
+    row["divergences"] = int(diag.attrs["divergences"])
+    row["identifiable"] = identifiability.get(label, {}).get("identifiable")
+    row["status"] = "ok" if not cal.problems else "; ".join(cal.problems)
+    return row
+
+
+def _table(formulations, scored, results, metrics, weights, loo, failures, identifiability):
     rows = []
     for label in [*formulations, COMBINED]:
         if label == COMBINED and COMBINED not in metrics:
@@ -587,18 +528,8 @@ def _table(formulations, results, metrics, weights, loo, failures, identifiabili
             row["elpd_loo"] = float(loo.loc[label, "elpd_loo"])
             row["loo_weight"] = float(loo.loc[label, "weight"])
             row["max_pareto_k"] = float(loo.loc[label, "max_pareto_k"])
-        idata = results.get(label)
-        if idata is not None:
-            diag = sampler_diagnostics(idata, params)
-            for p in params:
-                row[f"{p}_mean"] = float(diag.loc[p, "mean"])
-                row[f"{p}_sd"] = float(diag.loc[p, "sd"])
-            row["r_hat_max"] = float(az.rhat(idata.posterior).to_array().max())
-            row["ess_bulk_min"] = float(diag["ess_bulk"].min())
-            row["divergences"] = int(diag.attrs["divergences"])
-            row["identifiable"] = identifiability.get(label, {}).get("identifiable")
-            problems = json.loads(idata.attrs["sampler_problems"])
-            row["status"] = "ok" if not problems else "; ".join(problems)
+        if label in scored:
+            row.update(_row(label, scored[label], results, identifiability))
         elif label == COMBINED:
             row["status"] = "ok"
         else:
@@ -608,6 +539,13 @@ def _table(formulations, results, metrics, weights, loo, failures, identifiabili
     if "r_hat_max" in frame:
         frame.attrs["r_hat_limit"] = RHAT_MAX
     return frame
+
+
+def _netcdf(idata: az.InferenceData, provenance: Mapping[str, Any], path: Path) -> None:
+    """Write ``idata`` with the calibration's provenance (plain values) as attributes."""
+    copy = idata.copy()
+    copy.attrs = {**provenance, **idata.attrs}
+    copy.to_netcdf(str(path))
 
 
 def _write(
@@ -629,7 +567,8 @@ def _write(
     out.mkdir(parents=True, exist_ok=True)
     files = result.files
     for label, idata in result.results.items():
-        _write_atomic(out / f"{label}.nc", lambda p, d=idata: d.to_netcdf(str(p)), files)
+        provenance = result.calibrations[label].provenance()
+        _write_atomic(out / f"{label}.nc", lambda p, d=idata, a=provenance: _netcdf(d, a, p), files)
     if result.combined is not None:
         _write_atomic(out / f"{COMBINED}.nc", lambda p: result.combined.to_netcdf(str(p)), files)
     _write_atomic(out / "table.csv", lambda p: result.table.to_csv(p), files)
@@ -643,6 +582,7 @@ def _write(
         ),
         "failures": result.failures,
         "identifiability": result.identifiability,
+        "validation_noise_sd": result.noise_sd,
         "wall_time_s": result.wall_time_s,
     }
     _write_atomic(

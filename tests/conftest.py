@@ -37,6 +37,31 @@ def beam_validation():
     return beam.generate_data((3.5,), seed=BEAM_SEED + 1)
 
 
+def _prior_calibration(physics, data, formulation, draws=12, seed=0):
+    """A Calibration whose "posterior" is a few prior draws (no sampling): for contract tests
+    of prediction and pointwise log-likelihoods on any formulation."""
+    import arviz as az
+    import pymc as pm
+
+    from kohpymc import Calibration
+    from kohpymc.model import compose_model
+
+    built = compose_model(physics, data, formulation)
+    with built.model:
+        prior = pm.sample_prior_predictive(draws=draws, random_seed=seed)
+    posterior = prior.prior
+    if "chain" not in posterior.dims:  # pragma: no cover - PyMC always adds it
+        posterior = posterior.expand_dims(chain=[0])
+    idata = az.InferenceData(posterior=posterior)
+    return Calibration(physics, data, formulation, built, idata)
+
+
+@pytest.fixture(scope="session")
+def prior_calibration():
+    """``prior_calibration(physics, data, formulation, draws=12, seed=0)``: see above."""
+    return _prior_calibration
+
+
 @pytest.fixture(scope="session")
 def beam_calibrations(beam_physics, beam_data):
     """Calibrate each beam formulation once per session, at the library defaults."""

@@ -27,13 +27,13 @@ SEED = 4242
 
 @pytest.mark.parametrize("label", ["M0", "M1", "M2", "M3", "M4"])
 def test_beam_formulations_converge_at_defaults(label, beam_calibrations):
-    idata = beam_calibrations(label)
-    table = sampler_diagnostics(idata)
+    cal = beam_calibrations(label)
+    table = sampler_diagnostics(cal.idata)
     # M4 (4,000 draws, seed 11) has one divergence, at η ≈ 0.006 with E ≈ 290 near its
     # upper bound (the GP switched off): a rare region, reported in sampler_problems
     assert table.attrs["divergences"] <= (1 if label == "M4" else 0)
     assert table["r_hat"].max() <= 1.01, table
-    problems = json.loads(idata.attrs["sampler_problems"])
+    problems = cal.problems
     assert all("ESS" not in p and "r_hat" not in p for p in problems), problems
     assert (table.attrs["divergences"] > 0) == any("diverg" in p for p in problems)
 
@@ -44,19 +44,19 @@ def _interval(idata, prob=0.90):
 
 
 def test_no_discrepancy_biases_young_modulus(beam_calibrations):
-    lo, hi = _interval(beam_calibrations("M0"))
+    lo, hi = _interval(beam_calibrations("M0").idata)
     assert not lo <= beam.TRUE_E <= hi  # the paper's Fig. 4: M0 is far from 200 GPa
     assert hi < beam.TRUE_E
 
 
 @pytest.mark.parametrize("label", ["M3", "M4"])
 def test_input_dependent_discrepancies_cover_true_modulus(label, beam_calibrations):
-    lo, hi = _interval(beam_calibrations(label))
+    lo, hi = _interval(beam_calibrations(label).idata)
     assert lo <= beam.TRUE_E <= hi
 
 
 def test_inference_data_layout_and_netcdf_roundtrip(beam_calibrations, beam_data, tmp_path):
-    idata = beam_calibrations("M3")
+    idata = beam_calibrations("M3").idata
     for group in ("posterior", "sample_stats", "log_likelihood", "observed_data"):
         assert group in idata.groups()
     ll = idata.log_likelihood["y"]
@@ -76,7 +76,7 @@ def test_inference_data_layout_and_netcdf_roundtrip(beam_calibrations, beam_data
 
 def test_pointwise_loglik_of_marginalized_model_matches_direct(beam_calibrations, beam_data):
     """log N(y_i | G_i + B_i c, σ_obs² + σ_δ²(x_i)) at stored draws, computed in numpy."""
-    idata = beam_calibrations("M3")
+    idata = beam_calibrations("M3").idata
     post = idata.posterior.isel(chain=0, draw=slice(0, 5))
     x = beam_data.inputs["x"]
     z = (x - x.mean()) / x.std()
@@ -97,9 +97,9 @@ def test_pointwise_loglik_of_marginalized_model_matches_direct(beam_calibrations
 def test_predictions_at_validation_load(
     label, beam_calibrations, beam_physics, beam_data, beam_validation
 ):
-    idata = beam_calibrations(label)
-    disc = beam.formulations()[label]
-    pred = predict(idata, beam_physics, beam_data, disc, beam_validation, random_seed=SEED)
+    cal = beam_calibrations(label)
+    idata = cal.idata
+    pred = predict(cal, beam_validation, random_seed=SEED)
     n_chain, n_draw = idata.posterior.sizes["chain"], idata.posterior.sizes["draw"]
     for var in ("physics", "discrepancy", "y_model", "y_pred"):
         assert pred.predictions[var].shape == (n_chain, n_draw, beam_validation.n)
@@ -128,12 +128,12 @@ def test_recovery_when_the_model_is_right(beam_physics):
     from kohpymc import ConstantBias
 
     data = _eb_data(150.0, bias=1.0)
-    idata = calibrate(beam_physics, data, ConstantBias(), random_seed=SEED, cores=2, warn=False)
+    idata = calibrate(beam_physics, data, ConstantBias(), random_seed=SEED, cores=2, warn=False).idata
     for name, truth in (("E", 150.0), ("delta", 1.0)):
         draws = idata.posterior[name].values
         assert abs(draws.mean() - truth) <= 3 * draws.std()
     free = CalibrationData(data.inputs, data.y - 1.0)
-    idata0 = calibrate(beam_physics, free, random_seed=SEED, cores=2, warn=False)
+    idata0 = calibrate(beam_physics, free, random_seed=SEED, cores=2, warn=False).idata
     for name, truth in (("E", 150.0), ("sigma_obs", np.sqrt(0.1))):
         draws = idata0.posterior[name].values
         assert abs(draws.mean() - truth) <= 3 * draws.std()
@@ -143,8 +143,8 @@ def test_gradient_free_smc_agrees_with_nuts():
     """SMC needs no gradient: a model without Jacobian, sampled by SMC, matches NUTS."""
     physics = beam.physics_model(jacobian=False)
     data = _eb_data(150.0, seed=SEED + 1)
-    smc = calibrate(physics, data, method="smc", draws=1000, chains=2, random_seed=SEED)
-    nuts = calibrate(physics, data, random_seed=SEED, warn=False)
+    smc = calibrate(physics, data, method="smc", draws=1000, chains=2, random_seed=SEED).idata
+    nuts = calibrate(physics, data, random_seed=SEED, warn=False).idata
     e_smc, e_nuts = smc.posterior["E"].values, nuts.posterior["E"].values
     assert abs(e_smc.mean() - e_nuts.mean()) <= 0.25 * e_nuts.std()
     assert e_smc.std() == pytest.approx(e_nuts.std(), rel=0.15)
@@ -153,8 +153,9 @@ def test_gradient_free_smc_agrees_with_nuts():
 
 def test_sampler_trouble_is_reported_not_swallowed(beam_physics, beam_data):
     with pytest.warns(SamplerTroubleWarning, match="ESS"):
-        idata = calibrate(beam_physics, beam_data, draws=15, tune=10, chains=2, random_seed=SEED)
-    assert json.loads(idata.attrs["sampler_problems"])
+        cal = calibrate(beam_physics, beam_data, draws=15, tune=10, chains=2, random_seed=SEED)
+    assert cal.problems
+    assert json.loads(cal.provenance()["sampler_problems"]) == cal.problems
 
 
 def test_bad_physics_fails_before_sampling_with_parameter_values(beam_data):
@@ -194,7 +195,7 @@ def test_nonstationary_gp_on_time_series_with_shrinking_noise():
         warnings.simplefilter("error", SamplerTroubleWarning)
         idata = calibrate(
             physics, data, NonStationaryGP(["t"], time="t", mean=[]), random_seed=SEED, cores=2
-        )
+        ).idata
     table = sampler_diagnostics(idata)
     assert table.attrs["divergences"] == 0
     assert table["r_hat"].max() <= 1.01
@@ -213,7 +214,7 @@ def test_beam_convergence_over_data_seeds(label, data_seed, beam_physics):
     data = beam.generate_data((2.5,), seed=data_seed)
     idata = calibrate(
         beam_physics, data, beam.formulations()[label], random_seed=data_seed, warn=False
-    )
+    ).idata
     table = sampler_diagnostics(idata)
     assert table.attrs["divergences"] == 0
     assert table["r_hat"].max() <= 1.01
@@ -225,10 +226,10 @@ def test_numba_mode_samples_the_same_posterior(beam_data):
     means of E and δ within 4 Monte-Carlo standard errors of each other."""
     physics = beam.physics_model(backend="pytensor")
     settings = dict(draws=500, tune=500, chains=2, cores=2, warn=False)
-    c_backend = calibrate(physics, beam_data, ConstantBias(), random_seed=SEED, **settings)
+    c_backend = calibrate(physics, beam_data, ConstantBias(), random_seed=SEED, **settings).idata
     numba = calibrate(
         physics, beam_data, ConstantBias(), random_seed=SEED + 1, mode="NUMBA", **settings
-    )
+    ).idata
     assert c_backend.attrs["compile_mode"] == "default"
     assert numba.attrs["compile_mode"] == "NUMBA"
     assert sampler_diagnostics(numba)["r_hat"].max() <= 1.01

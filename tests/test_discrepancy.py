@@ -59,7 +59,9 @@ def _deterministic(model, name):
 
 
 @pytest.mark.parametrize("label", list(FORMULATIONS))
-def test_contract_logp_gradient_and_predictions(label, beam_physics, two_load_data):
+def test_contract_logp_gradient_and_predictions(
+    label, beam_physics, two_load_data, prior_calibration
+):
     disc = FORMULATIONS[label]()
     model = build_model(beam_physics, two_load_data, disc)
     assert model["y"].name == "y" and model.named_vars_to_dims["y"] == ("obs",)
@@ -68,15 +70,9 @@ def test_contract_logp_gradient_and_predictions(label, beam_physics, two_load_da
     grad = model.compile_dlogp()(point)
     assert np.isfinite(logp) and np.all(np.isfinite(grad))
     # predictions from a small fixed set of prior draws standing in for a posterior
-    with model:
-        prior = pm.sample_prior_predictive(draws=12, random_seed=SEED)
-    fake = prior.prior.expand_dims(chain=[0]) if "chain" not in prior.prior.dims else prior.prior
-    import arviz as az
-
+    fake = prior_calibration(beam_physics, two_load_data, disc, seed=SEED)
     new = beam.generate_data((3.5,), n_points=5, seed=SEED)
-    pred = predict(
-        az.InferenceData(posterior=fake), beam_physics, two_load_data, disc, new, random_seed=SEED
-    )
+    pred = predict(fake, new, random_seed=SEED)
     for var in ("physics", "discrepancy", "y_model", "y_pred"):
         da = pred.predictions[var]
         assert da.dims == ("chain", "draw", "pred") and da.shape[-1] == 5

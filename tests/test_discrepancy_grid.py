@@ -19,6 +19,7 @@ from kohpymc import (
     predict,
 )
 from kohpymc.loo import loo_log_likelihood
+from kohpymc.model import compose_model
 
 SEED = 31
 NOISE = 0.1
@@ -170,14 +171,20 @@ SETTINGS = dict(draws=200, tune=200, chains=2, cores=1, random_seed=SEED, warn=F
 
 
 @pytest.fixture(scope="module")
-def grid_idata(physics, data):
+def grid_calibration(physics, data):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return calibrate(physics, data, GridGP(INPUTS), **SETTINGS)
 
 
-def test_calibrate_and_predict_end_to_end(physics, data, grid_idata):
-    idata = grid_idata
+@pytest.fixture(scope="module")
+def grid_idata(grid_calibration):
+    return grid_calibration.idata
+
+
+def test_calibrate_and_predict_end_to_end(physics, data, grid_calibration):
+    cal = grid_calibration
+    idata = cal.idata
     assert idata.attrs["formulation"] == "M4"
     assert idata.log_likelihood["y"].dims == ("chain", "draw", "obs")
     assert idata.log_likelihood.attrs["pointwise"] == "loo_conditional"
@@ -186,7 +193,7 @@ def test_calibrate_and_predict_end_to_end(physics, data, grid_idata):
     E = idata.posterior["E"].values
     assert abs(E.mean() - TRUE_E) < 3 * E.std()  # E is identified here
     new = {"a": np.array([0.0, 1.0]), "b": np.array([1.5, 2.5]), "t": np.array([0.5, 1.1])}
-    pred = predict(idata, physics, data, GridGP(INPUTS), new, random_seed=SEED)
+    pred = predict(cal, new, random_seed=SEED)
     y_model = pred.predictions["y_model"]
     assert y_model.dims == ("chain", "draw", "pred")
     assert np.all(np.isfinite(y_model.values))
@@ -194,8 +201,8 @@ def test_calibrate_and_predict_end_to_end(physics, data, grid_idata):
 
 def test_pointwise_loo_equals_dense(physics, data, grid_idata):
     posterior = grid_idata.posterior.isel(draw=slice(0, 20))
-    dense = build_model(physics, data, GaussianProcess(INPUTS, mean=[]))
-    reference = loo_log_likelihood(posterior, dense, "y")["y"].values
+    dense = compose_model(physics, data, GaussianProcess(INPUTS, mean=[]))
+    reference = loo_log_likelihood(posterior, dense)["y"].values
     np.testing.assert_allclose(grid_idata.log_likelihood["y"].values[:, :20], reference, rtol=1e-7)
 
 
@@ -203,6 +210,6 @@ def test_pointwise_loo_equals_dense(physics, data, grid_idata):
 def test_calibrate_matches_dense_gp(physics, data, grid_idata):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        dense = calibrate(physics, data, GaussianProcess(INPUTS, mean=[]), **SETTINGS)
+        dense = calibrate(physics, data, GaussianProcess(INPUTS, mean=[]), **SETTINGS).idata
     e_grid, e_dense = grid_idata.posterior["E"].values, dense.posterior["E"].values
     assert abs(e_grid.mean() - e_dense.mean()) < 3 * e_dense.std()

@@ -172,10 +172,11 @@ def test_calibration_warns_and_names_the_combination():
         )
     )
     with pytest.warns(IdentifiabilityWarning, match=r"E, delta_mean_c2 and delta_mean_c3"):
-        idata = calibrate(
+        cal = calibrate(
             physics, data, cubic, draws=20, tune=20, chains=1, warn=False, random_seed=SEED
         )
-    assert '"identifiable": false' in idata.attrs["identifiability"]
+    assert not cal.identifiability.identifiable
+    assert '"identifiable": false' in cal.provenance()["identifiability"]
     with warnings.catch_warnings():
         warnings.simplefilter("error", IdentifiabilityWarning)
         calibrate(

@@ -51,7 +51,7 @@ def test_shape_mismatch_is_an_error():
 
 
 def test_gp_calibration_stores_loo_conditionals(beam_calibrations, beam_physics, beam_data):
-    idata = beam_calibrations("M4")
+    idata = beam_calibrations("M4").idata
     ll = idata.log_likelihood["y"]
     assert ll.dims == ("chain", "draw", "obs")
     assert idata.log_likelihood.attrs["pointwise"] == "loo_conditional"

@@ -3,7 +3,7 @@ import pytest
 import xarray as xr
 
 from kohpymc import CalibrationData
-from kohpymc.reliability import reliability
+from kohpymc.validation import reliability
 
 SEED = 5
 
@@ -71,15 +71,8 @@ def test_beam_table1_conclusions(beam_calibrations, beam_physics, beam_data, bea
     from kohpymc.examples import beam
 
     mu, preds = {}, {}
-    for label, disc in beam.formulations().items():
-        preds[label] = predict(
-            beam_calibrations(label),
-            beam_physics,
-            beam_data,
-            disc,
-            beam_validation,
-            random_seed=SEED,
-        )
+    for label in beam.formulations():
+        preds[label] = predict(beam_calibrations(label), beam_validation, random_seed=SEED)
         res = reliability(preds[label], beam_validation, tolerance=0.75)
         assert res.mcse < 0.01
         mu[label] = res.mu_r
@@ -87,7 +80,7 @@ def test_beam_table1_conclusions(beam_calibrations, beam_physics, beam_data, bea
     assert max(mu["M3"], mu["M4"]) < min(mu["M0"], mu["M1"], mu["M2"])
     weights = reliability_weights(mu)
     mix = combine_posteriors(
-        {k: beam_calibrations(k) for k in mu}, weights, predictions=preds, random_seed=SEED
+        {k: beam_calibrations(k).idata for k in mu}, weights, predictions=preds, random_seed=SEED
     )
     origin = mix.posterior["formulation"].values
     for label, w in weights.items():

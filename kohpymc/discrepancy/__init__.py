@@ -1,26 +1,45 @@
-"""Discrepancy formulations M0–M5 (paper Section 3), one module each."""
+"""Discrepancy formulations (paper Section 3 and beyond), one module each.
 
-from kohpymc.discrepancy.base import Discrepancy, ModelContext
-from kohpymc.discrepancy.constant import ConstantBias
+Every module of this package is imported here, so a formulation written as a new module
+that registers itself (``class X(Discrepancy, kind="...")``) is found by study files,
+:func:`from_dict` and the contract tests without an edit anywhere else; its class is
+exported from this package (and from ``kohpymc``) under its own name.
+"""
+
+import importlib
+import pkgutil
+
+from kohpymc.discrepancy.base import (
+    Discrepancy,
+    FormulationSpecError,
+    Likelihood,
+    ModelContext,
+    formulation_class,
+    formulation_kinds,
+    from_dict,
+)
+from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.discrepancy.functions import LinearBasis, ParametricFunction
-from kohpymc.discrepancy.gp import GaussianProcess
-from kohpymc.discrepancy.grid import GridGP
-from kohpymc.discrepancy.iid import IIDGaussian
-from kohpymc.discrepancy.input_dependent import InputDependentGaussian
-from kohpymc.discrepancy.none import NoDiscrepancy
-from kohpymc.discrepancy.nonstationary import DecayingVariance, NonStationaryGP
+from kohpymc.discrepancy.nonstationary import DecayingVariance
+
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
+
+#: the registered formulation classes, by class name
+_FORMULATIONS = {cls.__name__: cls for cls in formulation_kinds().values()}
+globals().update(_FORMULATIONS)
 
 __all__ = [
     "Discrepancy",
+    "FormulationSpecError",
+    "Likelihood",
     "ModelContext",
-    "NoDiscrepancy",
-    "ConstantBias",
-    "IIDGaussian",
-    "InputDependentGaussian",
-    "GaussianProcess",
-    "GridGP",
-    "NonStationaryGP",
-    "DecayingVariance",
+    "formulation_class",
+    "formulation_kinds",
+    "from_dict",
+    "default_formulations",
     "LinearBasis",
     "ParametricFunction",
+    "DecayingVariance",
+    *sorted(_FORMULATIONS),
 ]

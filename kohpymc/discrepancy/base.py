@@ -157,7 +157,14 @@ class Likelihood:
 
 
 class FormulationSpecError(ValueError):
-    """A formulation specification (TOML table or dict) that cannot be used."""
+    """A formulation specification (TOML table or dict) that cannot be used.
+
+    ``key`` names the entry at fault (``"type"``, an option), when there is one.
+    """
+
+    def __init__(self, message: str, key: str | None = None) -> None:
+        super().__init__(message)
+        self.key = key
 
 
 _REGISTRY: dict[str, type[Discrepancy]] = {}
@@ -290,7 +297,7 @@ def formulation_class(kind: str) -> type[Discrepancy]:
         return _REGISTRY[kind]
     except KeyError:
         raise FormulationSpecError(
-            f"unknown formulation type {kind!r}; known: {sorted(_REGISTRY)}"
+            f"unknown formulation type {kind!r}; known: {sorted(_REGISTRY)}", key="type"
         ) from None
 
 
@@ -334,7 +341,9 @@ def from_dict(spec: str | Mapping[str, Any], **study: Any) -> Discrepancy:
     if isinstance(spec, str):
         spec = {"type": spec}
     if not isinstance(spec, Mapping) or "type" not in spec:
-        raise FormulationSpecError("a formulation must be a type name or a table with 'type'")
+        raise FormulationSpecError(
+            "a formulation must be a type name or a table with 'type'", key="type"
+        )
     kind = spec["type"]
     cls = formulation_class(str(kind))
     allowed = _options(cls)

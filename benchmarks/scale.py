@@ -76,7 +76,7 @@ import pytensor
 import pytensor.tensor as pt
 import scipy.linalg
 
-from kohpymc.discrepancy import grid as _grid
+from kohpymc.kronecker import kron_gp_loglik
 
 #: Boltzmann constant, eV/K
 KB = 8.617333262e-5
@@ -236,11 +236,6 @@ def replicate_constant(data: GridData) -> float:
     return float(
         -0.5 * (r - 1) * n_u * np.log(2 * np.pi * s2) - 0.5 * n_u * np.log(r) - ss / (2 * s2)
     )
-
-
-#: ``log N(vec R | 0, η² ⊗_k K_k(ℓ_k) + s² I)`` with its analytic gradient: the library's
-#: (GridGP's) Kronecker log density with no intercept term
-kron_gp_loglik = _grid.kron_gp_loglik
 
 
 def dense_loglik(data: GridData, params: dict[str, Any], jitter: float = 0.0) -> float:

@@ -97,7 +97,7 @@ def run_kohpymc(
             nuts_sampler="nutpie" if sampler == "nutpie" else "pymc",
             warn=False,
             **extra,
-        )
+        ).idata
     wall = time.perf_counter() - start
     sampling = float(idata.posterior.attrs["sampling_time"])
     stats = idata.sample_stats

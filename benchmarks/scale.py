@@ -573,7 +573,7 @@ def run_library(
     )
     _log(f"library: n = {cal.n}, kohpymc.calibrate with GridGP, mode {mode or 'C'}")
     start = time.perf_counter()
-    idata = kp.calibrate(
+    result = kp.calibrate(
         model,
         cal,
         kp.GridGP(["V", "T", "t"], mean="zero"),
@@ -585,6 +585,7 @@ def run_library(
         random_seed=seed + 3,
         warn=False,
     )
+    idata = result.idata
     wall = time.perf_counter() - start
     names = list(PHYSICS_NAMES)
     summary = az.summary(idata, var_names=names)
@@ -601,7 +602,7 @@ def run_library(
         "divergences": int(idata.sample_stats["diverging"].sum()),
         "posterior_mean": {k: float(idata.posterior[k].mean()) for k in names},
         "posterior_sd": {k: float(idata.posterior[k].std()) for k in names},
-        "sampler_problems": idata.attrs["sampler_problems"],
+        "sampler_problems": result.problems,
     }
 
 

@@ -271,7 +271,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
                 tune=args.tune,
                 chains=args.chains,
                 random_seed=args.seed,
-            )
+            ).idata
         table = sampler_diagnostics(idata, ["E"])
         row = table.loc["E"]
         rows.append(

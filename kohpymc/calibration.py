@@ -314,9 +314,7 @@ def calibrate(
             SamplerTroubleWarning,
             stacklevel=2,
         )
-    return Calibration(
-        physics, data, discrepancy, built, idata, problems, report, noise_sd_prior
-    )
+    return Calibration(physics, data, discrepancy, built, idata, problems, report, noise_sd_prior)
 
 
 def predict(

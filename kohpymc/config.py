@@ -87,6 +87,7 @@ _SECTIONS: dict[str, set[str]] = {
     "output": {"dir"},
 }  # fmt: skip
 
+
 @dataclass
 class StudySpec:
     """A study read from a TOML file, ready for :func:`kohpymc.run_study`.

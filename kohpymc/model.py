@@ -134,7 +134,9 @@ class CalibrationModel:
         upstream = set(ancestors(outputs))
         free = [rv for rv in self.model.free_RVs if rv in upstream]
         inputs = [rv.type(name=rv.name) for rv in free]
-        replaced = pytensor.clone_replace(list(outputs), replace=dict(zip(free, inputs, strict=True)))
+        replaced = pytensor.clone_replace(
+            list(outputs), replace=dict(zip(free, inputs, strict=True))
+        )
         fn = pytensor.function(inputs, replaced, on_unused_input="ignore")
         return fn, [rv.name for rv in free]
 
@@ -220,9 +222,7 @@ def compose_model(
             marginalize=marginalize,
         )
         record = _checked_record(discrepancy.build(ctx), discrepancy, model)
-        created = tuple(
-            k for k in model.named_vars if k not in before and k != record.observed
-        )
+        created = tuple(k for k in model.named_vars if k not in before and k != record.observed)
         if new_inputs is not None:
             _add_predictions(model, record, physics_mean, noise_sd, new_inputs, names)
     return CalibrationModel(model, record, discrepancy, names, created)

@@ -228,7 +228,9 @@ def _rebuilt(job: _Job, disc: Discrepancy, payload: tuple) -> Scored:
     """A worker's results as a Scored, with the model rebuilt here (building is cheap)."""
     (idata, problems, report, noise_prior), rest = payload
     built = compose_model(job.physics, job.calibration, disc, noise_sd_prior=noise_prior)
-    cal = Calibration(job.physics, job.calibration, disc, built, idata, problems, report, noise_prior)
+    cal = Calibration(
+        job.physics, job.calibration, disc, built, idata, problems, report, noise_prior
+    )
     return Scored(cal, *rest)
 
 
@@ -299,7 +301,9 @@ def _calibrate_all(job, formulations, todo, workers, say) -> dict[str, tuple]:
         return outcomes
     for label in todo:
         disc = formulations[label]
-        say(f"[{position[label]}/{len(formulations)}] {label} ({disc.description}): calibrating ...")
+        say(
+            f"[{position[label]}/{len(formulations)}] {label} ({disc.description}): calibrating ..."
+        )
         outcomes[label] = job.run(label, disc)
     return outcomes
 

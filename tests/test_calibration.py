@@ -128,7 +128,9 @@ def test_recovery_when_the_model_is_right(beam_physics):
     from kohpymc import ConstantBias
 
     data = _eb_data(150.0, bias=1.0)
-    idata = calibrate(beam_physics, data, ConstantBias(), random_seed=SEED, cores=2, warn=False).idata
+    idata = calibrate(
+        beam_physics, data, ConstantBias(), random_seed=SEED, cores=2, warn=False
+    ).idata
     for name, truth in (("E", 150.0), ("delta", 1.0)):
         draws = idata.posterior[name].values
         assert abs(draws.mean() - truth) <= 3 * draws.std()

@@ -18,9 +18,18 @@ from kohpymc.discrepancy.base import (
     formulation_kinds,
     from_dict,
 )
+from kohpymc.discrepancy.constant import ConstantBias
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.discrepancy.functions import LinearBasis, ParametricFunction
-from kohpymc.discrepancy.nonstationary import DecayingVariance
+from kohpymc.discrepancy.gp import GaussianProcess
+from kohpymc.discrepancy.grid import GridGP
+from kohpymc.discrepancy.iid import IIDGaussian
+from kohpymc.discrepancy.input_dependent import InputDependentGaussian
+from kohpymc.discrepancy.none import NoDiscrepancy
+from kohpymc.discrepancy.nonstationary import DecayingVariance, NonStationaryGP
+
+# The paper's formulations are imported by name above (so type checkers see them); the loop
+# imports every other module of the package, whose formulations register themselves.
 
 for _module in pkgutil.iter_modules(__path__):
     importlib.import_module(f"{__name__}.{_module.name}")

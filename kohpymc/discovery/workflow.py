@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -150,7 +151,6 @@ def discover(
     candidates, Phi = _checked_inputs(
         physics, calibration, validation, tolerance, threshold, candidates, extra_terms
     )
-    params = list(physics.parameters)
     sampler = {"draws": draws, "tune": tune, "chains": chains}
 
     def run(model, label):
@@ -161,8 +161,50 @@ def discover(
         return scored.combined_idata(), scored.scores, scored.constant
 
     say("calibrating the model as given ...")
+    fit = _locate_residuals(physics, calibration, run)
+    say("comparing candidate terms ...")
+    selection, input_probability = _select(physics, calibration, candidates, Phi, fit, max_terms)
+    common = {
+        "selection": selection,
+        "input_probability": input_probability,
+        "threshold": threshold,
+        "before": fit.idata,
+    }
+    if not selection.probability_none < threshold:
+        say(f"nothing missing (P = {selection.probability_none:.3g} that nothing is missing)")
+        return _nothing_missing_report(physics, calibration, fit, common)
+    # the most probable non-empty subset (the overall best when something is missing, unless
+    # the mass is spread so thin over many subsets that "nothing" still ranks first)
+    best = next((subset for subset, _ in selection.subsets if subset), ())
+    by_name = {t.name: t for t in candidates}
+    chosen = [by_name[n] for n in best]
+    named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
+    effect = " + ".join(t.expression for t in chosen)
+    say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")
+    where = _where_it_fails(calibration, validation, named_inputs, fit, region_level)
+    return _augment_and_refit(
+        physics, calibration, validation, chosen, named_inputs, where, fit, run, say, common
+    )
+
+
+@dataclass
+class _AsGiven:
+    """The calibration of the model as given and its residuals on the calibration data."""
+
+    idata: Any
+    scores: dict
+    constant: Any
+    theta: dict[str, float]
+    theta_sd: dict[str, float]
+    sigma: float | None
+    resid: np.ndarray
+    z: np.ndarray
+
+
+def _locate_residuals(physics, calibration, run) -> _AsGiven:
+    """Step 1: calibrate as given; residuals ``y - G(x; θ̄)`` and their standardised ``z``."""
     before, scores_before, const_before = run(physics, "as given")
-    theta, theta_sd_post = _moments(before, params)
+    theta, theta_sd_post = _moments(before, list(physics.parameters))
     g_hat = _evaluate_or_explain(physics, calibration.inputs, theta, "calibration inputs")
     post = before.posterior
     sigma = calibration.noise_sd
@@ -170,15 +212,19 @@ def discover(
         sigma = float(post["sigma_obs"].mean()) if "sigma_obs" in post else None
     resid = calibration.y - g_hat
     z = resid / (float(np.std(resid)) if sigma is None else sigma)
+    return _AsGiven(before, scores_before, const_before, theta, theta_sd_post, sigma, resid, z)
 
-    say("comparing candidate terms ...")
-    J = physics.jacobian_matrix(calibration.inputs, theta)
+
+def _select(physics, calibration, candidates, Phi, fit: _AsGiven, max_terms: int):
+    """Step 2: the term comparison at θ̄ and the probability that each input matters."""
+    params = list(physics.parameters)
+    J = physics.jacobian_matrix(calibration.inputs, fit.theta)
     selection = select_terms(
-        resid,
+        fit.resid,
         J,
         Phi,
         [t.name for t in candidates],
-        noise_sd=sigma,
+        noise_sd=fit.sigma,
         parameter_sd=[float(physics.parameters[k].sd()) for k in params],
         max_terms=max_terms,
     )
@@ -190,41 +236,34 @@ def discover(
         )
         for k in all_inputs
     }
-    significant = selection.probability_none < threshold
-    # the most probable non-empty subset (the overall best when something is missing, unless
-    # the mass is spread so thin over many subsets that "nothing" still ranks first)
-    best = next((subset for subset, _ in selection.subsets if subset), ())
-    common = {
-        "selection": selection,
-        "input_probability": input_probability,
-        "threshold": threshold,
-        "before": before,
-    }
-    if not significant:
-        say(f"nothing missing (P = {selection.probability_none:.3g} that nothing is missing)")
-        share = {k: _main_effect_share(calibration.inputs[k], z**2) for k in physics.inputs}
-        return DiscoveryReport(
-            significant=False,
-            effect=None,
-            inputs=[],
-            where=[],
-            validation={"before": scores_before, "after": dict(scores_before)},
-            parameters={"before": theta, "after": dict(theta)},
-            parameters_sd={"before": theta_sd_post, "after": dict(theta_sd_post)},
-            physics=physics,
-            after=before,
-            key_input=max(share, key=share.get),
-            residuals={"before": resid, "after": resid},
-            **common,
-        )
-    chosen = [by_name[n] for n in best]
-    named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
-    effect = " + ".join(t.expression for t in chosen)
-    say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")
+    return selection, input_probability
 
+
+def _nothing_missing_report(physics, calibration, fit: _AsGiven, common: dict) -> DiscoveryReport:
+    """The report when no missing effect is significant: "after" is "before"."""
+    share = {k: _main_effect_share(calibration.inputs[k], fit.z**2) for k in physics.inputs}
+    return DiscoveryReport(
+        significant=False,
+        effect=None,
+        inputs=[],
+        where=[],
+        validation={"before": fit.scores, "after": dict(fit.scores)},
+        parameters={"before": fit.theta, "after": dict(fit.theta)},
+        parameters_sd={"before": fit.theta_sd, "after": dict(fit.theta_sd)},
+        physics=physics,
+        after=fit.idata,
+        key_input=max(share, key=share.get),
+        residuals={"before": fit.resid, "after": fit.resid},
+        **common,
+    )
+
+
+def _where_it_fails(calibration, validation, named_inputs, fit: _AsGiven, region_level: float):
+    """Step 3: failing ranges of the named inputs on the calibration and validation data."""
     from scipy.stats import chi2
 
-    rel = const_before["reliability"].values
+    z = fit.z
+    rel = fit.constant["reliability"].values
     where: list[dict] = []
     for k in named_inputs:
         where += disagreement_regions(
@@ -239,8 +278,16 @@ def discover(
             input_name=k,
             source="validation",
         )
+    return where
 
-    scale = max(2.0 * float(np.std(resid)), sigma or 0.0)
+
+def _augment_and_refit(
+    physics, calibration, validation, chosen, named_inputs, where, fit: _AsGiven, run, say, common
+) -> DiscoveryReport:
+    """Steps 4 and 5: add the chosen term(s), check, recalibrate and report."""
+    params = list(physics.parameters)
+    theta = fit.theta
+    scale = max(2.0 * float(np.std(fit.resid)), fit.sigma or 0.0)
     coef_sd = [scale / max(float(np.std(t(calibration.inputs))), 1e-300) for t in chosen]
     augmented = augmented_physics(physics, chosen, coef_sd)
     start = {  # θ̄, no added term, scales at their prior centre
@@ -256,6 +303,24 @@ def discover(
     g_after = _evaluate_or_explain(augmented, calibration.inputs, after_mean, "calibration inputs")
     added = g_after - physics.evaluate(calibration.inputs, {k: after_mean[k] for k in params})
     share = {k: _main_effect_share(calibration.inputs[k], added) for k in named_inputs}
+    return DiscoveryReport(
+        significant=True,
+        effect=_effect_text(chosen, after_mean),
+        inputs=named_inputs,
+        where=where,
+        validation={"before": fit.scores, "after": scores_after},
+        parameters={"before": theta, "after": after_mean},
+        parameters_sd={"before": fit.theta_sd, "after": after_sd},
+        physics=augmented,
+        after=after,
+        key_input=max(share, key=share.get),
+        residuals={"before": fit.resid, "after": calibration.y - g_after},
+        **common,
+    )
+
+
+def _effect_text(chosen, after_mean: dict[str, float]) -> str:
+    """``"c * x * P + ..."``; a calibrated decay scale is reported by its value."""
     pieces = []
     for k, t in enumerate(chosen):
         tau = f"tau_{k + 1}"
@@ -263,18 +328,4 @@ def discover(
             pieces.append(f"c * exp(-{t.inputs[0]}/{after_mean[tau]:.3g})")
         else:
             pieces.append(t.expression)
-    effect = " + ".join(pieces)
-    return DiscoveryReport(
-        significant=True,
-        effect=effect,
-        inputs=named_inputs,
-        where=where,
-        validation={"before": scores_before, "after": scores_after},
-        parameters={"before": theta, "after": after_mean},
-        parameters_sd={"before": theta_sd_post, "after": after_sd},
-        physics=augmented,
-        after=after,
-        key_input=max(share, key=share.get),
-        residuals={"before": resid, "after": calibration.y - g_after},
-        **common,
-    )
+    return " + ".join(pieces)

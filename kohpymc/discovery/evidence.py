@@ -131,22 +131,7 @@ def select_terms(
             f"too few data points ({r.size}) for {J.shape[1]} parameters and any candidate term"
         )
 
-    rejected: dict[str, str] = {}
-    admissible: list[int] = []
-    for j, name in enumerate(names):
-        col = C[:, j]
-        if np.ptp(col) == 0 and np.all(col == 0):
-            rejected[name] = "identically zero on the data"
-            continue
-        labels = [f"theta{i}" for i in range(J.shape[1])] + [name]
-        report = analyse_matrix(np.column_stack([J, col]), labels, rtol=rtol)
-        if report.rank < J.shape[1] + 1:
-            rejected[name] = (
-                "not identifiable together with the physics parameters (its column lies in "
-                "the span of dG/dtheta)"
-            )
-            continue
-        admissible.append(j)
+    rejected, admissible = _screen(J, C, names, rtol)
     if not admissible:
         raise ValueError(
             "every candidate term was rejected: "
@@ -184,3 +169,24 @@ def select_terms(
         subsets=ranked,
         rejected=rejected,
     )
+
+
+def _screen(J: np.ndarray, C: np.ndarray, names: list[str], rtol: float):
+    """Candidates rejected before the comparison (with the reason) and the admissible ones."""
+    rejected: dict[str, str] = {}
+    admissible: list[int] = []
+    for j, name in enumerate(names):
+        col = C[:, j]
+        if np.ptp(col) == 0 and np.all(col == 0):
+            rejected[name] = "identically zero on the data"
+            continue
+        labels = [f"theta{i}" for i in range(J.shape[1])] + [name]
+        report = analyse_matrix(np.column_stack([J, col]), labels, rtol=rtol)
+        if report.rank < J.shape[1] + 1:
+            rejected[name] = (
+                "not identifiable together with the physics parameters (its column lies in "
+                "the span of dG/dtheta)"
+            )
+            continue
+        admissible.append(j)
+    return rejected, admissible

@@ -248,13 +248,36 @@ def load_study(path: str | Path) -> StudySpec:
     kohpymc.config.StudyConfigError: .../s.toml: [physics] unknown key(s) ['funktion']; ...
     """
     path = Path(path)
+    doc = _read_document(path)
+    base = path.resolve().parent
+    physics, inputs, output, time = _physics_section(path, base, doc["physics"])
+    calibration, validation = _data_section(path, base, doc["data"], physics, inputs, output)
+    tolerance, weights = _validation_section(path, doc["validation"], validation)
+    formulations = _formulations_section(path, doc, inputs, time)
+    sampling_doc = _sampling_section(path, doc)
+    out = doc.get("output", {}).get("dir")
+    out_dir = (base / out) if out else base / f"{path.stem}_results"
+    return StudySpec(
+        source=path,
+        physics=physics,
+        calibration=calibration,
+        validation=validation,
+        tolerance=float(tolerance),
+        formulations=formulations,
+        validation_weights=weights,
+        sampling=sampling_doc,
+        out_dir=out_dir,
+    )
+
+
+def _read_document(path: Path) -> dict:
+    """The parsed TOML file with its sections and their keys checked."""
     if not path.is_file():
         raise StudyConfigError(f"study file {path} not found")
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as err:
         raise StudyConfigError(f"{path}: not valid TOML: {err}") from err
-    base = path.resolve().parent
     _check_keys(path, "top level", doc, set(_SECTIONS))
     for section, allowed in _SECTIONS.items():
         if section in doc:
@@ -265,8 +288,11 @@ def load_study(path: str | Path) -> StudySpec:
     for section in ("physics", "data", "validation"):
         if section not in doc:
             raise _err(path, section, "section is required but missing")
+    return doc
 
-    phys = doc["physics"]
+
+def _physics_section(path: Path, base: Path, phys: dict):
+    """``[physics]``: the model, its inputs, output column and time input."""
     function = _load_callable(
         _require(path, phys, "physics", "function"), base, path, "physics.function"
     )
@@ -290,8 +316,11 @@ def load_study(path: str | Path) -> StudySpec:
         physics = PhysicsModel(function, params, inputs, jacobian=jacobian, **kwargs)
     except (TypeError, ValueError, KeyError) as err:
         raise _err(path, "physics.parameters", f"{type(err).__name__}: {err}") from err
+    return physics, inputs, output, time
 
-    data = doc["data"]
+
+def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
+    """``[data]``: the calibration and validation data (the model must run on the latter)."""
     noise_sd = data.get("noise_sd")
     if noise_sd is not None and (not isinstance(noise_sd, int | float) or noise_sd <= 0):
         raise _err(path, "data.noise_sd", f"must be a positive number, got {noise_sd!r}")
@@ -310,8 +339,11 @@ def load_study(path: str | Path) -> StudySpec:
         check_physics_runs(physics, validation, "validation")
     except (KeyError, ValueError) as err:
         raise _err(path, "data.validation", str(err).strip("'\"")) from err
+    return calibration, validation
 
-    val = doc["validation"]
+
+def _validation_section(path: Path, val: dict, validation):
+    """``[validation]``: the tolerance and the optional weight column."""
     try:
         tolerance = check_tolerance(_require(path, val, "validation", "tolerance"))
     except ValueError as err:
@@ -325,15 +357,21 @@ def load_study(path: str | Path) -> StudySpec:
                 f"column {val['weights']!r} not in {validation.source}",
             )  # fmt: skip
         weights = frame[val["weights"]].to_numpy(dtype=float)
+    return tolerance, weights
 
+
+def _formulations_section(path: Path, doc: dict, inputs, time):
+    """``[formulations]``, or the default set when absent or empty."""
     if "formulations" in doc and doc["formulations"]:
-        formulations = {
+        return {
             str(label): _formulation(path, str(label), value, inputs, time)
             for label, value in doc["formulations"].items()
         }
-    else:
-        formulations = default_formulations(inputs, time=time)
+    return default_formulations(inputs, time=time)
 
+
+def _sampling_section(path: Path, doc: dict) -> dict:
+    """``[sampling]``: sampler settings (``seed`` read as ``random_seed``)."""
     sampling_doc = dict(doc.get("sampling", {}))
     if "seed" in sampling_doc:
         sampling_doc["random_seed"] = sampling_doc.pop("seed")
@@ -348,16 +386,4 @@ def load_study(path: str | Path) -> StudySpec:
         check_compile_mode(sampling_doc.get("mode"))
     except ValueError as err:
         raise _err(path, "sampling.mode", str(err)) from err
-    out = doc.get("output", {}).get("dir")
-    out_dir = (base / out) if out else base / f"{path.stem}_results"
-    return StudySpec(
-        source=path,
-        physics=physics,
-        calibration=calibration,
-        validation=validation,
-        tolerance=float(tolerance),
-        formulations=formulations,
-        validation_weights=weights,
-        sampling=sampling_doc,
-        out_dir=out_dir,
-    )
+    return sampling_doc

@@ -47,8 +47,10 @@ def _prior_calibration(physics, data, formulation, draws=12, seed=0):
     from kohpymc.model import compose_model
 
     built = compose_model(physics, data, formulation)
-    with built.model:
-        prior = pm.sample_prior_predictive(draws=draws, random_seed=seed)
+    model = built.model
+    names = [v.name for v in model.free_RVs + model.deterministics]  # not "y": it may not draw
+    with model:
+        prior = pm.sample_prior_predictive(draws=draws, var_names=names, random_seed=seed)
     posterior = prior.prior
     if "chain" not in posterior.dims:  # pragma: no cover - PyMC always adds it
         posterior = posterior.expand_dims(chain=[0])

@@ -37,18 +37,14 @@ bench: $(BENCH_STAMP)
 	$(PY) -m benchmarks.run
 
 LINT_PATHS := kohpymc tests benchmarks notebooks tools
-# Temporary (issue 14): files being edited on other branches right now. Once those branches
-# are merged, run `ruff format` / `ruff check --fix` on them and empty this list.
-LINT_EXCLUDE := notebooks/05_dielectric_study.ipynb
-RUFF_EXCLUDE := $(foreach f,$(LINT_EXCLUDE),--extend-exclude $(f))
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check $(RUFF_EXCLUDE) $(LINT_PATHS)
-	$(VENV)/bin/ruff format --check $(RUFF_EXCLUDE) $(LINT_PATHS)
+	$(VENV)/bin/ruff check $(LINT_PATHS)
+	$(VENV)/bin/ruff format --check $(LINT_PATHS)
 
 format: $(STAMP)
-	$(VENV)/bin/ruff format $(RUFF_EXCLUDE) $(LINT_PATHS)
-	$(VENV)/bin/ruff check --fix $(RUFF_EXCLUDE) $(LINT_PATHS)
+	$(VENV)/bin/ruff format $(LINT_PATHS)
+	$(VENV)/bin/ruff check --fix $(LINT_PATHS)
 
 # mypy on kohpymc: fails if a file has more errors than tools/typecheck_baseline.json allows
 # (`$(PY) tools/typecheck.py --update` rewrites the baseline once errors are fixed)

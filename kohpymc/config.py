@@ -72,7 +72,7 @@ class StudyConfigError(ValueError):
     """A study file is wrong; the message names the file and the key."""
 
 
-_SECTIONS: dict[str, set[str]] = {
+_SECTIONS: dict[str, set[str] | None] = {
     "study": {"name"},
     "physics": {
         "function", "inputs", "output", "parameters", "jacobian", "backend", "fd_scheme",

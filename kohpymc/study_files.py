@@ -52,7 +52,7 @@ def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
     return "\n".join(lines)
 
 
-def write_atomic(path: Path, write: Callable[[Path], None]) -> Path:
+def write_atomic(path: Path, write: Callable[[Path], object]) -> Path:
     """Write via ``write(tmp)`` to a hidden temporary name, then rename to ``path``.
 
     Nothing is left behind under either name when ``write`` fails.
@@ -74,7 +74,7 @@ def write_atomic(path: Path, write: Callable[[Path], None]) -> Path:
     return path
 
 
-def _write_atomic(path: Path, write: Callable[[Path], None], files: list[Path]) -> None:
+def _write_atomic(path: Path, write: Callable[[Path], object], files: list[Path]) -> None:
     files.append(write_atomic(path, write))
 
 
@@ -107,7 +107,8 @@ def _write(
         provenance = result.calibrations[label].provenance()
         _write_atomic(out / f"{label}.nc", lambda p, d=idata, a=provenance: _netcdf(d, a, p), files)
     if result.combined is not None:
-        _write_atomic(out / f"{COMBINED}.nc", lambda p: result.combined.to_netcdf(str(p)), files)
+        combined = result.combined
+        _write_atomic(out / f"{COMBINED}.nc", lambda p: combined.to_netcdf(str(p)), files)
     _write_atomic(out / "table.csv", lambda p: result.table.to_csv(p), files)
     _write_atomic(
         out / "table.md", lambda p: p.write_text(markdown_table(result.table) + "\n"), files

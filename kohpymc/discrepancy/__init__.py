@@ -18,15 +18,16 @@ from kohpymc.discrepancy.base import (
     formulation_kinds,
     from_dict,
 )
-from kohpymc.discrepancy.constant import ConstantBias
+from kohpymc.discrepancy.constant import ConstantBias as ConstantBias
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.discrepancy.functions import LinearBasis, ParametricFunction
-from kohpymc.discrepancy.gp import GaussianProcess
-from kohpymc.discrepancy.grid import GridGP
-from kohpymc.discrepancy.iid import IIDGaussian
-from kohpymc.discrepancy.input_dependent import InputDependentGaussian
-from kohpymc.discrepancy.none import NoDiscrepancy
-from kohpymc.discrepancy.nonstationary import DecayingVariance, NonStationaryGP
+from kohpymc.discrepancy.gp import GaussianProcess as GaussianProcess
+from kohpymc.discrepancy.grid import GridGP as GridGP
+from kohpymc.discrepancy.iid import IIDGaussian as IIDGaussian
+from kohpymc.discrepancy.input_dependent import InputDependentGaussian as InputDependentGaussian
+from kohpymc.discrepancy.none import NoDiscrepancy as NoDiscrepancy
+from kohpymc.discrepancy.nonstationary import DecayingVariance
+from kohpymc.discrepancy.nonstationary import NonStationaryGP as NonStationaryGP
 
 # The paper's formulations are imported by name above (so type checkers see them); the loop
 # imports every other module of the package, whose formulations register themselves.

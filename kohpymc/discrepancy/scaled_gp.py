@@ -178,14 +178,16 @@ class ScaledGP(GaussianProcess, kind="scaled_gp"):
         )
         if mean is None:
             self.mean = _ZERO_MEAN
+        self.lambda_z: float | Prior | None
         if lambda_z is None or isinstance(lambda_z, Prior):
             self.lambda_z = lambda_z
         elif isinstance(lambda_z, dict):
             self.lambda_z = as_prior(lambda_z, name="delta_lambda_z")
         else:
-            self.lambda_z = float(lambda_z)
-            if not np.isfinite(self.lambda_z) or self.lambda_z < 0:
+            value = float(lambda_z)
+            if not np.isfinite(value) or value < 0:
                 raise ValueError(f"lambda_z must be finite and >= 0, got {lambda_z!r}")
+            self.lambda_z = value
 
     def __repr__(self) -> str:
         args = self.__dict__.get("_init_arguments", {})

@@ -39,7 +39,7 @@ def _likelihood_parts(built):
 
 def _free_names(model, rvs) -> list[tuple[Any, str, int | None]]:
     """Flattened (rv, label, index) per scalar entry of the given free RVs."""
-    out = []
+    out: list[tuple[Any, str, int | None]] = []
     for rv in rvs:
         dims = model.named_vars_to_dims.get(rv.name)
         size = int(np.prod(model.initial_point()[model.rvs_to_values[rv].name].shape))

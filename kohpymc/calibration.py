@@ -131,11 +131,16 @@ class Calibration:
             out["identifiability"] = json.dumps(self.identifiability.to_dict())
         return out
 
-    def to_netcdf(self, path: Any) -> Any:
-        """Write the InferenceData with :meth:`provenance` as its attributes."""
-        idata = self.idata.copy()
-        idata.attrs = self.provenance()
-        return idata.to_netcdf(str(path))
+    def to_netcdf(self, path: Any, idata: az.InferenceData | None = None) -> Any:
+        """Write the InferenceData with :meth:`provenance` as its attributes.
+
+        ``idata`` (default :attr:`idata`) may be an extended copy, e.g. with predictions
+        and validation groups; its own attributes are kept on top of the provenance.
+        """
+        idata = self.idata if idata is None else idata
+        copy = idata.copy()
+        copy.attrs = {**self.provenance(), **idata.attrs}
+        return copy.to_netcdf(str(path))
 
 
 def _plain_or_repr(formulation: Discrepancy) -> Any:

@@ -264,8 +264,11 @@ def _say_scores(say, label: str, scored: Scored, seconds: float) -> None:
     )
 
 
-def _mixture(results, metrics, params, calibration, validation, tolerance, weights_v, seed):
+def _mixture(results, metrics, job: _Job, seed):
     """Reliability weights (Eq. 23) and the weighted mixture (Eq. 24) with its scores."""
+    params = list(job.physics.parameters)
+    calibration, validation, tolerance = job.calibration, job.validation, job.tolerance
+    weights_v = job.validation_weights
     positive = {k: m["mu_r"] for k, m in metrics.items()}
     weights = reliability_weights(positive) if sum(positive.values()) > 0 else {}
     if not weights:
@@ -374,61 +377,25 @@ def run_study(
     0.53
     """
     say = progress or (lambda _msg: None)
-    tolerance = check_validation_data(physics, validation, tolerance)
-    if not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    formulations = dict(formulations or default_formulations(physics.inputs))
-    if not formulations:
-        raise ValueError("no formulations to run")
-    params = list(physics.parameters)
+    tolerance, formulations = _checked_study(physics, validation, tolerance, workers, formulations)
     identifiability, failures = _check_identifiability(physics, calibration, formulations, say)
     settings = dict(draws=draws, tune=tune, chains=chains, target_accept=target_accept)
+    settings.update(progressbar=progressbar, **calibrate_kwargs)
     job = _Job(
-        physics,
-        calibration,
-        validation,
-        tolerance,
-        validation_weights,
-        random_seed,
-        {**settings, "progressbar": progressbar, **calibrate_kwargs},
+        physics, calibration, validation, tolerance, validation_weights, random_seed, settings
     )
     todo = [label for label in formulations if label not in failures]
     outcomes = _calibrate_all(job, formulations, todo, workers, say)
-
-    results: dict[str, az.InferenceData] = {}
-    scored_by_label: dict[str, Scored] = {}
-    wall: dict[str, float] = {}
-    for label in todo:  # the formulations' order, whatever order they finished in
-        scored, seconds, error = outcomes[label]
-        if error is not None:
-            failures[label] = error
-            say(f"  {label} FAILED: {error}")
-            continue
-        results[label] = scored.combined_idata()
-        scored_by_label[label] = scored
-        wall[label] = seconds
-        _say_scores(say, label, scored, seconds)
-    if not results:
-        raise RuntimeError(
-            "every formulation failed: " + "; ".join(f"{k}: {v}" for k, v in failures.items())
-        )
-    metrics = {k: s.scores for k, s in scored_by_label.items()}
+    scored, wall = _collect(outcomes, todo, failures, say)
+    results = {k: s.combined_idata() for k, s in scored.items()}
+    metrics = {k: s.scores for k, s in scored.items()}
     loo = _loo_comparison(results, say)
     weights, combined, combined_scores = _mixture(
-        results,
-        metrics,
-        params,
-        calibration,
-        validation,
-        tolerance,
-        validation_weights,
-        derived_seed(random_seed, COMBINED, 2),
+        results, metrics, job, derived_seed(random_seed, COMBINED, 2)
     )
     if combined_scores is not None:
         metrics[COMBINED] = combined_scores
-    table = _table(
-        formulations, scored_by_label, results, metrics, weights, loo, failures, identifiability
-    )
+    table = _table(formulations, scored, results, metrics, weights, loo, failures, identifiability)
     result = StudyResult(
         results=results,
         table=table,
@@ -438,13 +405,44 @@ def run_study(
         failures=failures,
         identifiability=identifiability,
         wall_time_s=wall,
-        calibrations={k: s.calibration for k, s in scored_by_label.items()},
-        noise_sd={k: s.noise_sd for k, s in scored_by_label.items()},
+        calibrations={k: s.calibration for k, s in scored.items()},
+        noise_sd={k: s.noise_sd for k, s in scored.items()},
     )
     if out_dir is not None:
         _write(result, Path(out_dir), physics, validation, figures, reference)
         say(f"wrote {len(result.files)} files to {out_dir}")
     return result
+
+
+def _checked_study(physics, validation, tolerance, workers, formulations):
+    """Check the study's inputs before any sampling; returns ε and the formulations."""
+    tolerance = check_validation_data(physics, validation, tolerance)
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    formulations = dict(formulations or default_formulations(physics.inputs))
+    if not formulations:
+        raise ValueError("no formulations to run")
+    return tolerance, formulations
+
+
+def _collect(outcomes, todo, failures, say) -> tuple[dict[str, Scored], dict[str, float]]:
+    """Scored formulations in the study's order (failures go into ``failures``)."""
+    scored: dict[str, Scored] = {}
+    wall: dict[str, float] = {}
+    for label in todo:  # the formulations' order, whatever order they finished in
+        outcome, seconds, error = outcomes[label]
+        if error is not None:
+            failures[label] = error
+            say(f"  {label} FAILED: {error}")
+            continue
+        scored[label] = outcome
+        wall[label] = seconds
+        _say_scores(say, label, outcome, seconds)
+    if not scored:
+        raise RuntimeError(
+            "every formulation failed: " + "; ".join(f"{k}: {v}" for k, v in failures.items())
+        )
+    return scored, wall
 
 
 def _row(label, scored: Scored, results, identifiability) -> dict[str, Any]:

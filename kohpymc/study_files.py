@@ -12,7 +12,6 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import arviz as az
 import numpy as np
 import pandas as pd
 
@@ -78,13 +77,6 @@ def _write_atomic(path: Path, write: Callable[[Path], object], files: list[Path]
     files.append(write_atomic(path, write))
 
 
-def _netcdf(idata: az.InferenceData, provenance: Mapping[str, Any], path: Path) -> None:
-    """Write ``idata`` with the calibration's provenance (plain values) as attributes."""
-    copy = idata.copy()
-    copy.attrs = {**provenance, **idata.attrs}
-    copy.to_netcdf(str(path))
-
-
 def _write(
     result: StudyResult,
     out: Path,
@@ -104,8 +96,8 @@ def _write(
     out.mkdir(parents=True, exist_ok=True)
     files = result.files
     for label, idata in result.results.items():
-        provenance = result.calibrations[label].provenance()
-        _write_atomic(out / f"{label}.nc", lambda p, d=idata, a=provenance: _netcdf(d, a, p), files)
+        cal = result.calibrations[label]
+        _write_atomic(out / f"{label}.nc", lambda p, c=cal, d=idata: c.to_netcdf(p, d), files)
     if result.combined is not None:
         combined = result.combined
         _write_atomic(out / f"{COMBINED}.nc", lambda p: combined.to_netcdf(str(p)), files)

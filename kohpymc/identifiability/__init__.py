@@ -5,13 +5,8 @@ First-order Taylor check (Eqs. 15–16).  For ``G_new(x; ψ) = G(x; θ) + m(x; �
 expansion point ``ψ̂`` decides local identifiability: rank ``r_A < p`` means the linearised
 system has infinitely many solutions.
 
-Numerical rank.  The columns of ``A`` are first scaled to unit Euclidean norm (so that
-parameters of very different magnitude, e.g. E ≈ 200 and φ ≈ 1e-3, cannot fake a rank
-drop), then ``r_A`` is the number of singular values above ``rtol · σ_max``.  The default
-``rtol = 1e-7`` sits far above central-difference noise (relative error about
-``ε^{2/3} ≈ 4e-11``) and far below genuine near-dependence; the condition number
-``σ_max / σ_min`` of the scaled matrix is reported alongside so practical
-near-non-identifiability is visible too.
+Numerical rank: see :mod:`kohpymc.identifiability.rank` (column scaling, the default
+``rtol`` and why).
 
 Beyond the paper:
 

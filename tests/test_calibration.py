@@ -246,3 +246,54 @@ def test_compile_mode_is_checked(beam_physics, beam_data):
         calibrate(beam_physics, beam_data, draws=10, tune=10, mode="numba")
     with pytest.raises(ValueError, match="nuts_sampler='nutpie'"):
         calibrate(beam_physics, beam_data, draws=10, tune=10, mode="NUMBA", nuts_sampler="nutpie")
+
+
+def _decay_data(seed, n=24, t_max=4e-3):
+    """Capacitor discharge V = V0 exp(-t/τ) in natural units (V0 ≈ 1.2e3 V, τ ≈ 8e-4 s) plus
+    an offset of 15 V the model lacks, unknown noise (sd 6 V), and a recorded input the model
+    ignores (room temperature)."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.uniform(0.0, t_max, n))
+    room = rng.normal(293.0, 2.0, n)
+    y = 1.2e3 * np.exp(-t / 8e-4) + 15.0 + rng.normal(0.0, 6.0, n)
+    return CalibrationData({"t": t, "room_K": room}, y, output_name="V")
+
+
+def test_other_physics_natural_units_unknown_noise_and_an_ignored_input():
+    """The Calibration object end to end on a problem unlike the beam: V0 and τ differ by six
+    orders of magnitude, σ_obs is calibrated, the data carry an input the model never reads.
+    M1 (constant bias) must recover V0, τ, the offset and σ_obs within 3 posterior sd;
+    prediction and reliability work from the Calibration alone."""
+    from kohpymc import LogNormal, reliability
+
+    physics = PhysicsModel(
+        lambda i, p: p["V0"] * np.exp(-i["t"] / p["tau"]),
+        {"V0": Uniform(500.0, 2000.0), "tau": LogNormal(np.log(1e-3), 0.5)},
+        inputs=["t"],
+        jacobian=lambda i, p: np.column_stack(
+            [
+                np.exp(-i["t"] / p["tau"]),
+                p["V0"] * i["t"] / p["tau"] ** 2 * np.exp(-i["t"] / p["tau"]),
+            ]
+        ),
+        name="discharge",
+    )
+    data, held_out = _decay_data(SEED), _decay_data(SEED + 1, n=16)
+    cal = calibrate(physics, data, ConstantBias(), draws=500, tune=500, chains=2, cores=2,
+                    random_seed=SEED, warn=False)  # fmt: skip
+    assert cal.built.input_names == ("t",)  # the ignored input stays out of the model
+    assert not cal.problems, cal.problems
+    assert cal.identifiability.identifiable
+    post = cal.posterior
+    for name, truth in (("V0", 1.2e3), ("tau", 8e-4), ("delta", 15.0), ("sigma_obs", 6.0)):
+        draws = post[name].values
+        assert abs(draws.mean() - truth) <= 3 * draws.std(), (name, draws.mean(), draws.std())
+    pred = cal.predict(held_out, random_seed=SEED)
+    assert pred.predictions["y_model"].shape[-1] == held_out.n
+    np.testing.assert_allclose(pred.predictions["t"].values, held_out.inputs["t"])
+    band = np.quantile(pred.predictions["y_pred"].values.reshape(-1, held_out.n), [0.05, 0.95], 0)
+    inside = np.mean((held_out.y >= band[0]) & (held_out.y <= band[1]))
+    assert inside >= 0.75  # 16 points: P(Binomial(16, 0.9) < 12) ≈ 0.02
+    from_cal = reliability(cal, held_out, tolerance=10.0, noise_sd=6.0)
+    from_pred = reliability(pred, held_out, tolerance=10.0, noise_sd=6.0)
+    assert abs(from_cal.mu_r - from_pred.mu_r) < 5 * max(from_pred.mcse, 1e-3)

@@ -38,6 +38,35 @@ def test_defaults_all_that_apply_and_time_adds_m5(tmp_path, write_study):
     assert isinstance(spec.formulations["M5"], NonStationaryGP)
 
 
+def test_every_registered_kind_loads_from_a_study_file(tmp_path, write_study):
+    """The registry, not a list in config.py, decides what a study file may ask for."""
+    from kohpymc.discrepancy import formulation_kinds
+
+    lines = [
+        'M6 = { type = "scaled_gp", lambda_z = { prior = "lognormal", mu = 0, sigma = 1 } }',
+        'G = { type = "grid_gp", mean = "zero", amplitude_prior = { prior = "halfnormal", '
+        "sigma = 2 } }",
+        'M5 = { type = "nonstationary_gp", time = "x" }',
+    ]
+    path = write_study(tmp_path, **{'M0 = "none"': "\n".join(lines)})
+    spec = load_study(path)
+    kinds = {label: f.kind for label, f in spec.formulations.items()}
+    assert kinds == {
+        "M6": "scaled_gp",
+        "G": "grid_gp",
+        "M5": "nonstationary_gp",
+        "M3": "input_dependent",
+        "M4": "gp",
+    }
+    assert set(kinds.values()) <= set(formulation_kinds())
+    assert spec.formulations["M6"].inputs == ("x", "P")  # defaulted to the physics inputs
+    assert spec.formulations["M6"].to_dict()["lambda_z"] == {
+        "prior": "lognormal",
+        "mu": 0,
+        "sigma": 1,
+    }
+
+
 def test_shipped_beam_study_matches_the_generator():
     path = Path(beam.__file__).with_name("beam_study.toml")
     spec = load_study(path)
@@ -64,6 +93,19 @@ def test_shipped_beam_study_matches_the_generator():
         ({"tolerance = 0.75": ""}, "[validation.tolerance]", "required"),
         ({'M0 = "none"': 'M0 = "nonsense"'}, "[formulations.M0.type]", "nonsense"),
         ({'M0 = "none"': 'M0 = { type = "gp", bogus = 1 }'}, "[formulations.M0]", "bogus"),
+        ({'M0 = "none"': "M0 = { nope = 1 }"}, "[formulations.M0.type]", "'type'"),
+        ({'M0 = "none"': 'M0 = { type = "gp", inputs = 3 }'}, "[formulations.M0.inputs]", "3"),
+        (
+            {'M0 = "none"': 'M0 = { type = "scaled_gp", lambda_z = -1 }'},
+            "[formulations.M0]",
+            "lambda_z must be finite and >= 0",
+        ),
+        (
+            {'M0 = "none"': 'M0 = { type = "gp", amplitude_prior = { prior = "cauchy" } }'},
+            "[formulations.M0]",
+            "unknown prior 'cauchy'",
+        ),
+        ({'M0 = "none"': 'M0 = { type = "iid", sd_prior = 3 }'}, "[formulations.M0]", "prior"),
         ({'inputs = ["x", "P"]': 'inputs = ["x", "Q"]'}, "[data.calibration]", "Q"),
         ({"draws = 100": "draws = 0"}, "[sampling.draws]", "positive integer"),
         ({"draws = 100": 'draws = 100\nmode = "numba"'}, "[sampling.mode]", "'numba'"),

@@ -95,6 +95,22 @@ def test_record_logp_gradient_identifiability_prediction_and_pointwise(
     assert np.all(np.isfinite(values.values))
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_unknown_noise_builds_or_is_refused_by_name(kind, beam_physics, grid_data):
+    """With σ_obs unknown (the common case) every kind builds a finite model, or says that it
+    needs a known noise sd."""
+    free = kp.CalibrationData(grid_data.inputs, grid_data.y)
+    formulation = from_dict({"type": kind}, **STUDY)
+    try:
+        built = compose_model(beam_physics, free, formulation)
+    except ValueError as err:
+        assert "noise sd" in str(err) and kind == "grid_gp", err
+        return
+    assert "sigma_obs" in built.model.named_vars
+    point = built.model.initial_point()
+    assert np.isfinite(built.model.compile_logp()(point))
+
+
 class StudentTErrors(Discrepancy, kind="test_student_t"):
     """A constant bias with Student-t (ν = 4) measurement errors: not Gaussian."""
 

@@ -276,7 +276,7 @@ def _mixture(results, metrics, job: _Job, seed):
     combined = combine_posteriors(
         results, weights, var_names=params, predictions=results, random_seed=seed
     )
-    noise_sd = validation_noise_sd(validation, calibration, combined.posterior)
+    noise_sd = validation_noise_sd(validation, calibration, combined["posterior"])
     scores, const = validation_metrics(combined, validation, tolerance, noise_sd, weights_v)
     # r(x) is linear in the predictive distribution, so the mixture's μ_r is exactly
     # Σ w_i μ_r,i; use that rather than the resampled draws' noisier estimate

@@ -9,6 +9,7 @@ from kohpymc import (
     Custom,
     GaussianProcess,
     IdentifiabilityWarning,
+    IIDGaussian,
     InputDependentGaussian,
     Normal,
     ParametricFunction,
@@ -262,3 +263,62 @@ def test_algorithm1_on_permuted_beam_matrix_drops_one_of_E_phi3_phi4():
         kept = {names[perm[i]] for i in algorithm1(A[:, list(perm)])}
         assert len(kept) == 4 and {"phi1", "phi2"} <= kept
         assert len(kept & {"E", "phi3", "phi4"}) == 2
+
+
+def test_fisher_reports_m2_noise_confounding_in_original_units():
+    """M2 with unknown noise: y ~ N(k·x + μ_δ, (σ_obs² + σ_δ²) I).  Only s² = σ_obs² + σ_δ²
+    is informed; the Fisher information of (σ_obs, σ_δ) is (2n / s⁴)·[σ_obs, σ_δ]ᵀ[σ_obs, σ_δ]
+    and the likelihood is flat along Δσ_obs : Δσ_δ = σ_δ : -σ_obs = 1 : -1/3 at (0.3, 0.9)."""
+    rng = np.random.default_rng(SEED)
+    x = np.linspace(0.0, 1.0, 12)
+    line = PhysicsModel(lambda i, p: p["k"] * i["x"], {"k": Normal(2.0, 1.0)}, inputs=["x"])
+    data = CalibrationData({"x": x}, 2.0 * x + rng.normal(0.0, 1.0, x.size))
+    s_obs, s_delta = 0.3, 0.9
+    report = fisher_information_check(
+        line, data, IIDGaussian(), point={"sigma_obs": s_obs, "delta_sd": s_delta}
+    )
+    assert not report.identifiable and report.rank == len(report.names) - 1
+    assert report.non_identifiable_sets == [["sigma_obs", "delta_sd"]]
+    # the Fisher block of the two sds against its closed form
+    g = np.array([s_obs, s_delta])
+    j = [report.names.index("sigma_obs"), report.names.index("delta_sd")]
+    analytic = 2 * x.size / (s_obs**2 + s_delta**2) ** 2 * np.outer(g, g)
+    np.testing.assert_allclose(report.matrix[np.ix_(j, j)], analytic, rtol=1e-8)
+    # the reported null direction, in the parameters' own units, against (1, -1/3)
+    (direction,) = report.null_directions
+    v = np.array([direction["sigma_obs"], direction["delta_sd"]])
+    expected = np.array([1.0, -1.0 / 3.0])
+    v, expected = v / np.linalg.norm(v), expected / np.linalg.norm(expected)
+    np.testing.assert_allclose(np.sign(v @ expected) * v, expected, atol=1e-6)
+    (text,) = report.confounded()
+    assert "sigma_obs and delta_sd are confounded" in text
+    assert "1 : -0.333" in text and "likelihood unchanged" in text
+    assert "sigma_obs² + delta_sd²" in text
+    assert "sigma_obs + delta_sd" not in text and "sigma_obs·delta_sd" not in text
+    assert report.to_dict()["null_directions"] == [direction]
+
+
+def test_product_of_parameters_on_very_different_scales():
+    """y = a·b·x: the output is flat where Δa/a = -Δb/b, i.e. along (a, -b) in the
+    parameters' own units.  Taylor check at a = 2e5, b = 3e-3 (ten decades apart); the
+    Fisher check at a = 2e3, b = 3e-2 (its uninformative-parameter cut, 1e-6 on √I_jj
+    relative to the largest, would drop ``a`` at the wider spread)."""
+    x = np.linspace(0.5, 2.0, 10)
+    prod = PhysicsModel(
+        lambda i, p: p["a"] * p["b"] * i["x"],
+        {"a": Normal(1e5, 1e4), "b": Normal(1e-3, 1e-4)},
+        inputs=["x"],
+    )
+    taylor = taylor_check(prod, {"x": x}, {"a": 2.0e5, "b": 3.0e-3})
+    data = CalibrationData({"x": x}, 60.0 * x, noise_sd=0.5)
+    fisher = fisher_information_check(prod, data, point={"a": 2.0e3, "b": 3.0e-2})
+    for report, ratio in ((taylor, "1 : -1.5e-08"), (fisher, "1 : -1.5e-05")):
+        a, b = report.point["a"], report.point["b"]
+        assert report.non_identifiable_sets == [["a", "b"]]
+        (direction,) = report.null_directions
+        # parallel to (a, -b): the ratio of components, to 1e-6 whatever the scales
+        np.testing.assert_allclose(direction["b"] / direction["a"], -b / a, rtol=1e-6)
+        (text,) = report.confounded()
+        assert text.startswith("a and b are confounded")
+        assert f"Δa : Δb = {ratio}" in text
+        assert "a·b" in text and "a + b" not in text and "a/b" not in text

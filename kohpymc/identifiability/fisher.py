@@ -41,11 +41,15 @@ def fisher_information_check(
 
     ``I_ij = ∂_i μᵀ Σ⁻¹ ∂_j μ + ½ tr(Σ⁻¹ ∂_iΣ Σ⁻¹ ∂_jΣ)``.
 
-    The report analyses ``R = Λ^{1/2} Vᵀ`` (``I = V Λ Vᵀ``, so ``RᵀR = I``); its rank is
-    that of ``I`` and its null directions are the parameter combinations the likelihood
-    cannot resolve, e.g. a GP amplitude and the noise variance when the length scale is
-    far below the data spacing.  ``rtol`` applies to singular values of the column-scaled
-    ``R`` (square roots of eigenvalues), so 1e-6 means 1e-12 on ``I``.
+    The report analyses a square root ``R`` of ``I`` (``RᵀR = I``), computed from the
+    correlation form ``C = D⁻¹ I D⁻¹ = V Λ Vᵀ`` (``D = diag(√I_jj)``) as
+    ``R = Λ^{1/2} Vᵀ D``; its rank is that of ``I`` and its null directions, in the
+    parameters' own units, are the combinations the likelihood cannot resolve, e.g. a GP
+    amplitude and the noise sd when the length scale is far below the data spacing, or
+    σ_obs and σ_δ of M2, which enter only as ``σ_obs² + σ_δ²`` (null direction
+    ``Δσ_obs : Δσ_δ = σ_δ : -σ_obs``).  ``rtol`` applies to singular values of the
+    column-scaled ``R`` (square roots of eigenvalues of ``C``), so 1e-6 means 1e-12 on
+    ``C``.
 
     Examples
     --------
@@ -99,6 +103,9 @@ def fisher_information_check(
     lam, vec = np.linalg.eigh(scaled)
     root = np.sqrt(np.clip(lam, 0.0, None))[:, None] * vec.T
     root[:, ~informative] = 0.0
+    # back to the parameters' own units, (root·D)ᵀ(root·D) = I: analyse_matrix scales the
+    # columns again and maps its null directions to the units of the columns it is given
+    root = root * d[None, :]
     flat_point = _flat_point(entries, values)
     report = analyse_matrix(
         root, [e[1] for e in entries], rtol=rtol, point=flat_point, kind="fisher"

@@ -9,10 +9,12 @@ drop), then ``r_A`` is the number of singular values above ``rtol · σ_max``.  
 near-non-identifiability is visible too.
 
 Beyond the paper, the null space of ``A`` names *which combination* is confounded (a
-direction in ψ along which the output does not change), and every minimal set of
-parameters that cannot be identified together (the circuits of the column matroid) is
-listed by a search restricted to the parameters touched by the null space — no ``p!``
-permutations.  :func:`algorithm1` is the paper's Algorithm 1.
+direction in ψ along which the output does not change, mapped back from the scaled
+coordinates to the parameters' own units: ``Δψ_j = w_j / ‖A_j‖`` for a null vector ``w``
+of the scaled matrix), and every minimal set of parameters that cannot be identified
+together (the circuits of the column matroid) is listed by a search restricted to the
+parameters touched by the null space — no ``p!`` permutations.  :func:`algorithm1` is
+the paper's Algorithm 1.
 """
 
 from __future__ import annotations
@@ -59,8 +61,9 @@ class IdentifiabilityReport:
     identifiable_set : list of str
         One identifiable set from the paper's Algorithm 1.
     null_directions : list of dict
-        Each a unit direction (parameter -> coefficient, in original units, small
-        entries dropped) along which the output does not change.
+        One per minimal set: parameter -> coefficient of a direction ``Δψ`` in the
+        parameters' own units (largest coefficient ±1) along which the output (the
+        likelihood, for the Fisher check) does not change to first order.
     non_identifiable_sets : list of list of str
         Every minimal set of parameters whose columns are linearly dependent.
     structural : bool or None
@@ -93,23 +96,39 @@ class IdentifiabilityReport:
     def confounded(self) -> list[str]:
         """Plain-language description of each confounded combination.
 
-        For a null direction ``v`` the output is unchanged along ``Σ v_j Δψ_j``; for a pair
-        the data inform only the orthogonal combination (e.g. ``θ1 + φ2``).
+        For a null direction ``v`` (original units) the output is unchanged to first
+        order when the parameters move by ``Δψ ∝ v``.  For a pair ``(a, b)`` the data
+        inform only the orthogonal combination ``-v_b·Δa + v_a·Δb``; when that is the
+        gradient at the expansion point of a simple form (``a + b``, ``a - b``, ``a·b``,
+        ``a/b``, ``a² + b²``, ``a² - b²``) the text says the result is consistent with
+        it.  A single point cannot prove such a form, and several can fit at once (at
+        ``a = b``, both ``a + b`` and ``a·b``), so every fitting form is listed and none
+        is claimed when none fits.
         """
+        effect = "likelihood" if self.kind == "fisher" else "output"
         out = []
         for direction in self.null_directions:
             names = list(direction)
             if len(names) == 1:
-                out.append(f"{names[0]} has no effect on the output (at this point)")
+                out.append(f"{names[0]} has no effect on the {effect} (at this point)")
                 continue
-            moves = _combination({f"Δ{n}": c for n, c in direction.items()})
+            coefs = np.array([direction[n] for n in names], dtype=float)
+            ratio = " : ".join(_number(c) for c in coefs / coefs[0])
             text = (
-                f"{', '.join(names[:-1])} and {names[-1]} are confounded: "
-                f"the output does not change along {moves}"
+                f"{', '.join(names[:-1])} and {names[-1]} are confounded: changing them in "
+                f"the ratio {' : '.join(f'Δ{n}' for n in names)} = {ratio} leaves the "
+                f"{effect} unchanged (to first order)"
             )
             if len(names) == 2:
                 (a, ca), (b, cb) = direction.items()
-                text += f"; they enter only as {_combination({a: -cb, b: ca})}"
+                ga, gb = -cb, ca
+                informed = _combination({f"Δ{a}": 1.0, f"Δ{b}": gb / ga})
+                text += f"; the data inform only {informed}"
+                forms = _simple_forms(a, b, ga, gb, self.point)
+                if forms:
+                    text += f", consistent with their entering only as {' or '.join(forms)}" + (
+                        " (indistinguishable at this point)" if len(forms) > 1 else ""
+                    )
             out.append(text)
         return out
 
@@ -125,6 +144,7 @@ class IdentifiabilityReport:
             "singular_values": [float(s) for s in self.singular_values],
             "identifiable_set": list(self.identifiable_set),
             "non_identifiable_sets": [list(s) for s in self.non_identifiable_sets],
+            "null_directions": [{k: float(c) for k, c in d.items()} for d in self.null_directions],
             "confounded": self.confounded(),
             "structural": self.structural,
             "point": {k: float(v) for k, v in self.point.items()},
@@ -160,10 +180,51 @@ def _combination(coefs: Mapping[str, float]) -> str:
     parts = []
     for k, (name, c) in enumerate(items):
         c = sign * c
-        mag = "" if np.isclose(abs(c), 1.0, rtol=1e-6) else f"{abs(c):.3g}·"
+        mag = "" if np.isclose(abs(c), 1.0, rtol=1e-6) else f"{_number(abs(c))}·"
         op = ("-" if c < 0 else "") if k == 0 else (" - " if c < 0 else " + ")
         parts.append(f"{op}{mag}{name}")
     return "".join(parts)
+
+
+def _number(c: float) -> str:
+    """Three significant digits, ``-0.333``, ``1.5e-08``; exact ``±1`` as ``1``."""
+    if np.isclose(abs(c), 1.0, rtol=1e-9, atol=0.0):
+        return "-1" if c < 0 else "1"
+    return f"{c:.3g}"
+
+
+#: tolerance on the ratio of gradient components for naming a simple form
+_FORM_RTOL = 1e-5
+
+
+def _simple_forms(a: str, b: str, ga: float, gb: float, point: Mapping[str, float]) -> list[str]:
+    """Simple forms ``f(a, b)`` whose gradient at ``point`` is parallel to ``(ga, gb)``.
+
+    Compared through the ratio of components, so parameters of very different
+    magnitude (a ≈ 1e5, b ≈ 1e-3) are matched as well as equal ones.
+    """
+    if ga == 0 or gb == 0:
+        return []
+    candidates = {
+        f"{a} + {b}": (1.0, 1.0),
+        f"{a} - {b}": (1.0, -1.0),
+    }
+    if a in point and b in point:
+        va, vb = float(point[a]), float(point[b])
+        candidates.update(
+            {
+                f"{a}·{b}": (vb, va),
+                f"{a}/{b}": (vb, -va),
+                f"{a}² + {b}²": (va, vb),
+                f"{a}² - {b}²": (va, -vb),
+            }
+        )
+    target = gb / ga
+    return [
+        form
+        for form, (ha, hb) in candidates.items()
+        if ha != 0 and hb != 0 and abs((hb / ha) / target - 1.0) < _FORM_RTOL
+    ]
 
 
 def _scaled(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -274,7 +335,9 @@ def analyse_matrix(
     null = vt[rank:].T  # (p, p - rank) in scaled coordinates
     support = sorted(set(np.flatnonzero(np.any(np.abs(null) > 1e-6, axis=1)).tolist()))
     circuits = _minimal_dependent_sets(A, support, rtol, max_sets) if support else []
-    # one sparse null direction per minimal set (the SVD null basis is an arbitrary rotation)
+    # one sparse null direction per minimal set (the SVD null basis is an arbitrary rotation).
+    # The scaled matrix is A·S⁻¹ (S = diag(scale)), i.e. A in the coordinates u = S·ψ; a null
+    # vector w of A·S⁻¹ gives A·(S⁻¹w) = 0, so in the parameters' own units Δψ = w / scale.
     directions = []
     for circuit in circuits:
         cols = list(circuit)

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import json
-import time
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -41,6 +40,7 @@ from kohpymc.loo import pointwise_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
+from kohpymc.sampling import sample_posterior
 
 __all__ = ["Calibration", "calibrate", "predict"]
 
@@ -150,21 +150,6 @@ def _plain_or_repr(formulation: Discrepancy) -> Any:
         return repr(formulation)
 
 
-def _compile_mode_kwargs(mode, method, nuts_sampler, sample_kwargs: dict[str, Any]) -> None:
-    """Put ``mode`` into PyMC's ``compile_kwargs`` (PyMC's own NUTS only)."""
-    check_compile_mode(mode)
-    if mode is None:
-        return
-    if method != "nuts" or nuts_sampler != "pymc":
-        raise ValueError(
-            "mode applies to PyMC's own NUTS (method='nuts', nuts_sampler='pymc'), "
-            f"not method={method!r}, nuts_sampler={nuts_sampler!r}"
-        )
-    compile_kwargs = dict(sample_kwargs.pop("compile_kwargs", None) or {})
-    compile_kwargs["mode"] = mode
-    sample_kwargs["compile_kwargs"] = compile_kwargs
-
-
 def _identifiability(plain: CalibrationModel, physics: PhysicsModel):
     """The Taylor check at the prior centre, warning on a rank deficit."""
     label = plain.formulation.label
@@ -185,21 +170,39 @@ def _identifiability(plain: CalibrationModel, physics: PhysicsModel):
     return report
 
 
-def _sample(model, method: str, settings: dict[str, Any], sample_kwargs: dict[str, Any]):
-    """Run NUTS or SMC; returns the InferenceData with a log_likelihood group."""
-    with model:
-        if method == "nuts":
-            idata = pm.sample(**settings, idata_kwargs={"log_likelihood": True}, **sample_kwargs)
-            if "log_likelihood" not in idata.groups():
-                pm.compute_log_likelihood(idata, progressbar=False)
-            return idata
-        if method == "smc":
-            settings = {k: v for k, v in settings.items() if k not in ("tune", "target_accept")}
-            settings.pop("nuts_sampler", None)
-            idata = pm.sample_smc(**settings, **sample_kwargs)
-            pm.compute_log_likelihood(idata, progressbar=False)
-            return idata
-    raise ValueError(f"method must be 'nuts' or 'smc', got {method!r}")
+def _sampler_name(sampler, method, nuts_sampler) -> str | None:
+    """``sampler`` from it or its older spellings ``method`` / ``nuts_sampler``."""
+    if method not in (None, "nuts", "smc"):
+        raise ValueError(f"method must be 'nuts' or 'smc', got {method!r}")
+    if nuts_sampler not in (None, "pymc", "nutpie"):
+        raise ValueError(f"nuts_sampler must be 'pymc' or 'nutpie', got {nuts_sampler!r}")
+    older = "smc" if method == "smc" else nuts_sampler
+    if sampler is not None and older is not None and older != sampler:
+        raise ValueError(f"sampler={sampler!r} contradicts method/nuts_sampler={older!r}")
+    return sampler or older
+
+
+def _default_mode(model, data: CalibrationData) -> str | None:
+    """NUMBA for PyTensor-expression physics on >= 100 rows, else the C backend."""
+    from pytensor.graph.traversal import ancestors
+
+    from kohpymc.physics.ops import _PhysicsOpBase
+
+    if data.n < 100:
+        return None
+    numpy_op = any(
+        v.owner is not None and isinstance(v.owner.op, _PhysicsOpBase)
+        for v in ancestors([model.logp()])
+    )
+    return None if numpy_op else "NUMBA"
+
+
+def _add_log_likelihood(idata: az.InferenceData, built, plain) -> None:
+    """The ``log_likelihood`` group: the sampled model's, made pointwise where needed."""
+    pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
+    pointwise = pointwise_log_likelihood(idata, built, plain)
+    if pointwise is not None:
+        idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
 
 
 def calibrate(
@@ -213,13 +216,15 @@ def calibrate(
     cores: int | None = None,
     target_accept: float | None = None,
     random_seed: int | None = None,
-    nuts_sampler: Literal["pymc", "nutpie", "numpyro", "blackjax"] = "pymc",
+    sampler: Literal["nutpie", "pymc", "smc"] | None = None,
+    reparameterize: bool = True,
     mode: Literal["NUMBA", "FAST_RUN"] | None = None,
-    method: Literal["nuts", "smc"] = "nuts",
     progressbar: bool = False,
     noise_sd_prior: Prior | dict[str, Any] | None = None,
     warn: bool = True,
     check_identifiability: bool = True,
+    method: Literal["nuts", "smc"] | None = None,
+    nuts_sampler: Literal["pymc", "nutpie"] | None = None,
     **sample_kwargs: Any,
 ) -> Calibration:
     """Calibrate a physics model under one discrepancy formulation.
@@ -228,23 +233,32 @@ def calibrate(
     ----------
     physics, data, discrepancy :
         As in :func:`build_model`.
-    draws, tune, chains, cores, random_seed, nuts_sampler :
-        Passed to :func:`pymc.sample`.
+    draws, tune, chains, cores, random_seed :
+        Sampler settings (``cores`` defaults to ``min(chains, 2)``).
+    sampler : {"nutpie", "pymc", "smc"}, optional
+        ``"nutpie"`` (default): nutpie's NUTS on the log density compiled by PyTensor,
+        in coordinates whitened at the posterior mode (see ``reparameterize``); PyMC's
+        NUTS runs instead, with the reason in ``idata.attrs["sampling"]``, when nutpie
+        is not installed or fails.  ``"pymc"``: :func:`pymc.sample`, started at the
+        mode.  ``"smc"``: :func:`pymc.sample_smc`, which needs no gradient (for
+        black-box models whose finite-difference gradient is unusable).
+    reparameterize : bool
+        Before sampling, find the posterior mode (multi-start L-BFGS) and sample in
+        coordinates whitened by the Laplace covariance there, positive bounded
+        parameters on the log scale when that makes the posterior more Gaussian
+        (:mod:`kohpymc.reparameterization`).  Draws are mapped back to the user's
+        parameters.  ``initvals`` (a dict in the user's units) become an extra start.
     mode : {"NUMBA", "FAST_RUN"}, optional
-        PyTensor compile mode of the log density and gradient that PyMC's NUTS
-        evaluates (``nuts_sampler="pymc"``; other samplers compile their own).  ``None``
-        is PyTensor's default (``FAST_RUN``, the C backend).  ``"NUMBA"`` compiles the
-        whole graph natively: on the beam study with the physics as a PyTensor
-        expression it took 0.6–0.75× the time of the C backend once numba's on-disk
-        cache (``~/.pytensor/numba``) is warm; the first compilation of a new graph is
-        slower.  A physics model given as a numpy function runs in numba's Python
-        object mode, which is slower than the C backend: keep the default there.
+        PyTensor compile mode of the log density and gradient.  ``None`` chooses:
+        ``"NUMBA"`` when the physics is a PyTensor expression and there are at least
+        100 observations (a GP likelihood gradient is ~8× faster than the C backend
+        without a system BLAS, which pays for numba's longer compilation), otherwise
+        PyTensor's C backend, whose compiled code is cached on disk.
     target_accept : float, optional
         NUTS target acceptance; default the formulation's ``default_target_accept``
         (0.9, or 0.95 for the GP formulations).
-    method : {"nuts", "smc"}
-        ``"smc"`` uses :func:`pymc.sample_smc`, which needs no gradient (for black-box
-        models whose finite-difference gradient is unusable).
+    method, nuts_sampler :
+        Older spellings of ``sampler`` (``method="smc"``, ``nuts_sampler="pymc"``).
     progressbar : bool
         Show the sampler's progress bar.
     noise_sd_prior : Prior, optional
@@ -275,7 +289,8 @@ def calibrate(
     >>> cal.idata.posterior["E"].dims  # doctest: +SKIP
     ('chain', 'draw')
     """
-    _compile_mode_kwargs(mode, method, nuts_sampler, sample_kwargs)
+    sampler = _sampler_name(sampler, method, nuts_sampler)
+    check_compile_mode(mode)
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     built = compose_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
     # the direct (unmarginalized) form serves the identifiability check and, when its rows
@@ -284,33 +299,35 @@ def calibrate(
         physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
     )
     report = _identifiability(plain, physics) if check_identifiability else None
-    settings = dict(
+    idata, report = sample_posterior(
+        built.model,
+        sampler=sampler,
         draws=draws,
         tune=tune,
         chains=chains,
         cores=cores,
         target_accept=target_accept or discrepancy.default_target_accept,
         random_seed=random_seed,
-        nuts_sampler=nuts_sampler,
         progressbar=progressbar,
+        reparameterize=reparameterize,
+        mode=mode if mode is not None else _default_mode(built.model, data),
+        sample_kwargs=sample_kwargs,
     )
-    start = time.perf_counter()
-    idata = _sample(built.model, method, settings, sample_kwargs)
-    elapsed = time.perf_counter() - start
-    pointwise = pointwise_log_likelihood(idata, built, plain)
-    if pointwise is not None:
-        idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
+    _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
-    problems = convergence_problems(idata) if method == "nuts" else []
+    problems = convergence_problems(idata) if report.sampler != "smc" else []
     idata.attrs.update(
         {
             "formulation": discrepancy.label,
             "formulation_description": discrepancy.description,
             "physics": physics.name,
             "noise_sd": -1.0 if data.noise_sd is None else float(data.noise_sd),
-            "method": method,
+            "method": "smc" if report.sampler == "smc" else "nuts",
+            "sampler": report.sampler,
+            "sampling": json.dumps(report.to_dict()),
+            "reparameterization": report.reparameterization.get("kind", "none"),
             "compile_mode": mode or "default",
-            "wall_time_s": elapsed,
+            "wall_time_s": sum(report.timings.values()),
         }
     )
     if problems and warn:

@@ -244,8 +244,10 @@ def test_numba_mode_samples_the_same_posterior(beam_data):
 def test_compile_mode_is_checked(beam_physics, beam_data):
     with pytest.raises(ValueError, match="mode must be one of.*'numba'"):
         calibrate(beam_physics, beam_data, draws=10, tune=10, mode="numba")
-    with pytest.raises(ValueError, match="nuts_sampler='nutpie'"):
-        calibrate(beam_physics, beam_data, draws=10, tune=10, mode="NUMBA", nuts_sampler="nutpie")
+    with pytest.raises(ValueError, match="sampler must be one of"):
+        calibrate(beam_physics, beam_data, draws=10, tune=10, sampler="hmc")
+    with pytest.raises(ValueError, match="contradicts"):
+        calibrate(beam_physics, beam_data, draws=10, tune=10, sampler="pymc", method="smc")
 
 
 def _decay_data(seed, n=24, t_max=4e-3):

@@ -1,0 +1,217 @@
+r"""A PyMC model's unconstrained parameter space as one flat vector, compiled once.
+
+Every sampler path of :func:`kohpymc.calibrate` starts here: the log density and its
+gradient over PyMC's *value* variables (each free parameter after its default
+transform: log for positive priors, logit-interval for bounded ones, identity for
+unbounded) joined into one vector, and the map from that vector back to the user's
+parameters and the model's deterministics.  Both are ordinary PyTensor functions,
+compiled once per model (PyTensor's C backend keeps compiled code on disk, so a
+rebuilt model of the same shape in a later process compiles from its cache).
+
+:class:`ValueSpace` also knows, element by element, which transform PyMC used and the
+bounds of interval priors, which :mod:`kohpymc.reparameterization` needs to offer a
+log scale for positive bounded parameters.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import pymc as pm
+import pytensor
+import pytensor.tensor as pt
+from pymc.logprob.transforms import IntervalTransform, LogTransform
+from pymc.pytensorf import join_nonshared_inputs
+
+__all__ = ["ValueSpace", "value_space"]
+
+
+@dataclass(frozen=True)
+class ValueSpace:
+    """The flat unconstrained space of a model and its compiled functions.
+
+    Attributes
+    ----------
+    names : tuple of str
+        Value-variable names (``E_interval__``, ``sigma_obs_log__``, ...), in order.
+    shapes : tuple of tuple
+        Their shapes.
+    initial : ndarray
+        PyMC's initial point (support point of each prior), flattened.
+    transforms : tuple of str
+        Per flat element: ``"interval"``, ``"log"`` or ``"identity"``.
+    lower, upper : ndarray
+        Per flat element: interval bounds (NaN where not an interval transform).
+    expanded_names, expanded_shapes :
+        The user's parameters and deterministics that :attr:`expand` returns.
+    """
+
+    model: pm.Model
+    names: tuple[str, ...]
+    shapes: tuple[tuple[int, ...], ...]
+    initial: np.ndarray
+    transforms: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    expanded_names: tuple[str, ...]
+    expanded_shapes: tuple[tuple[int, ...], ...]
+    _logp_dlogp: Callable[..., Any]
+    _expand: Callable[..., Any]
+
+    @property
+    def ndim(self) -> int:
+        """Length of the flat vector."""
+        return int(self.initial.size)
+
+    def logp_dlogp(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """Log density (with the transforms' Jacobians) and its gradient at ``x``."""
+        logp, grad = self._logp_dlogp(np.asarray(x, dtype=float))
+        return float(logp), np.asarray(grad, dtype=float)
+
+    def logp_dlogp_or_nan(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """:meth:`logp_dlogp`, with ``(-inf, nan)`` where the model cannot be evaluated.
+
+        For optimisers and finite differences, which may step far into the tails
+        (e.g. where a physics function overflows and raises).
+        """
+        try:
+            with np.errstate(all="ignore"):
+                return self.logp_dlogp(x)
+        except Exception:  # noqa: BLE001 - any failure is "outside the support" here
+            return -np.inf, np.full(self.ndim, np.nan)
+
+    def expand(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        """The user's parameters and the model's deterministics at ``x``."""
+        values = self._expand(np.asarray(x, dtype=float))
+        return {
+            name: np.asarray(value, dtype=float).reshape(shape)
+            for name, value, shape in zip(
+                self.expanded_names, values, self.expanded_shapes, strict=True
+            )
+        }
+
+    def copy(self) -> ValueSpace:
+        """The same space with its own copies of the compiled functions.
+
+        A compiled PyTensor function keeps its intermediate results in per-function
+        storage, so two threads (e.g. two nutpie chains) must not call the same one.
+        """
+        return replace(
+            self,
+            _logp_dlogp=self._logp_dlogp.copy(share_memory=False),
+            _expand=self._expand.copy(share_memory=False),
+        )
+
+    def split(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        """``x`` as a point ``{value-variable name: array}`` (PyMC's point format)."""
+        out, start = {}, 0
+        for name, shape in zip(self.names, self.shapes, strict=True):
+            size = int(np.prod(shape, dtype=int))
+            out[name] = np.asarray(x[start : start + size]).reshape(shape)
+            start += size
+        return out
+
+    def join(self, point: dict[str, Any]) -> np.ndarray:
+        """A point ``{value-variable name: array}`` as one flat vector."""
+        return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])
+
+
+def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarray, np.ndarray]:
+    """Transform kind and (for intervals) numeric bounds of one free variable."""
+    transform = model.rvs_to_transforms.get(rv)
+    nan = np.full(size, np.nan)
+    if transform is None:
+        return "identity", nan, nan
+    if isinstance(transform, LogTransform):
+        return "log", nan, nan
+    if isinstance(transform, IntervalTransform):
+        a, b, _, _ = transform.get_a_and_b(rv.owner.inputs)
+        try:
+            lower = np.broadcast_to(np.asarray(pt.as_tensor(a).eval(), float), size).copy()
+            upper = np.broadcast_to(np.asarray(pt.as_tensor(b).eval(), float), size).copy()
+        except Exception:  # noqa: BLE001 - bounds that depend on other parameters
+            return "other", nan, nan
+        return "interval", lower, upper
+    return "other", nan, nan
+
+
+def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
+    """Compile the flat log density, its gradient and the expand map of ``model``.
+
+    Parameters
+    ----------
+    model : pymc.Model
+        A model whose free variables are all continuous.
+    mode : str, optional
+        PyTensor compile mode (default: PyTensor's default, the C backend).
+
+    Returns
+    -------
+    ValueSpace
+
+    Examples
+    --------
+    >>> import numpy as np, pymc as pm
+    >>> with pm.Model() as model:
+    ...     mu = pm.Normal("mu", 0.0, 10.0)
+    ...     _ = pm.Normal("y", mu, 1.0, observed=[1.0, 2.0])
+    >>> space = value_space(model)
+    >>> logp, grad = space.logp_dlogp(np.array([1.5]))
+    >>> float(np.round(grad[0], 4))  # d/dmu: (1 - 1.5) + (2 - 1.5) - 1.5 / 100
+    -0.015
+    """
+    discrete = [rv.name for rv in model.free_RVs if not str(rv.dtype).startswith("float")]
+    if discrete:
+        raise ValueError(f"gradient samplers need continuous parameters; discrete: {discrete}")
+    point = model.initial_point(0)
+    value_vars = list(model.value_vars)
+    names = tuple(v.name for v in value_vars)
+    shapes = tuple(tuple(np.shape(point[n])) for n in names)
+    kinds: list[str] = []
+    lower, upper = [], []
+    for rv, shape in zip(model.free_RVs, shapes, strict=True):
+        size = int(np.prod(shape, dtype=int))
+        kind, a, b = _transform_info(model, rv, size)
+        kinds.extend([kind] * size)
+        lower.append(a)
+        upper.append(b)
+    logp = model.logp()
+    grads = pytensor.grad(logp, value_vars, disconnected_inputs="ignore")
+    outputs = [logp, pt.join(0, *[g.ravel() for g in grads])]
+    joined_outputs, flat = join_nonshared_inputs(
+        point=point, outputs=outputs, inputs=value_vars, make_inputs_shared=False
+    )
+    compile_kwargs = {} if mode is None else {"mode": mode}
+    with warnings.catch_warnings():
+        # numba runs a numpy-function physics Op in object mode: correct, only slower
+        warnings.filterwarnings("ignore", message="Numba will use object mode")
+        logp_dlogp = pm.pytensorf.compile([flat], joined_outputs, **compile_kwargs)
+    expanded = list(model.free_RVs) + list(model.deterministics)
+    expanded_graphs = model.replace_rvs_by_values(expanded)
+    expand_outputs, flat_e = join_nonshared_inputs(
+        point=point, outputs=expanded_graphs, inputs=value_vars, make_inputs_shared=False
+    )
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Numba will use object mode")
+        expand = pm.pytensorf.compile(
+            [flat_e], expand_outputs, on_unused_input="ignore", **compile_kwargs
+        )
+    initial = np.concatenate([np.ravel(point[n]) for n in names]).astype(float)
+    expanded_shapes = tuple(tuple(np.shape(v)) for v in expand(initial))
+    return ValueSpace(
+        model=model,
+        names=names,
+        shapes=shapes,
+        initial=initial,
+        transforms=tuple(kinds),
+        lower=np.concatenate(lower) if lower else np.zeros(0),
+        upper=np.concatenate(upper) if upper else np.zeros(0),
+        expanded_names=tuple(v.name for v in expanded),
+        expanded_shapes=expanded_shapes,
+        _logp_dlogp=logp_dlogp,
+        _expand=expand,
+    )

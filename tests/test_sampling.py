@@ -1,0 +1,62 @@
+"""The default sampler path on posteriors that are hard in natural units."""
+
+import importlib.util
+import json
+
+import arviz as az
+import numpy as np
+import pytest
+
+import kohpymc as kp
+from kohpymc.examples import hard_posteriors
+from kohpymc.sampling import choose_sampler
+
+SEED = 20261123
+
+
+@pytest.mark.parametrize("name", ["arrhenius", "collinear", "multiplicative"])
+def test_hard_posteriors_converge_at_default_settings(name):
+    """Unknown noise, natural units, default settings: r̂ <= 1.01, bulk ESS >= 400 and no
+    divergences for every parameter, and what the data inform covers the truth (4 sd)."""
+    problem = hard_posteriors.all_problems(seed=3)[name]
+    cal = kp.calibrate(problem.physics, problem.data, random_seed=SEED)
+    summary = az.summary(cal.idata, var_names=[*problem.physics.parameters, "sigma_obs"])
+    assert summary["r_hat"].max() <= 1.01, summary
+    assert summary["ess_bulk"].min() >= 400, summary
+    assert int(cal.idata.sample_stats.diverging.sum()) == 0
+    assert cal.problems == []
+    sampling = json.loads(cal.idata.attrs["sampling"])
+    assert sampling["sampler"] == "nutpie"
+    assert sampling["reparameterization"]["kind"] in ("affine", "log-affine")
+    post = cal.idata.posterior
+    if name == "multiplicative":
+        informed = np.log(post["k"] * post["c"])
+        truth = np.log(problem.truth["k"] * problem.truth["c"])
+        assert abs(float(informed.mean()) - truth) < 4 * float(informed.std())
+    else:
+        for param, value in problem.truth.items():
+            assert abs(float(post[param].mean()) - value) < 4 * float(post[param].std()), param
+
+
+def test_sampler_choice_and_its_reason(monkeypatch):
+    assert choose_sampler(None) == ("nutpie", "")
+    assert choose_sampler("pymc") == ("pymc", "")
+    with pytest.raises(ValueError, match="sampler must be one of"):
+        choose_sampler("metropolis")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda n, *a: None if n == "nutpie" else real(n, *a)
+    )
+    assert choose_sampler("nutpie") == ("pymc", "nutpie is not installed (pip install nutpie)")
+
+
+def test_pymc_sampler_starts_at_the_mode_and_says_so():
+    problem = hard_posteriors.linear(seed=1)
+    cal = kp.calibrate(
+        problem.physics, problem.data, sampler="pymc", draws=300, tune=300, chains=2,
+        random_seed=SEED,
+    )  # fmt: skip
+    sampling = json.loads(cal.idata.attrs["sampling"])
+    assert sampling["sampler"] == "pymc"
+    assert cal.idata.attrs["sampler"] == "pymc"
+    assert abs(float(cal.posterior["a"].mean()) - 2.5) < 4 * float(cal.posterior["a"].std())

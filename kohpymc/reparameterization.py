@@ -52,12 +52,17 @@ class Coordinates:
     """Elementwise map from sampling coordinates ``w`` to PyMC's value space ``v``.
 
     ``log_scale[i]`` marks interval elements ``Uniform(a, b)``, ``a > 0``, sampled as
-    ``w = logit((ln x − ln a)/(ln b − ln a))``; all other elements have ``w = v``.
+    ``w = logit((ln x − ln a)/(ln b − ln a))`` or, with ``walls=True``, as ``w = ln x``
+    with zero density outside ``(ln a, ln b)`` (used only when the posterior lies
+    many standard deviations inside the bounds, where the walls are never met and
+    a ridge ``x₁^p x₂^q = const`` stays exactly straight); all other elements have
+    ``w = v``.
     """
 
     log_scale: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
+    walls: bool = False
 
     @classmethod
     def identity(cls, ndim: int) -> Coordinates:
@@ -66,8 +71,10 @@ class Coordinates:
 
     @property
     def name(self) -> str:
-        """``"value"`` (PyMC's coordinates) or ``"log"``."""
-        return "log" if self.log_scale.any() else "value"
+        """``"value"`` (PyMC's coordinates), ``"log-logit"`` or ``"log"``."""
+        if not self.log_scale.any():
+            return "value"
+        return "log" if self.walls else "log-logit"
 
     def to_value(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """``v(w)``, ``dv/dw``, ``d log|dv/dw| / dw`` and ``Σ log|dv/dw|``."""
@@ -78,6 +85,8 @@ class Coordinates:
         if not m.any():
             return v, dv, dlogjac, 0.0
         a, b = self.lower[m], self.upper[m]
+        if self.walls:
+            return self._log_with_walls(w, v, dv, dlogjac, a, b)
         la, lb = np.log(a), np.log(b)
         c = lb - la
         s = expit(w[m])
@@ -91,6 +100,20 @@ class Coordinates:
         dlogjac[m] = (2 * x - a - b) / (above * below) * x * c * ds + c * ds + 1.0 - 2.0 * s
         return v, dv, dlogjac, float(np.sum(np.log(g)))
 
+    def _log_with_walls(self, w, v, dv, dlogjac, a, b):
+        """``w = ln x``: ``v = ln(x − a) − ln(b − x)``; NaN (zero density) outside."""
+        m = self.log_scale
+        with np.errstate(all="ignore"):
+            x = np.exp(w[m])
+            above, below = x - a, b - x
+            inside = (above > 0) & (below > 0)
+            v[m] = np.where(inside, np.log(above) - np.log(below), np.nan)
+            g = x * (b - a) / (above * below)
+            dv[m] = np.where(inside, g, np.nan)
+            dlogjac[m] = np.where(inside, 1.0 - x / above + x / below, np.nan)
+            logjac = float(np.sum(np.log(g))) if inside.all() else -np.inf
+        return v, dv, dlogjac, logjac
+
     def from_value(self, v: np.ndarray) -> np.ndarray:
         """``w(v)``, the inverse of :meth:`to_value`."""
         w = np.array(v, dtype=float)
@@ -98,19 +121,34 @@ class Coordinates:
         if m.any():
             a, b = self.lower[m], self.upper[m]
             x = a + (b - a) * expit(v[m])
+            if self.walls:
+                w[m] = np.log(x)
+                return w
             p = (np.log(x) - np.log(a)) / (np.log(b) - np.log(a))
             p = np.clip(p, 1e-15, 1 - 1e-15)
             w[m] = np.log(p) - np.log1p(-p)
         return w
 
 
-def log_coordinates(space: ValueSpace) -> Coordinates | None:
+def log_coordinates(space: ValueSpace, *, walls: bool = False) -> Coordinates | None:
     """Log-scale coordinates for the positive interval priors of ``space`` (None if none)."""
     kinds = np.array(space.transforms)
     mask = (kinds == "interval") & (space.lower > 0) & np.isfinite(space.upper)
     if not mask.any():
         return None
-    return Coordinates(mask, space.lower.copy(), space.upper.copy())
+    return Coordinates(mask, space.lower.copy(), space.upper.copy(), walls)
+
+
+def _far_from_walls(plan: Reparameterization, n_sd: float = 6.0) -> bool:
+    """Whether the Laplace ±``n_sd`` interval of every walled element is inside its bounds."""
+    coords = plan.coordinates
+    m = coords.log_scale
+    sd = np.sqrt(np.einsum("ij,ij->i", plan.chol, plan.chol))[m]
+    centre = plan.mean[m]
+    return bool(
+        np.all(centre - n_sd * sd > np.log(coords.lower[m]))
+        and np.all(centre + n_sd * sd < np.log(coords.upper[m]))
+    )
 
 
 @dataclass(frozen=True)
@@ -131,8 +169,10 @@ class Reparameterization:
     ----------
     kind : str
         ``"none"`` (PyMC's coordinates, started at the mode), ``"affine"`` (whitened
-        in PyMC's coordinates) or ``"log-affine"`` (positive bounded parameters on the
-        log scale, then whitened).
+        in PyMC's coordinates), ``"log-affine"`` (positive bounded parameters on the
+        log scale, the posterior far inside their bounds, then whitened) or
+        ``"log-logit-affine"`` (those parameters as the logit of their position on the
+        log scale between the bounds, then whitened).
     reason : str
         Why this plan, in words (condition number, correlation, or why none).
     """
@@ -197,7 +237,10 @@ def prior_scales(space: ValueSpace, seed: int, n: int = 256) -> tuple[np.ndarray
     import pymc as pm
 
     model = space.model
-    draws = pm.draw(model.free_RVs, draws=n, random_seed=seed, mode="FAST_COMPILE")
+    try:
+        draws = pm.draw(model.free_RVs, draws=n, random_seed=seed, mode="FAST_COMPILE")
+    except NotImplementedError:  # improper priors (pm.Flat) cannot be drawn
+        return space.initial.copy(), np.ones(space.ndim)
     if len(model.free_RVs) == 1:
         draws = [draws]
     columns = []
@@ -331,8 +374,11 @@ def _laplace(space: ValueSpace, coords: Coordinates, mode_w: np.ndarray):
 
 
 def _newton(logp_w, w: np.ndarray, iterations: int = 6):
-    """Newton steps with finite-difference Hessians: the mode to within a tiny fraction of
-    a posterior sd, which L-BFGS's stopping rule does not give along a narrow ridge."""
+    """Newton steps with finite-difference Hessians from ``w``.
+
+    They put the mode within a tiny fraction of a posterior sd, which L-BFGS's stopping
+    rule does not do along a narrow ridge.
+    """
     logp, grad = logp_w(w)
     hess = _hessian(logp_w, w, _steps(w))
     for _ in range(iterations):
@@ -380,15 +426,24 @@ def _refine_mode(logp_w, w0: np.ndarray) -> np.ndarray:
 
 
 def _inverse_cholesky(hess: np.ndarray) -> np.ndarray | None:
-    """``L`` with ``L Lᵀ = H⁻¹``, or None when ``H`` is not positive definite."""
+    """``L`` with ``L Lᵀ = H⁻¹``, or None when ``H`` is not positive definite.
+
+    ``H`` is first scaled to unit diagonal, so parameters whose scales differ by 10¹⁰
+    are judged by their correlation, not by their units.
+    """
     if not np.all(np.isfinite(hess)):
         return None
-    vals, vecs = np.linalg.eigh(hess)
-    if vals.min() <= 0 or vals.min() < 1e-14 * vals.max():
+    diag = np.diag(hess)
+    if np.any(diag <= 0):
         return None
-    cov = (vecs / vals) @ vecs.T
+    d = np.sqrt(diag)
+    scaled = hess / np.outer(d, d)
+    vals, vecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
+    if vals.min() <= 1e-12 * vals.max():
+        return None
+    inverse = (vecs / vals) @ vecs.T
     try:
-        return np.linalg.cholesky(0.5 * (cov + cov.T))
+        return np.linalg.cholesky(0.5 * (inverse + inverse.T)) / d[:, None]
     except np.linalg.LinAlgError:
         return None
 
@@ -417,7 +472,7 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
     corr = cov / np.outer(sd, sd)
     off = np.abs(corr - np.eye(len(sd)))
     eig = np.linalg.eigvalsh(corr)
-    kind = "affine" if coords.name == "value" else "log-affine"
+    kind = {"value": "affine", "log-logit": "log-logit-affine", "log": "log-affine"}[coords.name]
     plan = Reparameterization(
         kind,
         mode_w,
@@ -471,10 +526,12 @@ def plan(
     vectors = [s if isinstance(s, np.ndarray) else space.join(s) for s in starts]
     mode = find_mode(space, vectors, seed=seed, n_design=n_design)
     candidates = [Coordinates.identity(space.ndim)]
-    log_coords = log_coordinates(space)
-    if log_coords is not None:
-        candidates.append(log_coords)
+    for walls in (False, True):
+        log_coords = log_coordinates(space, walls=walls)
+        if log_coords is not None:
+            candidates.append(log_coords)
     plans = [p for p in (_whitened(space, c, mode.value, mode) for c in candidates) if p]
+    plans = [p for p in plans if not p.coordinates.walls or _far_from_walls(p)]
     if not plans:
         return Reparameterization(
             "none",
@@ -492,7 +549,7 @@ def plan(
         + (
             f"; {int(best.coordinates.log_scale.sum())} bounded positive parameter(s) on "
             "the log scale, where the posterior is closer to Gaussian"
-            if best.kind == "log-affine"
+            if best.kind != "affine"
             else ""
         )
         + ")"

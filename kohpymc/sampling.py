@@ -174,19 +174,17 @@ def sample_posterior(
         space = value_space(model, mode=mode)
         report.timings["compile"] = time.perf_counter() - start
         reparam = _plan(space, starts, seed, reparameterize, report)
+        idata = None
         if name == "nutpie":
             try:
                 idata = _run_nutpie(space, reparam, settings, target_accept, progressbar, kwargs)
-                _add_observed_data(idata, model)
-                report.timings["sampling"] = (
-                    time.perf_counter() - start - sum(report.timings.values())
-                )
-                return idata, report
             except Exception as err:  # noqa: BLE001 - any nutpie failure falls back
                 report.sampler = "pymc"
                 report.reason = f"nutpie failed ({type(err).__name__}: {err})"
-        idata = _run_pymc(model, space, reparam, settings, target_accept, progressbar, kwargs)
+        if idata is None:
+            idata = _run_pymc(model, space, reparam, settings, target_accept, progressbar, kwargs)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
+        _add_observed_data(idata, model)
         return idata, report
 
 
@@ -311,7 +309,11 @@ def _add_observed_data(idata: az.InferenceData, model: pm.Model) -> None:
     """The ``observed_data`` group that :func:`pymc.sample` would have written."""
     from pymc.backends.arviz import find_observations
 
+    if "observed_data" in idata.groups():
+        return
     observed = find_observations(model)
+    if not observed:
+        return
     dims = {k: list(model.named_vars_to_dims.get(k, ())) for k in observed}
     coords = {
         d: np.asarray(model.coords[d])

@@ -15,6 +15,7 @@ from kohpymc.physics import PhysicsModel
 __all__ = [
     "COMPILE_MODES",
     "check_compile_mode",
+    "check_sampler",
     "check_tolerance",
     "check_physics_runs",
     "check_validation_data",
@@ -85,6 +86,21 @@ def check_validation_data(
         raise ValueError(f"validation data{_where(validation)} are empty")
     check_physics_runs(physics, validation, "validation")
     return eps
+
+
+#: the samplers :func:`kohpymc.calibrate` accepts
+SAMPLERS = ("nutpie", "pymc", "smc")
+
+
+def check_sampler(sampler: Any) -> None:
+    """Raise ``ValueError`` unless ``sampler`` is None or one of :data:`SAMPLERS`.
+
+    Examples
+    --------
+    >>> check_sampler("nutpie")
+    """
+    if sampler is not None and sampler not in SAMPLERS:
+        raise ValueError(f"sampler must be one of {list(SAMPLERS)}, got {sampler!r}")
 
 
 def check_compile_mode(mode: Any) -> None:

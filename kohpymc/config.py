@@ -59,7 +59,12 @@ from typing import Any
 
 import pandas as pd
 
-from kohpymc.checks import check_compile_mode, check_physics_runs, check_tolerance
+from kohpymc.checks import (
+    check_compile_mode,
+    check_physics_runs,
+    check_sampler,
+    check_tolerance,
+)
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy import Discrepancy, FormulationSpecError, from_dict
 from kohpymc.discrepancy.defaults import default_formulations
@@ -83,6 +88,7 @@ _SECTIONS: dict[str, set[str] | None] = {
     "formulations": None,  # free labels
     "sampling": {
         "draws", "tune", "chains", "cores", "workers", "seed", "target_accept", "method", "mode",
+        "sampler", "reparameterize",
     },
     "output": {"dir"},
 }  # fmt: skip
@@ -386,4 +392,11 @@ def _sampling_section(path: Path, doc: dict) -> dict:
         check_compile_mode(sampling_doc.get("mode"))
     except ValueError as err:
         raise _err(path, "sampling.mode", str(err)) from err
+    if "sampler" in sampling_doc:
+        try:
+            check_sampler(sampling_doc["sampler"])
+        except ValueError as err:
+            raise _err(path, "sampling.sampler", str(err)) from err
+    if not isinstance(sampling_doc.get("reparameterize", True), bool):
+        raise _err(path, "sampling.reparameterize", "must be true or false")
     return sampling_doc

@@ -32,13 +32,11 @@ import arviz as az
 import numpy as np
 import pymc as pm
 
+from kohpymc.checks import SAMPLERS, check_sampler
 from kohpymc.reparameterization import Reparameterization, plan
 from kohpymc.value_space import ValueSpace, value_space
 
 __all__ = ["SAMPLERS", "SamplingReport", "choose_sampler", "sample_posterior"]
-
-#: the samplers :func:`kohpymc.calibrate` accepts
-SAMPLERS = ("nutpie", "pymc", "smc")
 
 
 @dataclass
@@ -84,9 +82,8 @@ def choose_sampler(requested: str | None) -> tuple[str, str]:
     >>> choose_sampler("smc")
     ('smc', '')
     """
+    check_sampler(requested)
     requested = requested or "nutpie"
-    if requested not in SAMPLERS:
-        raise ValueError(f"sampler must be one of {list(SAMPLERS)}, got {requested!r}")
     if requested == "nutpie" and importlib.util.find_spec("nutpie") is None:
         return "pymc", "nutpie is not installed (pip install nutpie)"
     return requested, ""

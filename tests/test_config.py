@@ -125,6 +125,17 @@ def test_compile_mode_is_read(tmp_path, write_study):
     assert spec.sampling["mode"] == "NUMBA"
 
 
+def test_sampler_is_read_and_checked(tmp_path, write_study):
+    spec = load_study(write_study(tmp_path, **{"draws = 100": 'draws = 100\nsampler = "pymc"'}))
+    assert spec.sampling["sampler"] == "pymc"
+    bad = write_study(tmp_path, **{"draws = 100": 'draws = 100\nsampler = "hmc"'})
+    with pytest.raises(StudyConfigError, match=r"sampling\.sampler.*must be one of"):
+        load_study(bad)
+    bad = write_study(tmp_path, **{"draws = 100": "draws = 100\nreparameterize = 1"})
+    with pytest.raises(StudyConfigError, match=r"sampling\.reparameterize"):
+        load_study(bad)
+
+
 def test_broken_physics_file_names_the_import_error(tmp_path, write_study):
     path = write_study(tmp_path)
     (tmp_path / "physics.py").write_text("import numpy as np\nraise RuntimeError('boom')\n")

@@ -29,7 +29,7 @@ ESS_MIN = 400
 
 
 class SamplerTroubleWarning(UserWarning):
-    """Issued when r̂, ESS or divergences indicate an unreliable posterior."""
+    """Issued when r̂, ESS, divergences or tree-depth hits indicate an unreliable posterior."""
 
 
 def n_divergences(idata: az.InferenceData) -> int | None:
@@ -45,6 +45,25 @@ def n_divergences(idata: az.InferenceData) -> int | None:
     if stats is None or "diverging" not in stats:
         return None
     return int(np.asarray(stats["diverging"]).sum())
+
+
+def n_max_tree_depth(idata: az.InferenceData) -> int | None:
+    """Draws whose NUTS trajectory stopped at the maximum tree depth (None without NUTS).
+
+    nutpie calls the statistic ``maxdepth_reached``, PyMC ``reached_max_treedepth``.
+
+    Examples
+    --------
+    >>> import arviz as az, numpy as np
+    >>> idata = az.from_dict(sample_stats={"maxdepth_reached": np.zeros((2, 10), bool)})
+    >>> n_max_tree_depth(idata)
+    0
+    """
+    stats = getattr(idata, "sample_stats", None)
+    for name in ("maxdepth_reached", "reached_max_treedepth"):
+        if stats is not None and name in stats:
+            return int(np.asarray(stats[name]).sum())
+    return None
 
 
 def sampler_diagnostics(
@@ -86,6 +105,7 @@ def sampler_diagnostics(
     )
     out = summary[["mean", "sd", "q05", "q95", "r_hat", "ess_bulk", "ess_tail"]].copy()
     out.attrs["divergences"] = n_divergences(idata)
+    out.attrs["max_tree_depth"] = n_max_tree_depth(idata)
     return out
 
 
@@ -122,4 +142,10 @@ def convergence_problems(
     div = table.attrs.get("divergences")
     if div:
         problems.append(f"{div} divergent transition(s) after tuning")
+    depth = table.attrs.get("max_tree_depth")
+    if depth:
+        problems.append(
+            f"{depth} draw(s) stopped at the maximum tree depth (the trajectory was cut short: "
+            "a long or curved posterior ridge)"
+        )
     return problems

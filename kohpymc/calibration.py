@@ -316,6 +316,7 @@ def calibrate(
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
     problems = convergence_problems(idata) if report.sampler != "smc" else []
+    problems += report.reparameterization.get("warnings", [])
     idata.attrs.update(
         {
             "formulation": discrepancy.label,

@@ -186,6 +186,7 @@ class Reparameterization:
     condition_number: float = float("nan")
     max_correlation: float = float("nan")
     gaussian_score: float = float("nan")
+    warnings: tuple[str, ...] = ()
 
     @property
     def ndim(self) -> int:
@@ -225,6 +226,7 @@ class Reparameterization:
             "laplace_gaussian_score": _finite_or_none(self.gaussian_score),
             "mode_log_density": None if self.mode is None else float(self.mode.logp),
             "optimizer_starts": 0 if self.mode is None else int(self.mode.n_starts),
+            "warnings": list(self.warnings),
         }
 
 
@@ -541,6 +543,11 @@ def plan(
             "the Hessian of the log density is not positive definite at the mode "
             "(a flat direction or a saddle): sampling in PyMC's coordinates from the mode",
             mode,
+            warnings=(
+                "the posterior is flat in some direction at its mode: a combination of "
+                "parameters the data and priors do not inform (see the identifiability "
+                "report); NUTS may need very long trajectories there",
+            ),
         )
     best = min(plans, key=lambda p: p.gaussian_score)
     reason = (
@@ -554,4 +561,24 @@ def plan(
         )
         + ")"
     )
-    return Reparameterization(**{**best.__dict__, "reason": reason})
+    return Reparameterization(
+        **{**best.__dict__, "reason": reason, "warnings": _separated_modes(best, mode)}
+    )
+
+
+def _separated_modes(best: Reparameterization, mode: Mode) -> tuple[str, ...]:
+    """A warning when other optima nearly as high lie many Laplace sds from the best."""
+    distances = []
+    for logp, value in mode.optima[1:]:
+        if logp < mode.logp - 10.0:
+            continue
+        distance = float(np.linalg.norm(best.from_value(value)))
+        if np.isfinite(distance) and distance > 6.0:
+            distances.append(distance)
+    if not distances:
+        return ()
+    return (
+        f"the posterior has at least {len(distances) + 1} separated modes (log density "
+        f"within 10 of the best, {min(distances):.0f}+ Laplace sds apart): NUTS chains may "
+        "each stay in one mode; compare chains, or use sampler='smc'",
+    )

@@ -130,3 +130,12 @@ def test_plan_without_a_positive_hessian_falls_back_with_the_reason():
     assert reparam.kind == "none"
     assert "not positive definite" in reparam.reason
     assert isinstance(reparam, Reparameterization)
+
+
+def test_separated_modes_are_reported():
+    """y = a² + noise with a symmetric prior: modes at ±a, many sds apart -> a warning."""
+    with pm.Model() as model:
+        a = pm.Normal("a", 0.0, 3.0)
+        pm.Normal("y", a**2, 0.05, observed=[4.0, 4.02, 3.98])
+    reparam = plan(value_space(model), seed=SEED, n_design=8)
+    assert any("separated modes" in w for w in reparam.warnings), reparam.warnings

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import threading
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -62,6 +63,7 @@ class SamplingReport:
     reason: str = ""
     reparameterization: dict[str, Any] = field(default_factory=lambda: {"kind": "none"})
     timings: dict[str, float] = field(default_factory=dict)
+    failed_evaluations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for provenance."""
@@ -71,6 +73,7 @@ class SamplingReport:
             "fallback_reason": self.reason,
             "reparameterization": self.reparameterization,
             "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
+            "failed_evaluations": self.failed_evaluations,
         }
 
 
@@ -171,10 +174,12 @@ def sample_posterior(
         space = value_space(model, mode=mode)
         report.timings["compile"] = time.perf_counter() - start
         reparam = _plan(space, starts, seed, reparameterize, report)
-        idata = None
+        idata, failures = None, []
         if name == "nutpie":
             try:
-                idata = _run_nutpie(space, reparam, settings, target_accept, progressbar, kwargs)
+                idata = _run_nutpie(
+                    space, reparam, settings, target_accept, progressbar, kwargs, failures
+                )
             except Exception as err:  # noqa: BLE001 - any nutpie failure falls back
                 report.sampler = "pymc"
                 report.reason = f"nutpie failed ({type(err).__name__}: {err})"
@@ -182,6 +187,12 @@ def sample_posterior(
             idata = _run_pymc(model, space, reparam, settings, target_accept, progressbar, kwargs)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
         _add_observed_data(idata, model)
+        if failures:
+            report.failed_evaluations = len(failures)
+            report.reparameterization.setdefault("warnings", []).append(
+                f"{len(failures)} log-density evaluation(s) failed during sampling and were "
+                f"treated as zero density (first: {failures[0]})"
+            )
         return idata, report
 
 
@@ -227,16 +238,21 @@ def _run_nutpie(
     target_accept: float,
     progressbar: bool,
     kwargs: dict[str, Any],
+    failures: list[str],
 ) -> az.InferenceData:
-    """Nutpie's NUTS on the (whitened) flat space through a Python log density."""
+    """Nutpie's NUTS on the (whitened) flat space through a Python log density.
+
+    A log-density evaluation that raises (e.g. a physics function overflowing far in
+    the tails) counts as zero density there; its message is appended to ``failures``.
+    """
     import nutpie
     from nutpie.compiled_pyfunc import from_pyfunc
 
     if reparam is not None and reparam.kind != "none":
         to_value = reparam.to_value
 
-        def logp_dlogp(own, z):
-            return reparam.logp_dlogp(own, z)
+        def logp_dlogp(z):
+            return reparam.logp_dlogp(space, z)
 
         center = np.zeros(space.ndim)
     else:
@@ -244,25 +260,31 @@ def _run_nutpie(
         def to_value(x):
             return x
 
-        def logp_dlogp(own, x):
-            return own.logp_dlogp(x)
-
+        logp_dlogp = space.logp_dlogp
         center = space.initial if reparam is None else reparam.mean
 
-    def make_logp():
-        own = space.copy()  # one per chain thread
+    # Chains run in threads that take the GIL for every call anyway; one lock keeps the
+    # compiled PyTensor functions (and the OpFromGraph functions inside them, which
+    # Function.copy does not duplicate) from being entered by two chains at once.
+    lock = threading.Lock()
 
+    def make_logp():
         def logp(x, **_):
-            value, grad = logp_dlogp(own, x)
+            with lock:
+                try:
+                    value, grad = logp_dlogp(x)
+                except Exception as err:  # noqa: BLE001 - reported after sampling
+                    failures.append(f"{type(err).__name__}: {str(err).splitlines()[0]}")
+                    return -np.inf, np.zeros(space.ndim)
             return value, np.asarray(grad, dtype=float, order="C")
 
         return logp
 
     def make_expand(seed1, seed2, chain):
-        own = space.copy()
-
         def expand(x, **_):
-            return {k: np.asarray(v, order="C") for k, v in own.expand(to_value(x)).items()}
+            with lock:
+                values = space.expand(to_value(x))
+            return {k: np.asarray(v, order="C") for k, v in values.items()}
 
         return expand
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -93,18 +93,6 @@ class ValueSpace:
                 self.expanded_names, values, self.expanded_shapes, strict=True
             )
         }
-
-    def copy(self) -> ValueSpace:
-        """The same space with its own copies of the compiled functions.
-
-        A compiled PyTensor function keeps its intermediate results in per-function
-        storage, so two threads (e.g. two nutpie chains) must not call the same one.
-        """
-        return replace(
-            self,
-            _logp_dlogp=self._logp_dlogp.copy(share_memory=False),
-            _expand=self._expand.copy(share_memory=False),
-        )
 
     def split(self, x: np.ndarray) -> dict[str, np.ndarray]:
         """``x`` as a point ``{value-variable name: array}`` (PyMC's point format)."""

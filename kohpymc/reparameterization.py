@@ -211,6 +211,8 @@ class Reparameterization:
         """
         w = self.mean + self.chol @ np.asarray(z, float)
         v, dv, dlogjac, logjac = self.coordinates.to_value(w)
+        if not np.isfinite(logjac):  # outside a wall of the log-scale coordinates
+            return -np.inf, np.zeros_like(w)
         logp, grad_v = space.logp_dlogp_or_nan(v) if safe else space.logp_dlogp(v)
         grad_w = grad_v * dv + dlogjac
         return logp + logjac, self.chol.T @ grad_w

@@ -299,7 +299,7 @@ def calibrate(
         physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
     )
     report = _identifiability(plain, physics) if check_identifiability else None
-    idata, report = sample_posterior(
+    idata, sampling = sample_posterior(
         built.model,
         sampler=sampler,
         draws=draws,
@@ -315,20 +315,20 @@ def calibrate(
     )
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
-    problems = convergence_problems(idata) if report.sampler != "smc" else []
-    problems += report.reparameterization.get("warnings", [])
+    problems = convergence_problems(idata) if sampling.sampler != "smc" else []
+    problems += sampling.reparameterization.get("warnings", [])
     idata.attrs.update(
         {
             "formulation": discrepancy.label,
             "formulation_description": discrepancy.description,
             "physics": physics.name,
             "noise_sd": -1.0 if data.noise_sd is None else float(data.noise_sd),
-            "method": "smc" if report.sampler == "smc" else "nuts",
-            "sampler": report.sampler,
-            "sampling": json.dumps(report.to_dict()),
-            "reparameterization": report.reparameterization.get("kind", "none"),
+            "method": "smc" if sampling.sampler == "smc" else "nuts",
+            "sampler": sampling.sampler,
+            "sampling": json.dumps(sampling.to_dict()),
+            "reparameterization": sampling.reparameterization.get("kind", "none"),
             "compile_mode": mode or "default",
-            "wall_time_s": sum(report.timings.values()),
+            "wall_time_s": sum(sampling.timings.values()),
         }
     )
     if problems and warn:

@@ -289,7 +289,7 @@ def calibrate(
     >>> cal.idata.posterior["E"].dims  # doctest: +SKIP
     ('chain', 'draw')
     """
-    sampler = _sampler_name(sampler, method, nuts_sampler)
+    chosen = _sampler_name(sampler, method, nuts_sampler)
     check_compile_mode(mode)
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     built = compose_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
@@ -301,7 +301,7 @@ def calibrate(
     report = _identifiability(plain, physics) if check_identifiability else None
     idata, sampling = sample_posterior(
         built.model,
-        sampler=sampler,
+        sampler=chosen,
         draws=draws,
         tune=tune,
         chains=chains,

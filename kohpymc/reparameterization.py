@@ -527,7 +527,7 @@ def plan(
     >>> reparam.kind, reparam.max_correlation > 0.99
     ('affine', True)
     """
-    vectors = [s if isinstance(s, np.ndarray) else space.join(s) for s in starts]
+    vectors = [s if isinstance(s, np.ndarray) else space.join(dict(s)) for s in starts]
     mode = find_mode(space, vectors, seed=seed, n_design=n_design)
     candidates = [Coordinates.identity(space.ndim)]
     for walls in (False, True):

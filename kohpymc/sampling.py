@@ -174,7 +174,8 @@ def sample_posterior(
         space = value_space(model, mode=mode)
         report.timings["compile"] = time.perf_counter() - start
         reparam = _plan(space, starts, seed, reparameterize, report)
-        idata, failures = None, []
+        idata: az.InferenceData | None = None
+        failures: list[str] = []
         if name == "nutpie":
             try:
                 idata = _run_nutpie(

@@ -169,7 +169,7 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         upper.append(b)
     logp = model.logp()
     grads = pytensor.grad(logp, value_vars, disconnected_inputs="ignore")
-    outputs = [logp, pt.join(0, *[g.ravel() for g in grads])]
+    outputs = [logp, pt.join(0, *[pt.as_tensor(g).ravel() for g in grads])]  # type: ignore[union-attr]
     joined_outputs, flat = join_nonshared_inputs(
         point=point, outputs=outputs, inputs=value_vars, make_inputs_shared=False
     )

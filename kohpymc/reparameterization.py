@@ -552,6 +552,21 @@ def plan(
             ),
         )
     best = min(plans, key=lambda p: p.gaussian_score)
+    if not _needs_whitening(best):
+        return Reparameterization(
+            "none",
+            mode.value,
+            np.eye(space.ndim),
+            Coordinates.identity(space.ndim),
+            f"well conditioned at the mode (condition number {best.condition_number:.3g}, "
+            f"max |correlation| {best.max_correlation:.3f}, sd ratio "
+            f"{_sd_ratio(best):.3g}): PyMC's coordinates, chains started around the mode",
+            mode,
+            condition_number=best.condition_number,
+            max_correlation=best.max_correlation,
+            gaussian_score=best.gaussian_score,
+            warnings=_separated_modes(best, mode),
+        )
     reason = (
         f"whitened by the Laplace covariance at the mode (condition number "
         f"{best.condition_number:.3g}, max |correlation| {best.max_correlation:.4f}"
@@ -566,6 +581,23 @@ def plan(
     return Reparameterization(
         **{**best.__dict__, "reason": reason, "warnings": _separated_modes(best, mode)}
     )
+
+
+def _sd_ratio(plan: Reparameterization) -> float:
+    """Largest over smallest Laplace sd of the sampling coordinates."""
+    sd = np.sqrt(np.einsum("ij,ij->i", plan.chol, plan.chol))
+    return float(sd.max() / sd.min())
+
+
+def _needs_whitening(plan: Reparameterization) -> bool:
+    """Whether the posterior is strongly correlated or badly scaled at the mode.
+
+    |ρ| > 0.95, condition number > 100 or sd ratio > 100.  Otherwise nutpie's own
+    mass-matrix adaptation copes, and the Laplace map of a posterior that is far from
+    Gaussian (e.g. GP hyper-parameters: 2 divergences on a time series under M5, 0
+    without the map) can only hurt.
+    """
+    return plan.max_correlation > 0.95 or plan.condition_number > 100 or _sd_ratio(plan) > 100
 
 
 def _separated_modes(best: Reparameterization, mode: Mode) -> tuple[str, ...]:

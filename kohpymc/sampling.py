@@ -181,9 +181,13 @@ def sample_posterior(
                 idata = _run_nutpie(
                     space, reparam, settings, target_accept, progressbar, kwargs, failures
                 )
-            except Exception as err:  # noqa: BLE001 - any nutpie failure falls back
+            # nutpie's Rust panics arrive as pyo3's PanicException, a BaseException
+            except BaseException as err:  # noqa: BLE001 - any failure falls back
+                if isinstance(err, KeyboardInterrupt | SystemExit | GeneratorExit):
+                    raise
                 report.sampler = "pymc"
-                report.reason = f"nutpie failed ({type(err).__name__}: {err})"
+                first_line = (str(err).splitlines() or [""])[0][:300]
+                report.reason = f"nutpie failed ({type(err).__name__}: {first_line})"
         if idata is None:
             idata = _run_pymc(model, space, reparam, settings, target_accept, progressbar, kwargs)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())

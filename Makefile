@@ -31,8 +31,8 @@ $(BENCH_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[dev,bench]"
 	@touch $(BENCH_STAMP)
 
-# kohpymc vs random-walk Metropolis and surmise, study wall time, n = 9,120 GP (~20 min);
-# tables in benchmarks/results/
+# kohpymc vs random-walk Metropolis and surmise, study wall time, n = 9,120 GP (~20 min),
+# time to a usable posterior (ESS >= 1000, r_hat <= 1.01; ~1 h); tables in benchmarks/results/
 bench: $(BENCH_STAMP)
 	$(PY) -m benchmarks.run
 

@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python -m benchmarks.run [--quick] [--only beam|study|scale] [--out benchmarks/results]
+    python -m benchmarks.run [--quick] [--only beam|study|scale|usable] [--out benchmarks/results]
 
 In one process and on the same data it runs, per beam formulation M0–M5,
 
@@ -11,9 +11,12 @@ In one process and on the same data it runs, per beam formulation M0–M5,
   (:mod:`benchmarks.baselines`, 2 chains × 250,000 draws),
 * surmise's calibrator for M0 (known noise; :mod:`benchmarks.surmise_baseline`),
 
-then the whole beam study (M0–M4 + validation + combination) end to end, and the
-n = 9,120 GP-discrepancy calibration (:mod:`benchmarks.scale`).  Tables go to the
-terminal and to ``<out>/beam.csv``, ``beam.md``, ``study.json``, ``scale.json``.
+then the whole beam study (M0–M4 + validation + combination) end to end, the
+n = 9,120 GP-discrepancy calibration (:mod:`benchmarks.scale`) and the time to a usable
+posterior (every free parameter at ESS_bulk >= 1000 and r̂ <= 1.01, compilation included;
+beam, two-load beam with unknown noise and the hard synthetic problems;
+:mod:`benchmarks.usable`).  Tables go to the terminal and to ``<out>/beam.csv``,
+``beam.md``, ``study.json``, ``scale.json``, ``usable.csv``, ``usable.md``.
 Ratios are ESS/s of E (bulk ESS over the sampler's own seconds) of kohpymc over the
 baseline in the same run.
 """
@@ -157,10 +160,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="short runs (harness smoke test)")
-    parser.add_argument("--only", choices=["beam", "study", "scale"], action="append")
+    parser.add_argument("--only", choices=["beam", "study", "scale", "usable"], action="append")
     parser.add_argument("--out", default="benchmarks/results", help="output folder")
     args = parser.parse_args(argv)
-    parts = args.only or ["beam", "study", "scale"]
+    parts = args.only or ["beam", "study", "scale", "usable"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _quiet()
@@ -205,6 +208,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the same data through the library: one kohpymc.calibrate call with GridGP
         result["library"] = scale.run_library(args.quick, cores=2)
         (out / "scale.json").write_text(json.dumps(result, indent=2, default=str))
+
+    if "usable" in parts:
+        from benchmarks import usable
+
+        print("time to a usable posterior (ESS_bulk >= 1000, r_hat <= 1.01):", flush=True)
+        usable.main(["--out", str(out)] + (["--quick"] if args.quick else []))
     return 0
 
 

@@ -34,7 +34,7 @@ import numpy as np
 import pymc as pm
 
 from kohpymc.checks import SAMPLERS, check_sampler
-from kohpymc.reparameterization import Reparameterization, plan
+from kohpymc.reparameterization import Coordinates, Reparameterization, plan
 from kohpymc.value_space import ValueSpace, value_space
 
 __all__ = ["SAMPLERS", "SamplingReport", "choose_sampler", "sample_posterior"]
@@ -245,28 +245,41 @@ def _run_nutpie(
     kwargs: dict[str, Any],
     failures: list[str],
 ) -> az.InferenceData:
-    """Nutpie's NUTS on the (whitened) flat space through a Python log density.
+    """Nutpie's NUTS on the sampling coordinates ``z`` through a Python log density.
 
     A log-density evaluation that raises (e.g. a physics function overflowing far in
     the tails) counts as zero density there; its message is appended to ``failures``.
     """
     import nutpie
+
+    mapping = reparam if reparam is not None else _identity_map(space)
+    compiled = _nutpie_model(space, mapping, failures)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        return nutpie.sample(
+            compiled,
+            draws=settings["draws"],
+            tune=settings["tune"],
+            chains=settings["chains"],
+            cores=settings["cores"],
+            seed=settings["seed"],
+            progress_bar=progressbar,
+            target_accept=target_accept,
+            init_mean=np.zeros(space.ndim),
+            save_warmup=False,
+            **kwargs,
+        )
+
+
+def _identity_map(space: ValueSpace) -> Reparameterization:
+    """``z = v − v₀`` around PyMC's initial point (``reparameterize=False``)."""
+    identity = Coordinates.identity(space.ndim)
+    return Reparameterization("none", space.initial, np.eye(space.ndim), identity, "")
+
+
+def _nutpie_model(space: ValueSpace, mapping: Reparameterization, failures: list[str]):
+    """Nutpie's model of ``z``: log density, expansion to the user's parameters, starts."""
     from nutpie.compiled_pyfunc import from_pyfunc
-
-    if reparam is not None and reparam.kind != "none":
-        to_value = reparam.to_value
-
-        def logp_dlogp(z):
-            return reparam.logp_dlogp(space, z)
-
-        center = np.zeros(space.ndim)
-    else:
-
-        def to_value(x):
-            return x
-
-        logp_dlogp = space.logp_dlogp
-        center = space.initial if reparam is None else reparam.mean
 
     # Chains run in threads that take the GIL for every call anyway; one lock keeps the
     # compiled PyTensor functions (and the OpFromGraph functions inside them, which
@@ -274,10 +287,10 @@ def _run_nutpie(
     lock = threading.Lock()
 
     def make_logp():
-        def logp(x, **_):
+        def logp(z, **_):
             with lock:
                 try:
-                    value, grad = logp_dlogp(x)
+                    value, grad = mapping.logp_dlogp(space, z)
                 except Exception as err:  # noqa: BLE001 - reported after sampling
                     failures.append(f"{type(err).__name__}: {str(err).splitlines()[0]}")
                     return -np.inf, np.zeros(space.ndim)
@@ -286,21 +299,21 @@ def _run_nutpie(
         return logp
 
     def make_expand(seed1, seed2, chain):
-        def expand(x, **_):
+        def expand(z, **_):
             with lock:
-                values = space.expand(to_value(x))
+                values = space.expand(mapping.to_value(z))
             return {k: np.asarray(v, order="C") for k, v in values.items()}
 
         return expand
 
-    jitter = 0.5 if reparam is not None and reparam.kind != "none" else 1.0
+    # whitened coordinates have unit scale: start within half a posterior sd of the mode
+    jitter = 1.0 if mapping.kind == "none" else 0.5
 
     def initial_point(seed):
-        rng = np.random.default_rng(seed)
-        return center + rng.uniform(-jitter, jitter, size=space.ndim)
+        return np.random.default_rng(seed).uniform(-jitter, jitter, size=space.ndim)
 
     coords, dims = _coords_and_dims(space)
-    compiled = from_pyfunc(
+    return from_pyfunc(
         space.ndim,
         make_logp,
         make_expand,
@@ -311,22 +324,6 @@ def _run_nutpie(
         dims=dims,
         make_initial_point_fn=initial_point,
     )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
-        idata = nutpie.sample(
-            compiled,
-            draws=settings["draws"],
-            tune=settings["tune"],
-            chains=settings["chains"],
-            cores=settings["cores"],
-            seed=settings["seed"],
-            progress_bar=progressbar,
-            target_accept=target_accept,
-            init_mean=center,
-            save_warmup=False,
-            **kwargs,
-        )
-    return idata
 
 
 def _add_observed_data(idata: az.InferenceData, model: pm.Model) -> None:

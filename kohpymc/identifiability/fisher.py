@@ -65,9 +65,10 @@ def fisher_information_check(
     built = compose_model(physics, data, discrepancy, marginalize=False)
     model = built.model
     mu, second, is_mv = _likelihood_parts(built)
-    values = _design_point(model, point)
+    start = model.initial_point()
+    values = _design_point(model, point, start)
     rvs = list(model.free_RVs)
-    entries = _free_names(model, rvs)
+    entries = _free_names(model, rvs, start)
     (mu_val, J), (s_val, dS) = _jacobians(model, [mu, second], rvs, values)
     n = data.n
     p = len(entries)

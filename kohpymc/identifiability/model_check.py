@@ -10,6 +10,7 @@ are shared with :mod:`kohpymc.identifiability.fisher`.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from typing import Any
 
@@ -19,6 +20,20 @@ from kohpymc.identifiability.rank import RTOL, IdentifiabilityReport, analyse_ma
 from kohpymc.model import compose_model
 
 __all__ = ["check_formulation", "model_taylor_check"]
+
+
+@functools.cache
+def _one_shot_mode():
+    """PyTensor mode of the functions compiled here, each evaluated once or twice.
+
+    FAST_RUN's rewrites (so the same graph and the same numbers as the default mode) with
+    the Python linker: no C code is generated, so an empty compile cache costs no g++
+    runs here (on the beam study the default C backend compiled 24 modules for these
+    functions, ~15 s of g++ with an empty cache).
+    """
+    from pytensor.compile.mode import Mode
+
+    return Mode(linker="py", optimizer="fast_run")
 
 
 def _likelihood_parts(built):
@@ -37,12 +52,16 @@ def _likelihood_parts(built):
     )
 
 
-def _free_names(model, rvs) -> list[tuple[Any, str, int | None]]:
-    """Flattened (rv, label, index) per scalar entry of the given free RVs."""
+def _free_names(model, rvs, start=None) -> list[tuple[Any, str, int | None]]:
+    """Flattened (rv, label, index) per scalar entry of the given free RVs.
+
+    ``start`` is ``model.initial_point()`` when the caller has it (each call compiles).
+    """
     out: list[tuple[Any, str, int | None]] = []
+    start = model.initial_point() if start is None else start
     for rv in rvs:
         dims = model.named_vars_to_dims.get(rv.name)
-        size = int(np.prod(model.initial_point()[model.rvs_to_values[rv].name].shape))
+        size = int(np.prod(start[model.rvs_to_values[rv].name].shape))
         if size == 1 and not dims:
             out.append((rv, rv.name, None))
         else:
@@ -59,13 +78,18 @@ def _flat_point(entries, values: Mapping[str, np.ndarray]) -> dict[str, float]:
     }
 
 
-def _natural_point(model, point: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
-    """Values of every free RV (natural scale) at ``point`` (default: prior centre)."""
+def _natural_point(model, point: Mapping[str, Any] | None, start=None) -> dict[str, np.ndarray]:
+    """Values of every free RV (natural scale) at ``point`` (default: prior centre).
+
+    ``start`` is ``model.initial_point()`` when the caller has it (each call compiles).
+    """
     import pytensor
 
-    start = model.initial_point()
+    start = model.initial_point() if start is None else start
     natural = model.replace_rvs_by_values(model.free_RVs)
-    fn = pytensor.function(model.value_vars, natural, on_unused_input="ignore")
+    fn = pytensor.function(
+        model.value_vars, natural, on_unused_input="ignore", mode=_one_shot_mode()
+    )
     values = fn(*[start[v.name] for v in model.value_vars])
     out = {
         rv.name: np.asarray(v, dtype=float) for rv, v in zip(model.free_RVs, values, strict=True)
@@ -83,17 +107,53 @@ def _check_support(model, values: Mapping[str, np.ndarray]) -> None:
     import pymc as pm
     import pytensor
 
-    for rv in model.free_RVs:
+    rvs = list(model.free_RVs)
+    if not rvs:
+        return
+    # one function for every prior (a compile per parameter cost ~0.02-0.1 s each)
+    logps = pytensor.function(
+        [], [pm.logp(rv, values[rv.name]) for rv in rvs], mode=_one_shot_mode()
+    )()
+    for rv, lp in zip(rvs, logps, strict=True):
         value = values[rv.name]
-        lp = pytensor.function([], pm.logp(rv, value))()
         if not np.all(np.isfinite(lp)):
             raise ValueError(
                 f"expansion point {rv.name}={value.tolist()} is outside the support of its prior"
             )
 
 
-def _jacobians(model, exprs, rvs, values):
-    """Evaluate ``d expr / d rv`` (natural scale) for each expression."""
+def _jacobian(flat, wrt, mode):
+    """``d flat / d wrt`` as a ``(flat.size, wrt.size)`` matrix.
+
+    ``mode=None``: ``pytensor.gradient.jacobian`` (its Scan's inner function is compiled
+    with the C backend whatever the outer function's mode).  Otherwise the same graph (one
+    gradient per row in a Scan) with the inner function compiled in ``mode`` too.
+    """
+    import pytensor
+    import pytensor.tensor as pt
+    from pytensor.gradient import grad
+
+    if mode is None:
+        return pt.jacobian(flat, wrt, disconnected_inputs="ignore").reshape((flat.size, -1))
+    if all(flat.type.broadcastable):
+        (jac,) = grad(flat.squeeze(), [wrt], disconnected_inputs="ignore")
+    else:
+        (jac,) = pytensor.scan(
+            lambda idx, expr, w: grad(expr[idx], [w], disconnected_inputs="ignore"),
+            sequences=pt.arange(flat.size),
+            non_sequences=[flat.ravel(), wrt],
+            return_updates=False,
+            return_list=True,
+            mode=mode,
+        )
+    return jac.reshape((flat.size, -1))
+
+
+def _jacobians(model, exprs, rvs, values, mode=None):
+    """Evaluate ``d expr / d rv`` (natural scale) for each expression.
+
+    ``mode``: PyTensor mode of the function (default: PyTensor's default mode).
+    """
     import pytensor
     import pytensor.tensor as pt
 
@@ -105,21 +165,16 @@ def _jacobians(model, exprs, rvs, values):
     results = []
     args = [values[rv.name] for rv in model.free_RVs]
     for expr in replaced:
-        cols = [
-            pt.jacobian(pt.flatten(expr), inputs[rv], disconnected_inputs="ignore").reshape(
-                (expr.size, -1)
-            )
-            for rv in rvs
-        ]
-        jac = pt.concatenate(cols, axis=1)
+        flat = pt.flatten(expr)
+        jac = pt.concatenate([_jacobian(flat, inputs[rv], mode) for rv in rvs], axis=1)
         fn = pytensor.function(
-            list(inputs.values()), [pt.flatten(expr), jac], on_unused_input="ignore"
+            list(inputs.values()), [flat, jac], on_unused_input="ignore", mode=mode
         )
         results.append(fn(*args))
     return results
 
 
-def _design_point(model, point):
+def _design_point(model, point, start=None):
     import pymc as pm
 
     if isinstance(point, str):
@@ -128,7 +183,7 @@ def _design_point(model, point):
         with model:
             found = pm.find_MAP(progressbar=False)
         return {rv.name: np.asarray(found[rv.name], dtype=float) for rv in model.free_RVs}
-    values = _natural_point(model, point)
+    values = _natural_point(model, point, start)
     _check_support(model, values)
     return values
 
@@ -191,17 +246,18 @@ def model_taylor_check(
     model = built.model
     n = len(model.coords["obs"])
     mu = built.likelihood.mean
-    values = _design_point(model, point)
+    start = model.initial_point()
+    values = _design_point(model, point, start)
 
     ancestors = set(pg.ancestors([mu]))
     rvs = [rv for rv in model.free_RVs if rv in ancestors]
-    entries = _free_names(model, rvs)
+    entries = _free_names(model, rvs, start)
     if len(entries) > n:
         raise ValueError(
             f"design has {n} points for {len(entries)} mean parameters: the rank check "
             "needs at least as many points as parameters"
         )
-    ((mu_val, A),) = _jacobians(model, [mu], rvs, values)
+    ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the model mean is non-finite at the expansion point")
     flat_point = _flat_point(entries, values)

@@ -205,6 +205,12 @@ def _add_log_likelihood(idata: az.InferenceData, built, plain) -> None:
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
 
 
+def _variance_pairs(discrepancy: Discrepancy) -> list[tuple[str, str]]:
+    """σ_obs with the formulation's sd that only its sum of squares with σ_obs informs."""
+    other = discrepancy.noise_confounded_sd
+    return [] if other is None else [("sigma_obs", other)]
+
+
 def calibrate(
     physics: PhysicsModel,
     data: CalibrationData,
@@ -312,6 +318,7 @@ def calibrate(
         reparameterize=reparameterize,
         mode=mode if mode is not None else _default_mode(built.model, data),
         sample_kwargs=sample_kwargs,
+        variance_pairs=_variance_pairs(discrepancy),
     )
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)

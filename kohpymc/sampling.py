@@ -34,10 +34,10 @@ import numpy as np
 import pymc as pm
 
 from kohpymc.checks import SAMPLERS, check_sampler
-from kohpymc.reparameterization import Coordinates, Reparameterization, plan
+from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.value_space import ValueSpace, value_space
 
-__all__ = ["SAMPLERS", "SamplingReport", "choose_sampler", "sample_posterior"]
+__all__ = ["SAMPLERS", "SamplingReport", "choose_sampler", "sample_posterior", "variance_shares"]
 
 
 @dataclass
@@ -119,6 +119,7 @@ def sample_posterior(
     starts: Sequence[Mapping[str, Any]] = (),
     mode: str | None = None,
     sample_kwargs: Mapping[str, Any] | None = None,
+    variance_pairs: Sequence[tuple[str, str]] = (),
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
 
@@ -138,6 +139,11 @@ def sample_posterior(
     sample_kwargs : dict, optional
         Extra keywords for :func:`pymc.sample` / :func:`pymc.sample_smc`, or for
         :func:`nutpie.sample` (e.g. ``maxdepth``, ``low_rank_modified_mass_matrix``).
+    variance_pairs : sequence of (str, str)
+        Pairs of positive scalar parameters of which the likelihood sees only the sum
+        of squares (σ_obs next to an iid discrepancy sd); with ``reparameterize`` they
+        are sampled as total sd and log ratio
+        (:class:`kohpymc.reparameterization.VarianceShare`).
 
     Returns
     -------
@@ -173,7 +179,8 @@ def sample_posterior(
         start = time.perf_counter()
         space = value_space(model, mode=mode)
         report.timings["compile"] = time.perf_counter() - start
-        reparam = _plan(space, starts, seed, reparameterize, report)
+        shares = variance_shares(space, variance_pairs)
+        reparam = _plan(space, starts, seed, reparameterize, report, shares)
         idata: az.InferenceData | None = None
         failures: list[str] = []
         if name == "nutpie":
@@ -219,18 +226,50 @@ def _user_starts(space: ValueSpace, starts: Sequence[Mapping[str, Any]]) -> list
     return out
 
 
+def variance_shares(space: ValueSpace, pairs: Sequence[tuple[str, str]]) -> VarianceShare | None:
+    """The value-space indices of ``pairs`` of log-transformed scalar parameters.
+
+    Pairs naming a parameter that is not a free, scalar, log-transformed variable of
+    the model (e.g. σ_obs when the noise sd is known) are left out.
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:
+    ...     a = pm.HalfNormal("a", 1.0)
+    ...     b = pm.HalfNormal("b", 1.0)
+    ...     _ = pm.Normal("y", 0.0, pm.math.sqrt(a**2 + b**2), observed=[1.0, -1.0])
+    >>> variance_shares(value_space(model), [("a", "b")]).pairs
+    ((0, 1),)
+    """
+    model = space.model
+    index: dict[str, int] = {}
+    start = 0
+    for rv, shape in zip(model.free_RVs, space.shapes, strict=True):
+        size = int(np.prod(shape, dtype=int))
+        if size == 1 and space.transforms[start] == "log":
+            index[rv.name] = start
+        start += size
+    found = [(a, b) for a, b in pairs if a in index and b in index and a != b]
+    if not found:
+        return None
+    return VarianceShare(tuple((index[a], index[b]) for a, b in found), tuple(found))
+
+
 def _plan(
     space: ValueSpace,
     starts: Sequence[Mapping[str, Any]],
     seed: int,
     reparameterize: bool,
     report: SamplingReport,
+    shares: VarianceShare | None = None,
 ) -> Reparameterization | None:
     if not reparameterize:
         report.reparameterization = {"kind": "none", "reason": "reparameterize=False"}
         return None
     begin = time.perf_counter()
-    reparam = plan(space, _user_starts(space, starts), seed=seed)
+    reparam = plan(space, _user_starts(space, starts), seed=seed, shares=shares)
     report.timings["mode_and_laplace"] = time.perf_counter() - begin
     report.reparameterization = reparam.to_dict()
     return reparam

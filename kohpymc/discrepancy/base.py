@@ -232,6 +232,9 @@ class Discrepancy(ABC):
     study_defaults: ClassVar[Mapping[str, str]] = {}
     #: constructor arguments that only Python code can give (callables)
     code_only: ClassVar[tuple[str, ...]] = ()
+    #: a scalar sd parameter whose square adds to σ_obs² in the likelihood (so with the
+    #: noise unknown only their sum of squares is identified), or None
+    noise_confounded_sd: ClassVar[str | None] = None
 
     def __init_subclass__(cls, kind: str | None = None, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

@@ -35,6 +35,7 @@ class IIDGaussian(IndependentDiscrepancy, kind="iid"):
 
     label = "M2"
     description = "iid Gaussian"
+    noise_confounded_sd = "delta_sd"
 
     def __init__(
         self,

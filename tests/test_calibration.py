@@ -191,6 +191,7 @@ def _time_series(seed=SEED):
     return physics, CalibrationData({"t": t}, y, noise_sd=0.05)
 
 
+@pytest.mark.slow  # ~50 s unloaded; M5 mechanics stay in test_formulation_contract
 def test_nonstationary_gp_on_time_series_with_shrinking_noise():
     physics, data = _time_series()
     with warnings.catch_warnings():

@@ -14,7 +14,15 @@ from kohpymc.sampling import choose_sampler
 SEED = 20261123
 
 
-@pytest.mark.parametrize("name", ["arrhenius", "collinear", "multiplicative"])
+@pytest.mark.parametrize(
+    "name",
+    # one hard case in the default suite; all three under `make test-slow`
+    [
+        pytest.param("arrhenius", marks=pytest.mark.slow),
+        pytest.param("collinear", marks=pytest.mark.slow),
+        "multiplicative",
+    ],
+)
 def test_hard_posteriors_converge_at_default_settings(name):
     """Unknown noise, natural units, default settings: r̂ <= 1.01, bulk ESS >= 400 and no
     divergences for every parameter, and what the data inform covers the truth (4 sd)."""

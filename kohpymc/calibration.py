@@ -205,10 +205,10 @@ def _add_log_likelihood(idata: az.InferenceData, built, plain) -> None:
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
 
 
-def _variance_pairs(discrepancy: Discrepancy) -> list[tuple[str, str]]:
-    """σ_obs with the formulation's sd that only its sum of squares with σ_obs informs."""
-    other = discrepancy.noise_confounded_sd
-    return [] if other is None else [("sigma_obs", other)]
+def _variance_pairs(discrepancy: Discrepancy) -> list[tuple[str, str, str]]:
+    """σ_obs with the formulation's parameter whose variance adds to σ_obs² (if any)."""
+    partner = discrepancy.noise_partner()
+    return [] if partner is None else [("sigma_obs", *partner)]
 
 
 def calibrate(

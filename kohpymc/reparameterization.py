@@ -147,45 +147,48 @@ class VarianceShare:
     next to an iid discrepancy), the posterior of :math:`(\ln\sigma_a, \ln\sigma_b)`
     is a curved ridge.  In :math:`t = \tfrac12\ln(\sigma_a^2 + \sigma_b^2)`,
     :math:`u = \ln(\sigma_b/\sigma_a)` the data inform ``t`` only and ``u`` follows
-    the priors: the ridge is a coordinate axis.  The map has Jacobian determinant 1:
-    :math:`\ln\sigma_a = t - \tfrac12\,\mathrm{softplus}(2u)`,
-    :math:`\ln\sigma_b = \ln\sigma_a + u`.
+    the priors: the ridge is a coordinate axis.  With
+    :math:`\ln\sigma_a = t - \tfrac12\,\mathrm{softplus}(2u)` and
+    :math:`\ln\sigma_b = \ln\sigma_a + u`, the value-space entry of ``b`` is
+    :math:`c\,\ln\sigma_b` (``c = 1`` for a log-transformed sd, ``c = 2`` for a
+    log-variance); the map's Jacobian determinant is the constant ``c``.
 
     Attributes
     ----------
-    pairs : tuple of (int, int)
-        Flat value-space indices ``(a, b)`` of the two ``log``-transformed scalars.
+    pairs : tuple of (int, int, float)
+        Flat value-space indices of ``ln σ_a`` and of ``b``'s entry, and ``c``.
     names : tuple of (str, str)
         Their parameter names, for the report.
     """
 
-    pairs: tuple[tuple[int, int], ...]
+    pairs: tuple[tuple[int, int, float], ...]
     names: tuple[tuple[str, str], ...] = ()
 
     def forward(self, w: np.ndarray) -> np.ndarray:
-        """``(t, u)`` entries of ``w`` replaced by ``(ln σ_a, ln σ_b)``."""
+        """``(t, u)`` entries of ``w`` replaced by ``(ln σ_a, c ln σ_b)``."""
         out = np.array(w, dtype=float)
-        for i, j in self.pairs:
+        for i, j, c in self.pairs:
             t, u = w[i], w[j]
             out[i] = t - 0.5 * np.logaddexp(0.0, 2.0 * u)
-            out[j] = out[i] + u
+            out[j] = c * (out[i] + u)
         return out
 
     def inverse(self, v: np.ndarray) -> np.ndarray:
-        """``(ln σ_a, ln σ_b)`` entries of ``v`` replaced by ``(t, u)``."""
+        """``(ln σ_a, c ln σ_b)`` entries of ``v`` replaced by ``(t, u)``."""
         out = np.array(v, dtype=float)
-        for i, j in self.pairs:
-            out[i] = 0.5 * np.logaddexp(2.0 * v[i], 2.0 * v[j])
-            out[j] = v[j] - v[i]
+        for i, j, c in self.pairs:
+            log_b = v[j] / c
+            out[i] = 0.5 * np.logaddexp(2.0 * v[i], 2.0 * log_b)
+            out[j] = log_b - v[i]
         return out
 
     def pull_back(self, w: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """Gradient with respect to ``w`` from the gradient at :meth:`forward` of ``w``."""
         out = np.array(grad, dtype=float)
-        for i, j in self.pairs:
+        for i, j, c in self.pairs:
             s = expit(2.0 * w[j])
-            out[i] = grad[i] + grad[j]
-            out[j] = -s * grad[i] + (1.0 - s) * grad[j]
+            out[i] = grad[i] + c * grad[j]
+            out[j] = -s * grad[i] + c * (1.0 - s) * grad[j]
         return out
 
 

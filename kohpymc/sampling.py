@@ -119,7 +119,7 @@ def sample_posterior(
     starts: Sequence[Mapping[str, Any]] = (),
     mode: str | None = None,
     sample_kwargs: Mapping[str, Any] | None = None,
-    variance_pairs: Sequence[tuple[str, str]] = (),
+    variance_pairs: Sequence[Sequence[str]] = (),
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
 
@@ -139,11 +139,11 @@ def sample_posterior(
     sample_kwargs : dict, optional
         Extra keywords for :func:`pymc.sample` / :func:`pymc.sample_smc`, or for
         :func:`nutpie.sample` (e.g. ``maxdepth``, ``low_rank_modified_mass_matrix``).
-    variance_pairs : sequence of (str, str)
-        Pairs of positive scalar parameters of which the likelihood sees only the sum
-        of squares (σ_obs next to an iid discrepancy sd); with ``reparameterize`` they
-        are sampled as total sd and log ratio
-        (:class:`kohpymc.reparameterization.VarianceShare`).
+    variance_pairs : sequence of (str, str) or (str, str, kind)
+        Parameters whose variances add up in the likelihood (σ_obs next to an iid
+        discrepancy sd, or to a log-variance's intercept with kind ``"log_variance"``);
+        with ``reparameterize`` they are sampled as total sd and log ratio
+        (:func:`variance_shares`).
 
     Returns
     -------
@@ -226,11 +226,13 @@ def _user_starts(space: ValueSpace, starts: Sequence[Mapping[str, Any]]) -> list
     return out
 
 
-def variance_shares(space: ValueSpace, pairs: Sequence[tuple[str, str]]) -> VarianceShare | None:
-    """The value-space indices of ``pairs`` of log-transformed scalar parameters.
+def variance_shares(space: ValueSpace, pairs: Sequence[Sequence[str]]) -> VarianceShare | None:
+    """Value-space indices of ``(σ_a, b[, kind])`` pairs for :class:`VarianceShare`.
 
-    Pairs naming a parameter that is not a free, scalar, log-transformed variable of
-    the model (e.g. σ_obs when the noise sd is known) are left out.
+    ``σ_a`` must be a free, scalar, log-transformed parameter; ``b`` a scalar
+    log-transformed sd (kind ``"sd"``, the default) or the coefficients of a log-variance
+    (kind ``"log_variance"``: its first entry, untransformed).  Pairs naming anything
+    else (e.g. σ_obs when the noise sd is known) are left out.
 
     Examples
     --------
@@ -241,20 +243,28 @@ def variance_shares(space: ValueSpace, pairs: Sequence[tuple[str, str]]) -> Vari
     ...     b = pm.HalfNormal("b", 1.0)
     ...     _ = pm.Normal("y", 0.0, pm.math.sqrt(a**2 + b**2), observed=[1.0, -1.0])
     >>> variance_shares(value_space(model), [("a", "b")]).pairs
-    ((0, 1),)
+    ((0, 1, 1.0),)
     """
-    model = space.model
-    index: dict[str, int] = {}
+    first: dict[str, tuple[int, int, str]] = {}  # name -> (flat index, size, transform)
     start = 0
-    for rv, shape in zip(model.free_RVs, space.shapes, strict=True):
+    for rv, shape in zip(space.model.free_RVs, space.shapes, strict=True):
         size = int(np.prod(shape, dtype=int))
-        if size == 1 and space.transforms[start] == "log":
-            index[rv.name] = start
+        first[rv.name] = (start, size, space.transforms[start] if size else "")
         start += size
-    found = [(a, b) for a, b in pairs if a in index and b in index and a != b]
+    found, names = [], []
+    for a, b, *kind in pairs:
+        scale = 2.0 if kind and kind[0] == "log_variance" else 1.0
+        wanted_b = ("identity", None) if scale == 2.0 else ("log", 1)
+        if a not in first or b not in first or a == b or first[a][1:] != (1, "log"):
+            continue
+        index_b, size_b, transform_b = first[b]
+        if transform_b != wanted_b[0] or (wanted_b[1] is not None and size_b != wanted_b[1]):
+            continue
+        found.append((first[a][0], index_b, scale))
+        names.append((a, b))
     if not found:
         return None
-    return VarianceShare(tuple((index[a], index[b]) for a, b in found), tuple(found))
+    return VarianceShare(tuple(found), tuple(names))
 
 
 def _plan(

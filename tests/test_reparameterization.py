@@ -150,7 +150,7 @@ def test_separated_modes_are_reported():
 def test_variance_share_map_is_volume_preserving_with_the_right_gradient():
     """(t, u) -> (ln a, ln b): round trip, a² + b² = e^{2t}, b/a = e^u, Jacobian det 1, and
     the pulled-back gradient against finite differences of a test function."""
-    shares = VarianceShare(((0, 2),))
+    shares = VarianceShare(((0, 2, 1.0),))
     w = np.array([0.4, 7.0, -1.3])
     v = shares.forward(w)
     np.testing.assert_allclose(shares.inverse(v), w, rtol=1e-12)
@@ -218,3 +218,20 @@ def test_variance_pairs_naming_a_fixed_parameter_are_ignored():
     """σ_obs known (not a free parameter): no share map, no error."""
     model, _ = _sum_of_squares_model()
     assert variance_shares(value_space(model), [("sigma_obs", "b")]) is None
+
+
+def test_variance_share_with_a_log_variance_entry():
+    """c = 2: the entry is ln σ_b² ; round trip, sum of squares, gradient, det = 2."""
+    shares = VarianceShare(((1, 0, 2.0),))
+    w = np.array([0.8, -0.2])
+    v = shares.forward(w)
+    np.testing.assert_allclose(shares.inverse(v), w, rtol=1e-12)
+    assert np.exp(2 * v[1]) + np.exp(v[0]) == pytest.approx(np.exp(2 * w[1]))
+    jac = np.column_stack(
+        [(shares.forward(w + e) - shares.forward(w - e)) / 2e-6 for e in np.eye(2) * 1e-6]
+    )
+    assert abs(np.linalg.det(jac)) == pytest.approx(2.0, rel=1e-7)
+    grad_v = np.array([np.cos(v[0]) * v[1], np.sin(v[0]) + 3 * v[1] ** 2])
+    fd = _finite_difference_gradient(lambda u: (lambda x: np.sin(x[0]) * x[1] + x[1] ** 3)(
+        shares.forward(u)), w)  # fmt: skip
+    np.testing.assert_allclose(shares.pull_back(w, grad_v), fd, rtol=1e-6, atol=1e-8)

@@ -235,3 +235,33 @@ def test_variance_share_with_a_log_variance_entry():
     fd = _finite_difference_gradient(lambda u: (lambda x: np.sin(x[0]) * x[1] + x[1] ** 3)(
         shares.forward(u)), w)  # fmt: skip
     np.testing.assert_allclose(shares.pull_back(w, grad_v), fd, rtol=1e-6, atol=1e-8)
+
+
+def _line_physics(jacobian):
+    from kohpymc import CalibrationData, PhysicsModel
+    from kohpymc.priors import Normal
+
+    x = np.linspace(0.0, 2.0, 15)
+    y = 1.5 * x + np.random.default_rng(SEED).normal(0.0, 0.1, x.size)
+    physics = PhysicsModel(
+        lambda i, p: p["a"] * i["x"],
+        {"a": Normal(1.0, 2.0)},
+        inputs=["x"],
+        jacobian=jacobian,
+    )
+    return physics, CalibrationData({"x": x}, y, noise_sd=0.1)
+
+
+@pytest.mark.parametrize("factor", [1.0, 1.3])
+def test_a_wrong_physics_jacobian_is_reported(factor):
+    """A Jacobian 30 % off gives a log-density gradient that finite differences contradict:
+    the plan warns and names sampler='smc'; the right Jacobian gives no warning."""
+    from kohpymc.model import compose_model
+
+    physics, data = _line_physics(lambda i, p: {"a": factor * i["x"]})
+    space = value_space(compose_model(physics, data, None).model)
+    reparam = plan(space, seed=SEED)
+    flagged = [w for w in reparam.warnings if "finite differences" in w]
+    assert bool(flagged) == (factor != 1.0), reparam.warnings
+    if flagged:
+        assert "sampler='smc'" in flagged[0]

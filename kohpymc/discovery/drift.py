@@ -44,6 +44,26 @@ def _modulations(inputs, names, exponents):
     return out
 
 
+def _dependence(physics, theta, inputs, G0, J0) -> dict[str, list[str]]:
+    """Which of the model's inputs ``G`` and each ``∂G/∂θ_j`` vary with on these rows.
+
+    An input counts when nudging it by 0.1 % of its spread changes the column.
+    """
+    uses: dict[str, list[str]] = {k: [] for k in ["G", *physics.parameters]}
+    for k in physics.inputs:
+        col = np.asarray(inputs[k], dtype=float)
+        if np.ptp(col) == 0:
+            continue
+        nudged = {**inputs, k: col + 1e-3 * np.ptp(col)}
+        G1, J1 = physics.evaluate(nudged, theta), physics.jacobian_matrix(nudged, theta)
+        if not np.allclose(G1, G0, rtol=1e-9, atol=0):
+            uses["G"].append(k)
+        for j, par in enumerate(physics.parameters):
+            if not np.allclose(J1[:, j], J0[:, j], rtol=1e-9, atol=0):
+                uses[par].append(k)
+    return uses
+
+
 def physics_terms(
     physics,
     theta: Mapping[str, float],
@@ -99,8 +119,8 @@ def physics_terms(
             memo[:] = [(d, physics.evaluate(d, theta), physics.jacobian_matrix(d, theta))]
         return memo[0][1], memo[0][2]
 
-    # the model's own inputs that vary: a drift or output term depends on them too
-    own = [k for k in physics.inputs if k in inputs and np.ptp(np.asarray(inputs[k])) > 0]
+    G0, J0 = base(inputs)
+    uses = _dependence(physics, theta, inputs, G0, J0)
 
     terms: list[CandidateTerm] = []
     for j, par in enumerate(physics.parameters):
@@ -108,7 +128,7 @@ def physics_terms(
             label = f"log({k})" if p == "log" else monomial_name({k: float(p)})
             terms.append(
                 CandidateTerm(
-                    f"{par}~{label}", tuple(dict.fromkeys([k, *own])),
+                    f"{par}~{label}", tuple(dict.fromkeys([k, *uses[par]])),
                     lambda d, j=j, g=g: base(d)[1][:, j] * g(d),
                     kind="drift", parameter=par, modulation=g,
                     meaning=f"{par} depends on {k}, {_words(k, p)}", complexity=2,
@@ -119,7 +139,7 @@ def physics_terms(
             label = f"log({k})" if p == "log" else monomial_name({k: float(p)})
             terms.append(
                 CandidateTerm(
-                    f"G*{label}", tuple(dict.fromkeys([k, *own])),
+                    f"G*{label}", tuple(dict.fromkeys([k, *uses["G"]])),
                     lambda d, g=g: base(d)[0] * g(d), kind="output",
                     modulation=g, meaning=f"the output scales with {k}, {_words(k, p)}",
                     complexity=2,

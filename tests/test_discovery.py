@@ -6,14 +6,12 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from kohpymc.candidates import CandidateTerm, candidate_library, design_matrix
+from kohpymc.candidates import CandidateTerm, candidate_library
 from kohpymc.data import CalibrationData
 from kohpymc.discovery import augmented_physics, disagreement_regions, discover, select_terms
 from kohpymc.discovery.drift import physics_terms
-from kohpymc.examples import beam
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Uniform
-
 
 # --------------------------------------------------- other physics with a hidden effect
 # Each problem: a physics model that ignores one recorded input (irrelevant by

@@ -198,7 +198,7 @@ def _monomials(arrays, varying, exponents, max_inputs) -> list[CandidateTerm]:
                     CandidateTerm(
                         monomial_name(pw),
                         combo,
-                        lambda d, pw=pw: np.prod(
+                        lambda d, pw=pw: np.prod(  # type: ignore[misc]
                             [np.asarray(d[k], dtype=float) ** p for k, p in pw.items()], axis=0
                         ),
                         kind="monomial",
@@ -226,7 +226,7 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
             name = f"({k}-{_fmt(ref)})^{p}"
             terms.append(
                 CandidateTerm(
-                    name, (k,), lambda d, k=k, r=ref, p=p: (np.asarray(d[k]) - r) ** p,
+                    name, (k,), lambda d, k=k, r=ref, p=p: (np.asarray(d[k]) - r) ** p,  # type: ignore[misc]
                     kind="shifted", complexity=2,
                 )
             )  # fmt: skip
@@ -237,9 +237,9 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
         terms.append(
             CandidateTerm(
                 _shaped_name("saturation", k, None, ""), (k,),
-                lambda d, k=k, c=span: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),
+                lambda d, k=k, c=span: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),  # type: ignore[misc]
                 kind="saturation",
-                shape=lambda d, c, k=k: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),
+                shape=lambda d, c, k=k: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),  # type: ignore[misc]
                 scale_bounds=(0.02 * span, 10 * max(span, hi)), complexity=3,
             )
         )  # fmt: skip
@@ -247,9 +247,9 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
         terms.append(
             CandidateTerm(
                 _shaped_name("threshold", k, None, ""), (k,),
-                lambda d, k=k, c=0.5 * (lo + hi): np.maximum(0.0, np.asarray(d[k]) - c),
+                lambda d, k=k, c=0.5 * (lo + hi): np.maximum(0.0, np.asarray(d[k]) - c),  # type: ignore[misc]
                 kind="threshold",
-                shape=lambda d, c, k=k: np.maximum(0.0, np.asarray(d[k]) - c),
+                shape=lambda d, c, k=k: np.maximum(0.0, np.asarray(d[k]) - c),  # type: ignore[misc]
                 scale_bounds=(lo + 0.05 * span, hi - 0.15 * span), complexity=3,
             )
         )  # fmt: skip
@@ -259,9 +259,9 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
         terms.append(
             CandidateTerm(
                 head + "c)", (k,),
-                lambda d, k=k, o=origin, c=0.3 * span: np.exp(-(np.asarray(d[k]) - o) / c),
+                lambda d, k=k, o=origin, c=0.3 * span: np.exp(-(np.asarray(d[k]) - o) / c),  # type: ignore[misc]
                 kind="decay",
-                shape=lambda d, c, k=k, o=origin: np.exp(-(np.asarray(d[k]) - o) / c),
+                shape=lambda d, c, k=k, o=origin: np.exp(-(np.asarray(d[k]) - o) / c),  # type: ignore[misc]
                 scale_bounds=(0.02 * span, 5 * span), complexity=3,
             )
         )  # fmt: skip
@@ -336,7 +336,7 @@ def candidate_library(
     terms = _monomials(arrays, varying, sorted(set(exponents)), max_inputs)
     for k in varying:
         if logarithms and np.min(arrays[k]) > 0:
-            terms.append(CandidateTerm(f"log({k})", (k,), lambda d, k=k: np.log(d[k]), kind="log"))
+            terms.append(CandidateTerm(f"log({k})", (k,), lambda d, k=k: np.log(d[k]), kind="log"))  # type: ignore[misc]
         terms += _single_input_shapes(k, arrays[k], shapes, dict(references or {}))
     for name, (term_inputs, function) in (extra or {}).items():
         if not callable(function):

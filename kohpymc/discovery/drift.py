@@ -129,7 +129,7 @@ def physics_terms(
             terms.append(
                 CandidateTerm(
                     f"{par}~{label}", tuple(dict.fromkeys([k, *uses[par]])),
-                    lambda d, j=j, g=g: base(d)[1][:, j] * g(d),
+                    lambda d, j=j, g=g: base(d)[1][:, j] * g(d),  # type: ignore[misc]
                     kind="drift", parameter=par, modulation=g,
                     meaning=f"{par} depends on {k}, {_words(k, p)}", complexity=2,
                 )
@@ -140,7 +140,7 @@ def physics_terms(
             terms.append(
                 CandidateTerm(
                     f"G*{label}", tuple(dict.fromkeys([k, *uses["G"]])),
-                    lambda d, g=g: base(d)[0] * g(d), kind="output",
+                    lambda d, g=g: base(d)[0] * g(d), kind="output",  # type: ignore[misc]
                     modulation=g, meaning=f"the output scales with {k}, {_words(k, p)}",
                     complexity=2,
                 )

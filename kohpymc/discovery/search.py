@@ -224,7 +224,7 @@ def _fit_shaped(design: Design, shaped: _Shaped, rc: np.ndarray, gains, *, refin
     hi = shaped.grid[min(i + 1, shaped.grid.size - 1)]
 
     def unit(c: float) -> np.ndarray:
-        col = design.project(shaped.term.shape(design.inputs, c))  # type: ignore[misc]
+        col = design.project(shaped.term.shape(design.inputs, c))  # type: ignore[misc,arg-type]
         norm = np.linalg.norm(col)
         return col / norm if np.isfinite(norm) and norm > 1e-12 else np.zeros_like(col)
 

@@ -16,6 +16,7 @@ missing costs a few dozen simulated residuals, not ``null_draws``.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -176,7 +177,12 @@ def select_terms(
             "every candidate term was rejected: "
             + "; ".join(f"{k}: {v}" for k, v in design.rejected.items())
         )
-    search = {"max_terms": max_terms, "screen": screen, "partners": partners, "g": g}
+    search: dict[str, Any] = {
+        "max_terms": max_terms,
+        "screen": screen,
+        "partners": partners,
+        "g": g,
+    }
     log_post, log_bf, fitted = explain(design, r, noise_sd=noise_sd, **search)
     post = _posterior(log_post)
     ranked = sorted(post.items(), key=lambda kv: -kv[1])

@@ -139,5 +139,5 @@ class TermSelection:
         False
         """
         if self.p_value is None:
-            return self.probability_none < self.false_alarm
-        return self.p_value <= self.false_alarm
+            return bool(self.probability_none < self.false_alarm)
+        return bool(self.p_value <= self.false_alarm)

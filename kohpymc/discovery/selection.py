@@ -77,8 +77,8 @@ def _sequential_p_value(design, observed, *, noise_sd, draws, seed, stop=10, **s
         z = scale * rng.standard_normal(design.n)
         hits += probability_none(design, z, noise_sd=noise_sd, **search) <= observed
         if hits >= stop:
-            return stop / (i + 1)
-    return (1 + hits) / (1 + draws)
+            return float(stop / (i + 1))
+    return float((1 + hits) / (1 + draws))
 
 
 def _check(r, J, candidates, names, max_terms, false_alarm):

@@ -45,6 +45,8 @@ from benchmarks.discovery_cases import CASES, NULLS, Case
 from kohpymc.candidates import candidate_library, design_matrix
 from kohpymc.discovery import augmented_physics, select_terms
 from kohpymc.discovery.drift import physics_terms
+from kohpymc.physics import PhysicsModelError
+from kohpymc.study_files import write_atomic
 
 RESULTS = Path(__file__).parent / "results"
 LEVELS = (0.05, 0.2)
@@ -96,8 +98,11 @@ def _after(physics, theta, terms, offset, xc, yc, xv, yv):
     sds = [1.0] * len(terms)
     aug = augmented_physics(physics, terms, sds, offset_sd=1.0 if offset else None,
                             inputs=xc, theta=theta)  # fmt: skip
-    params = _fit(aug, xc, yc, theta)
-    return _rmse(aug, params, xv, yv)
+    try:
+        params = _fit(aug, xc, yc, theta)
+        return _rmse(aug, params, xv, yv)
+    except PhysicsModelError:  # the re-fit left the model's domain: nothing recovered
+        return float("nan")
 
 
 def _stlsq(C, r, alpha=0.05, threshold=0.1, iterations=10):
@@ -241,21 +246,23 @@ def main(argv=None) -> None:
     jobs = [(c, s, lv) for c in picked for lv in LEVELS for s in range(args.seeds)]
     jobs += [(c, 100 + s, lv) for c in NULLS for lv in LEVELS for s in range(args.null_seeds)]
     rows: list[dict] = []
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     for k, (case, seed, level) in enumerate(jobs):
         new = run_one(case, seed, level)
         rows += new
+        text = json.dumps(rows, indent=1, default=str) + "\n"
+        write_atomic(out.with_suffix(".json"), lambda p, text=text: p.write_text(text))
         flags = " ".join(f"{r['method'].split(',')[-1].strip()}:{'R' if r['recovered'] else '-'}"
                          f"{'S' if r['significant'] else '-'}" for r in new)  # fmt: skip
         print(f"[{k + 1}/{len(jobs)}] {case.name} seed {seed} level {level}: {flags} "
               f"{new[0]['best']} {new[0]['total_seconds']:.1f}s", flush=True)  # fmt: skip
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str) + "\n")
     table = summarise(rows)
-    out.with_suffix(".md").write_text(
+    report = (
         "# Discovery: hidden-effect benchmark\n\n" + f"`python -m benchmarks.discovery "
         f"--seeds {args.seeds} --null-seeds {args.null_seeds}`\n\n" + table + "\n"
     )
+    write_atomic(out.with_suffix(".md"), lambda p: p.write_text(report))
     print(table)
 
 

@@ -158,7 +158,7 @@ def discover(
     ...                   beam.generate_data((3.5,), seed=2), tolerance=0.75,
     ...                   random_seed=1)  # doctest: +SKIP
     >>> report.effect, report.inputs  # doctest: +SKIP
-    ('c * x*P', ['x', 'P'])
+    ('c * x * P + c_0', ['x', 'P'])
     """
     say = progress or (lambda _m: None)
     library = {"exponents": exponents, "references": references, "extra": extra_terms}

@@ -241,6 +241,7 @@ def _run_on_cluster(function, items, workers, scheduler, display) -> Iterator[Ta
 
     shipped = cloudpickle.dumps(function)
     topic = f"kohpymc-progress-{uuid.uuid4().hex}"
+    levels = _logger_levels()
     with _client(workers, scheduler) as client:
         client.register_plugin(compile_dir_plugin(), name="kohpymc-compile-dir")
         client.subscribe_topic(topic, lambda event: _relay(display, event[1]))
@@ -253,7 +254,7 @@ def _run_on_cluster(function, items, workers, scheduler, display) -> Iterator[Ta
             while waiting and room > 0:
                 key = waiting.pop(0)
                 future = client.submit(
-                    _remote_call, shipped, key, cloudpickle.dumps(items[key]), topic,
+                    _remote_call, shipped, key, cloudpickle.dumps(items[key]), topic, levels,
                     key=f"kohpymc-{key}-{uuid.uuid4().hex[:8]}", pure=False,
                 )  # fmt: skip
                 submitted[future] = (key, time.perf_counter())
@@ -289,7 +290,10 @@ def _outcome(future: Any, key: str, waited: float) -> TaskOutcome:
     from distributed.scheduler import KilledWorker
 
     if future.status == "finished":
-        remote: _Remote = future.result()
+        try:
+            remote: _Remote = future.result()
+        except Exception as err:  # noqa: BLE001 - e.g. a value that does not unpickle here
+            return TaskOutcome(key, None, f"bringing its result back: {_describe(err)}", waited)
         for category, message, filename, lineno in remote.warnings:
             warnings.warn_explicit(message, category, filename, lineno)
         return TaskOutcome(key, remote.value, remote.error, remote.seconds, remote.where)
@@ -317,12 +321,31 @@ class _Remote:
 _ONE_AT_A_TIME = threading.Lock()
 
 
-def _remote_call(shipped: bytes, key: str, item: bytes, topic: str) -> _Remote:
+def _logger_levels() -> dict[str, int]:
+    """The levels set on this process's loggers (Dask's own excepted), for the workers.
+
+    A task's libraries then log on a worker what they would log here: a command that
+    silenced PyMC's info lines does not get them from its workers' terminals either.
+    """
+    return {
+        name: logger.level
+        for name, logger in logging.root.manager.loggerDict.items()
+        if isinstance(logger, logging.Logger)
+        and logger.level != logging.NOTSET
+        and not name.startswith(("distributed", "dask", "tornado", "asyncio"))
+    }
+
+
+def _remote_call(
+    shipped: bytes, key: str, item: bytes, topic: str, levels: dict[str, int]
+) -> _Remote:
     """Runs on a worker: the task, its progress events, its warnings for the client."""
     import cloudpickle
     from distributed import get_worker
 
     worker = get_worker()
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
 
     def report(kind: str, text: str) -> None:
         worker.log_event(topic, {"kind": kind, "key": key, "text": text})

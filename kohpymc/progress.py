@@ -174,7 +174,8 @@ class LineDisplay(TaskDisplay):
         """Print the queue once."""
         with self._lock:
             self._states.add(keys)
-            self._say("queued: " + ", ".join(keys))
+            if keys:
+                self._say("queued: " + ", ".join(keys))
 
     def _line(self, key: str, text: str) -> None:
         with self._lock:

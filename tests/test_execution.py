@@ -151,3 +151,25 @@ def test_physics_file_loaded_by_path_runs_on_workers(dask_cluster, tmp_path, wri
     values, importable_there = outcome.value
     assert not importable_there
     assert list(values) == list(here)
+
+
+def _level_of_library_logger(key, name):
+    import logging
+
+    return logging.getLogger(name).getEffectiveLevel()
+
+
+def test_workers_log_at_the_levels_set_here(dask_cluster):
+    """A command that silenced a library's info lines does not get them from its workers."""
+    import logging
+
+    logging.getLogger("kohpymc_test_library").setLevel(logging.ERROR)
+    try:
+        (outcome,) = run_tasks(
+            _level_of_library_logger,
+            {"a": "kohpymc_test_library.sub"},
+            scheduler=dask_cluster.scheduler_address,
+        )
+    finally:
+        logging.getLogger("kohpymc_test_library").setLevel(logging.NOTSET)
+    assert outcome.error is None and outcome.value == logging.ERROR

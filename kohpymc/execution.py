@@ -292,8 +292,8 @@ def _outcome(future: Any, key: str, waited: float) -> TaskOutcome:
     if future.status == "finished":
         try:
             remote: _Remote = future.result()
-        except Exception as err:  # noqa: BLE001 - e.g. a value that does not unpickle here
-            return TaskOutcome(key, None, f"bringing its result back: {_describe(err)}", waited)
+        except Exception as lost:  # noqa: BLE001 - e.g. a value that does not unpickle here
+            return TaskOutcome(key, None, f"bringing its result back: {_describe(lost)}", waited)
         for category, message, filename, lineno in remote.warnings:
             warnings.warn_explicit(message, category, filename, lineno)
         return TaskOutcome(key, remote.value, remote.error, remote.seconds, remote.where)

@@ -58,17 +58,20 @@ def test_in_process_run_does_not_import_dask():
     assert done.stdout.split() == ["False", "False"], done.stderr
 
 
-def test_workers_start_a_local_cluster_and_close_it():
-    """``workers=2``: a LocalCluster of 2 processes for the run, gone afterwards."""
+def test_workers_start_a_local_cluster_and_close_it_when_abandoned():
+    """``workers=2``: a LocalCluster of 2 processes for the run, closed as soon as the caller
+    stops reading (an error or Ctrl-C in the caller closes the generator the same way)."""
     from distributed import LocalCluster
 
     before = set(LocalCluster._instances)
-    outcomes = list(run_tasks(_where_compiled, {"a": 1, "b": 2, "c": 3}, workers=2))
-    assert sorted(o.key for o in outcomes) == ["a", "b", "c"]
-    assert all(o.error is None and o.where.startswith("tcp://") for o in outcomes)
-    assert all(o.value[1] != os.getpid() for o in outcomes)  # ran in other processes
-    started = [c for c in LocalCluster._instances if c not in before]
-    assert all(c.status.name == "closed" for c in started)
+    outcomes = run_tasks(_where_compiled, {f"t{i}": i for i in range(6)}, workers=2)
+    first = next(outcomes)
+    (cluster,) = [c for c in LocalCluster._instances if c not in before]
+    assert len(cluster.workers) == 2 and cluster.status.name == "running"
+    assert first.error is None and first.where in cluster.scheduler_info["workers"]
+    assert first.value[1] != os.getpid()  # ran in another process
+    outcomes.close()
+    assert cluster.status.name == "closed"
 
 
 def test_bad_execution_settings():

@@ -15,6 +15,7 @@ from kohpymc.data import CalibrationData, pooled_replicate_sd
 from kohpymc.diagnostics import SamplerTroubleWarning, sampler_diagnostics
 from kohpymc.discovery import DiscoveryReport, discover
 from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation class
+from kohpymc.execution import TaskOutcome, run_tasks
 from kohpymc.identifiability import (
     IdentifiabilityReport,
     IdentifiabilityWarning,
@@ -26,6 +27,7 @@ from kohpymc.initialization import MultistartResult, multistart_least_squares, p
 from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
+from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
 from kohpymc.study import StudyResult, run_study
 from kohpymc.validation import Reliability, reliability
 
@@ -77,5 +79,12 @@ __all__ = [
     "StudyConfigError",
     "discover",
     "DiscoveryReport",
+    # where tasks run (in this process or on Dask) and their progress
+    "run_tasks",
+    "TaskOutcome",
+    "task_display",
+    "TaskDisplay",
+    "report_phase",
+    "report_note",
     "__version__",
 ]

@@ -7,6 +7,7 @@ before any sampling.  The study-file reader adds the file and key on top.
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 from kohpymc.data import CalibrationData
@@ -15,6 +16,9 @@ from kohpymc.physics import PhysicsModel
 __all__ = [
     "COMPILE_MODES",
     "check_compile_mode",
+    "check_execution",
+    "check_scheduler",
+    "check_workers",
     "check_sampler",
     "check_tolerance",
     "check_physics_runs",
@@ -112,3 +116,62 @@ def check_compile_mode(mode: Any) -> None:
     """
     if mode is not None and mode not in COMPILE_MODES:
         raise ValueError(f"mode must be one of {list(COMPILE_MODES)} or None, got {mode!r}")
+
+
+#: a Dask scheduler address: ``tcp://host:port`` (or ``tls://``, ``ucx://``, ...)
+_ADDRESS = re.compile(r"^([a-z][a-z0-9+.-]*://)?[^\s:/]+(:\d+)?$|^[a-z]+://\[[0-9a-f:]+\](:\d+)?$")
+
+
+def check_workers(workers: Any) -> int:
+    """The number of worker processes, a positive integer.
+
+    Examples
+    --------
+    >>> check_workers(2)
+    2
+    >>> check_workers(0)
+    Traceback (most recent call last):
+    ...
+    ValueError: workers must be a positive integer, got 0
+    """
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    return workers
+
+
+def check_scheduler(scheduler: Any) -> None:
+    """``None``, a Dask scheduler address such as ``"tcp://10.0.0.5:8786"``, or a client.
+
+    Examples
+    --------
+    >>> check_scheduler("tcp://10.0.0.5:8786")
+    >>> check_scheduler("a b")
+    Traceback (most recent call last):
+    ...
+    ValueError: scheduler must be a Dask scheduler address like 'tcp://HOST:PORT', got 'a b'
+    """
+    if scheduler is None or type(scheduler).__name__ == "Client":
+        return
+    if not isinstance(scheduler, str) or not _ADDRESS.match(scheduler):
+        raise ValueError(
+            f"scheduler must be a Dask scheduler address like 'tcp://HOST:PORT', got {scheduler!r}"
+        )
+
+
+def check_execution(workers: Any, scheduler: Any) -> None:
+    """Where tasks run: ``workers`` processes started here, or an existing ``scheduler``.
+
+    Examples
+    --------
+    >>> check_execution(1, "tcp://10.0.0.5:8786")
+    >>> check_execution(4, "tcp://10.0.0.5:8786")
+    Traceback (most recent call last):
+    ...
+    ValueError: give workers (a local cluster) or scheduler (an existing cluster), not both
+    """
+    check_workers(workers)
+    check_scheduler(scheduler)
+    if workers > 1 and scheduler is not None:
+        raise ValueError(
+            "give workers (a local cluster) or scheduler (an existing cluster), not both"
+        )

@@ -1,7 +1,10 @@
 """Command line: ``kohpymc study STUDY.toml [--out DIR]`` and ``kohpymc discover``.
 
 ``study`` runs :func:`kohpymc.run_study` on a study file (:mod:`kohpymc.config`),
-printing one line per step while it samples and the validation table at the end.
+showing each formulation's progress (:mod:`kohpymc.progress`: live lines on a terminal,
+plain lines otherwise, nothing with ``--quiet``) and the validation table at the end;
+``--workers N`` / ``--scheduler ADDRESS`` run the formulations on a Dask cluster
+(:mod:`kohpymc.execution`).
 ``discover STUDY.toml [--json OUT] [--out DIR]`` runs :func:`kohpymc.discovery.discover`
 on the same file.  Exit status 0 on success, 2 for a bad study file or data, 1 when
 every formulation failed.
@@ -21,6 +24,9 @@ __all__ = ["main"]
 
 def _quiet_libraries() -> None:
     logging.getLogger("pymc").setLevel(logging.ERROR)
+    # Dask's own log lines (worker restarts, "task marked as failed because a worker
+    # died", slow shutdowns): kohpymc reports each task's fate itself
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
     logging.getLogger("pytensor.tensor.blas").setLevel(logging.ERROR)
     warnings.filterwarnings("ignore", message="PyTensor could not link to a BLAS")
     warnings.filterwarnings("ignore", category=FutureWarning)
@@ -49,7 +55,17 @@ def _sampler_overrides(args: argparse.Namespace, sampling: dict) -> dict:
     return out
 
 
+def _execution_overrides(args: argparse.Namespace, execution: dict) -> dict:
+    """``[execution]`` of the file, or the command line's --workers / --scheduler."""
+    if args.workers is not None:
+        return {"workers": args.workers, "scheduler": None}
+    if args.scheduler is not None:
+        return {"workers": 1, "scheduler": args.scheduler}
+    return dict(execution)
+
+
 def _study(args: argparse.Namespace) -> int:
+    from kohpymc.progress import task_display
     from kohpymc.study import run_study
 
     spec = _load(args)
@@ -57,26 +73,31 @@ def _study(args: argparse.Namespace) -> int:
         return 2
     kwargs = spec.run_kwargs()
     kwargs.update(_sampler_overrides(args, spec.sampling))
+    kwargs.update(_execution_overrides(args, spec.execution))
     out = Path(args.out) if args.out else spec.out_dir
     print(
         f"study {spec.source}: physics {spec.physics.name!r} "
         f"({', '.join(spec.physics.parameters)}), {spec.calibration.n} calibration and "
         f"{spec.validation.n} validation rows, formulations {', '.join(spec.formulations)}"
     )
+    display = task_display(sys.stdout, quiet=args.quiet)
     try:
         result = run_study(
             **kwargs,
             out_dir=out,
             figures=not args.no_figures,
-            progress=None if args.quiet else lambda msg: print(msg, flush=True),
+            progress=None if args.quiet else display.write,
+            display=display,
             progressbar=args.progressbar,
         )
     except (ValueError, KeyError) as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
-    except RuntimeError as err:
+    except (RuntimeError, OSError) as err:  # OSError: e.g. the Dask scheduler is unreachable
         print(f"error: {err}", file=sys.stderr)
         return 1
+    finally:
+        display.close()
     print()
     print(result.summary())
     if result.failures:
@@ -178,6 +199,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     study.add_argument("--out", help="output folder (default: [output] dir of the file)")
     study.add_argument("--no-figures", action="store_true", help="skip the figures")
     study.add_argument("--progressbar", action="store_true", help="PyMC's progress bar")
+    where = study.add_mutually_exclusive_group()
+    where.add_argument(
+        "--workers", type=int, help="formulations at once on a local Dask cluster of N processes"
+    )
+    where.add_argument("--scheduler", help="run on an existing Dask cluster (tcp://HOST:PORT)")
     study.set_defaults(run=_study)
     disc = sub.add_parser("discover", parents=[common], help="find, name and add a missing effect")
     disc.add_argument("study", help="study TOML file (same format as `kohpymc study`)")

@@ -34,8 +34,11 @@ formulations and sampler settings::
     chains = 4
     cores = 2                         # chains run in parallel processes (PyMC's default: 1)
     # mode = "NUMBA"                  # PyTensor compile mode of NUTS's log density (see calibrate)
-    # workers = 2                     # formulations calibrated at once (see run_study)
     seed = 2026
+
+    [execution]                       # optional; the CLI's --workers / --scheduler win
+    # workers = 2                     # a local Dask cluster of 2 worker processes
+    # scheduler = "tcp://10.0.0.5:8786"   # or an existing Dask cluster
 
     [output]                          # optional; the CLI's --out wins
     dir = "beam_study"
@@ -63,11 +66,14 @@ from kohpymc.checks import (
     check_compile_mode,
     check_physics_runs,
     check_sampler,
+    check_scheduler,
     check_tolerance,
+    check_workers,
 )
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy import Discrepancy, FormulationSpecError, from_dict
 from kohpymc.discrepancy.defaults import default_formulations
+from kohpymc.execution import ship_by_value
 from kohpymc.physics import PhysicsModel
 
 __all__ = ["StudyConfigError", "StudySpec", "load_study"]
@@ -90,6 +96,7 @@ _SECTIONS: dict[str, set[str] | None] = {
         "draws", "tune", "chains", "cores", "workers", "seed", "target_accept", "method", "mode",
         "sampler", "reparameterize",
     },
+    "execution": {"workers", "scheduler"},
     "output": {"dir"},
 }  # fmt: skip
 
@@ -109,6 +116,8 @@ class StudySpec:
     validation_weights : array or None
     sampling : dict
         ``draws``, ``tune``, ``chains``, ``random_seed``, ... for :func:`run_study`.
+    execution : dict
+        ``workers`` and/or ``scheduler`` for :func:`run_study` (``[execution]``).
     out_dir : Path
         Output folder (``[output] dir`` relative to the file, default
         ``<file stem>_results`` beside it).
@@ -123,6 +132,7 @@ class StudySpec:
     validation_weights: Any = None
     sampling: dict[str, Any] = field(default_factory=dict)
     out_dir: Path = Path("study_results")
+    execution: dict[str, Any] = field(default_factory=dict)
 
     def run_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :func:`kohpymc.run_study` for this study."""
@@ -134,6 +144,7 @@ class StudySpec:
             "tolerance": self.tolerance,
             "validation_weights": self.validation_weights,
             **self.sampling,
+            **self.execution,
         }
 
 
@@ -175,6 +186,7 @@ def _load_callable(spec: Any, base: Path, path: Path, key: str) -> Callable[...,
         except Exception as err:
             sys.modules.pop(name, None)
             raise _err(path, key, f"importing {file} failed: {type(err).__name__}: {err}") from err
+        ship_by_value(module)  # Dask workers cannot import it: its functions travel by value
     else:
         try:
             module = importlib.import_module(target)
@@ -261,6 +273,7 @@ def load_study(path: str | Path) -> StudySpec:
     tolerance, weights = _validation_section(path, doc["validation"], validation)
     formulations = _formulations_section(path, doc, inputs, time)
     sampling_doc = _sampling_section(path, doc)
+    execution = _execution_section(path, doc, sampling_doc.pop("workers", None))
     out = doc.get("output", {}).get("dir")
     out_dir = (base / out) if out else base / f"{path.stem}_results"
     return StudySpec(
@@ -273,6 +286,7 @@ def load_study(path: str | Path) -> StudySpec:
         validation_weights=weights,
         sampling=sampling_doc,
         out_dir=out_dir,
+        execution=execution,
     )
 
 
@@ -381,7 +395,7 @@ def _sampling_section(path: Path, doc: dict) -> dict:
     sampling_doc = dict(doc.get("sampling", {}))
     if "seed" in sampling_doc:
         sampling_doc["random_seed"] = sampling_doc.pop("seed")
-    for key in ("draws", "tune", "chains", "cores", "workers"):
+    for key in ("draws", "tune", "chains", "cores"):
         if key in sampling_doc and (
             not isinstance(sampling_doc[key], int) or sampling_doc[key] < 1
         ):
@@ -400,3 +414,36 @@ def _sampling_section(path: Path, doc: dict) -> dict:
     if not isinstance(sampling_doc.get("reparameterize", True), bool):
         raise _err(path, "sampling.reparameterize", "must be true or false")
     return sampling_doc
+
+
+def _execution_section(path: Path, doc: dict, old_workers: Any) -> dict[str, Any]:
+    """``[execution]``: ``workers`` (alias: the older ``[sampling] workers``), ``scheduler``."""
+    table = dict(doc.get("execution", {}))
+    if old_workers is not None:
+        try:
+            check_workers(old_workers)
+        except ValueError as err:
+            raise _err(path, "sampling.workers", str(err)) from err
+        if "workers" in table and table["workers"] != old_workers:
+            raise _err(
+                path, "execution.workers",
+                f"{table['workers']!r} differs from [sampling] workers = {old_workers!r} "
+                "(its older spelling); give one",
+            )  # fmt: skip
+        table.setdefault("workers", old_workers)
+    if "workers" in table:
+        try:
+            check_workers(table["workers"])
+        except ValueError as err:
+            raise _err(path, "execution.workers", str(err)) from err
+    if "scheduler" in table:
+        try:
+            check_scheduler(table["scheduler"])
+        except ValueError as err:
+            raise _err(path, "execution.scheduler", str(err)) from err
+        if table.get("workers", 1) > 1:
+            raise _err(
+                path, "execution", "give workers (a local cluster) or scheduler (an existing "
+                "cluster), not both",
+            )  # fmt: skip
+    return table

@@ -34,6 +34,7 @@ import numpy as np
 import pymc as pm
 
 from kohpymc.checks import SAMPLERS, check_sampler
+from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.value_space import ValueSpace, value_space
 
@@ -177,10 +178,12 @@ def sample_posterior(
         if name == "smc":
             return _run_smc(model, settings, kwargs, progressbar), report
         start = time.perf_counter()
+        report_phase("compiling")
         space = value_space(model, mode=mode)
         report.timings["compile"] = time.perf_counter() - start
         shares = variance_shares(space, variance_pairs)
         reparam = _plan(space, starts, seed, reparameterize, report, shares)
+        report_phase("sampling")
         idata: az.InferenceData | None = None
         failures: list[str] = []
         if name == "nutpie":
@@ -198,6 +201,7 @@ def sample_posterior(
         if idata is None:
             idata = _run_pymc(model, space, reparam, settings, target_accept, progressbar, kwargs)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
+        _report_rate(settings, report.timings["sampling"])
         _add_observed_data(idata, model)
         if failures:
             report.failed_evaluations = len(failures)
@@ -206,6 +210,13 @@ def sample_posterior(
                 f"treated as zero density (first: {failures[0]})"
             )
         return idata, report
+
+
+def _report_rate(settings: Mapping[str, Any], seconds: float) -> None:
+    """The sampling rate (warm-up included) for the progress display."""
+    total = (settings["draws"] + settings["tune"]) * settings["chains"]
+    report_phase("after sampling")
+    report_note(f"{total / max(seconds, 1e-9):.0f} draws/s")
 
 
 def _user_starts(space: ValueSpace, starts: Sequence[Mapping[str, Any]]) -> list[np.ndarray]:

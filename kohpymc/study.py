@@ -6,7 +6,8 @@ discrepancy formulations, and
 1. runs the Taylor identifiability check of every formulation before any sampling
    (:func:`kohpymc.identifiability.check_formulation`);
 2. calibrates each formulation (:func:`kohpymc.calibrate`) and predicts at the
-   validation inputs (:func:`kohpymc.predict`);
+   validation inputs (:func:`kohpymc.predict`) — in this process, or as tasks on a Dask
+   cluster (``workers``, ``scheduler``; :mod:`kohpymc.execution`);
 3. scores each on the validation data — μ_r with its Monte-Carlo standard error
    (Eq. 22), RMSE of the posterior-mean prediction, and the fraction of validation
    points inside the 90 % predictive band (with measurement noise) — and forms the
@@ -23,9 +24,9 @@ renamed when complete.
 from __future__ import annotations
 
 import os
-import time
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,15 +36,17 @@ import numpy as np
 import pandas as pd
 
 from kohpymc.calibration import Calibration
-from kohpymc.checks import check_validation_data
+from kohpymc.checks import check_execution, check_validation_data
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
 from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import RHAT_MAX, sampler_diagnostics
 from kohpymc.discrepancy import Discrepancy
 from kohpymc.discrepancy.defaults import default_formulations
+from kohpymc.execution import run_tasks, runs_remotely
 from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
 from kohpymc.model import compose_model
 from kohpymc.physics import PhysicsModel
+from kohpymc.progress import LineDisplay, TaskDisplay
 from kohpymc.study_files import COMBINED, _write, markdown_table, write_atomic
 from kohpymc.validation import (
     Scored,
@@ -133,42 +136,27 @@ class _Job:
     random_seed: int | None
     settings: dict[str, Any]
 
-    def run(self, label: str, disc: Discrepancy) -> tuple[Scored | None, float, str | None]:
-        """Fit and score one formulation; an exception becomes its failure message."""
-        start = time.perf_counter()
-        try:
-            scored = fit_and_score(
-                self.physics,
-                self.calibration,
-                self.validation,
-                disc,
-                tolerance=self.tolerance,
-                validation_weights=self.validation_weights,
-                random_seed=self.random_seed,
-                label=label,
-                check_identifiability=False,
-                **self.settings,
-            )
-        except Exception as err:  # noqa: BLE001 - reported, the study goes on
-            return None, time.perf_counter() - start, f"{type(err).__name__}: {err}"
-        return scored, time.perf_counter() - start, None
+    def fit(self, label: str, disc: Discrepancy) -> Scored:
+        """Fit and score one formulation (runs in this process)."""
+        return fit_and_score(
+            self.physics,
+            self.calibration,
+            self.validation,
+            disc,
+            tolerance=self.tolerance,
+            validation_weights=self.validation_weights,
+            random_seed=self.random_seed,
+            label=label,
+            check_identifiability=False,
+            **self.settings,
+        )
 
-
-#: the study a forked worker process reads (set before the workers fork)
-_FORKED: tuple[_Job, dict[str, Discrepancy]] | None = None
-
-
-def _forked_worker(label: str) -> tuple[str, Any, float, str | None]:
-    """Runs in a forked process; sends back only picklable results (no model, no physics)."""
-    assert _FORKED is not None
-    job, formulations = _FORKED
-    scored, seconds, error = job.run(label, formulations[label])
-    if scored is None:
-        return label, None, seconds, error
-    cal = scored.calibration
-    payload = (cal.idata, cal.problems, cal.identifiability, cal.noise_sd_prior)
-    rest = (scored.predictions, scored.scores, scored.constant, scored.noise_sd)
-    return label, (payload, rest), seconds, None
+    def fit_remotely(self, label: str, disc: Discrepancy) -> tuple:
+        """:meth:`fit` on a Dask worker: only picklable results travel back (no model)."""
+        scored = self.fit(label, disc)
+        cal = scored.calibration
+        payload = (cal.idata, cal.problems, cal.identifiability, cal.noise_sd_prior)
+        return payload, (scored.predictions, scored.scores, scored.constant, scored.noise_sd)
 
 
 def _rebuilt(job: _Job, disc: Discrepancy, payload: tuple) -> Scored:
@@ -179,34 +167,6 @@ def _rebuilt(job: _Job, disc: Discrepancy, payload: tuple) -> Scored:
         job.physics, job.calibration, disc, built, idata, problems, report, noise_prior
     )
     return Scored(cal, *rest)
-
-
-def _run_forked(job: _Job, formulations: dict[str, Discrepancy], labels: list[str], workers: int):
-    """Yield ``(label, scored, seconds, error)`` as formulations finish in ``workers`` processes.
-
-    The processes are forked, so the physics function, data and formulations need not be
-    picklable (only the results travel back).
-    """
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    global _FORKED
-    try:
-        context = multiprocessing.get_context("fork")
-    except ValueError as err:  # pragma: no cover - Windows
-        raise ValueError("workers > 1 needs the 'fork' start method (Linux, macOS)") from err
-    _FORKED = (job, formulations)
-    try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-            futures = {pool.submit(_forked_worker, label): label for label in labels}
-            for future in as_completed(futures):
-                try:
-                    yield future.result()
-                except Exception as err:  # noqa: BLE001 - e.g. a worker killed by the OS
-                    error = f"worker process: {type(err).__name__}: {err}"
-                    yield futures[future], None, 0.0, error
-    finally:
-        _FORKED = None
 
 
 def _check_identifiability(physics, calibration, formulations, say):
@@ -235,24 +195,30 @@ def _check_identifiability(physics, calibration, formulations, say):
     return reports, failures
 
 
-def _calibrate_all(job, formulations, todo, workers, say) -> dict[str, tuple]:
-    """``label -> (scored, seconds, error)`` for every formulation in ``todo``."""
-    position = {label: i + 1 for i, label in enumerate(formulations)}
-    outcomes: dict[str, tuple] = {}
-    if workers > 1 and len(todo) > 1:
-        say(f"calibrating {len(todo)} formulation(s), {workers} at a time")
-        for label, payload, seconds, error in _run_forked(job, formulations, todo, workers):
-            scored = None if payload is None else _rebuilt(job, formulations[label], payload)
-            outcomes[label] = (scored, seconds, error)
-            say(f"[{position[label]}/{len(formulations)}] {label} finished")
-        return outcomes
-    for label in todo:
-        disc = formulations[label]
-        say(
-            f"[{position[label]}/{len(formulations)}] {label} ({disc.description}): calibrating ..."
-        )
-        outcomes[label] = job.run(label, disc)
-    return outcomes
+def _calibrate_all(
+    job: _Job,
+    formulations: Mapping[str, Discrepancy],
+    todo: list[str],
+    execution: dict[str, Any],
+    display: TaskDisplay,
+) -> Iterator[tuple[str, Scored | None, float, str | None]]:
+    """Yield ``(label, scored or None, seconds, error or None)`` as formulations finish.
+
+    In this process, or as tasks on a Dask cluster (``execution``: ``workers``,
+    ``scheduler``; :func:`kohpymc.execution.run_tasks`), whose results are rebuilt here.
+    """
+    remote = runs_remotely(**execution)
+    task = job.fit_remotely if remote else job.fit
+    items = {label: formulations[label] for label in todo}
+    with closing(run_tasks(task, items, progress=display, **execution)) as outcomes:
+        for outcome in outcomes:
+            scored, error = outcome.value, outcome.error
+            if remote and error is None:
+                try:
+                    scored = _rebuilt(job, items[outcome.key], scored)
+                except Exception as err:  # noqa: BLE001 - reported, the study goes on
+                    scored, error = None, f"rebuilding the model: {type(err).__name__}: {err}"
+            yield outcome.key, scored, outcome.seconds, error
 
 
 def _say_scores(say, label: str, scored: Scored, seconds: float) -> None:
@@ -321,6 +287,8 @@ def run_study(
     progress: Callable[[str], None] | None = None,
     progressbar: bool = False,
     workers: int = 1,
+    scheduler: Any = None,
+    display: TaskDisplay | None = None,
     **calibrate_kwargs: Any,
 ) -> StudyResult:
     """Check, calibrate, validate and weigh a set of discrepancy formulations.
@@ -356,10 +324,17 @@ def run_study(
     progressbar : bool
         Show PyMC's sampling progress bar.
     workers : int
-        Formulations calibrated at the same time, each in its own (forked) process.
-        The results are the same as with ``workers=1`` (every formulation's seed comes
-        from ``random_seed`` and its label).  With ``workers`` equal to the number of
-        cores, pass ``cores=1`` so the chains of each run one after the other.
+        More than 1: calibrate formulations at the same time on a local Dask cluster of
+        this many worker processes (:func:`kohpymc.execution.run_tasks`).  The results
+        are the same as with ``workers=1`` (every formulation's seed comes from
+        ``random_seed`` and its label).  With ``workers`` equal to the number of cores,
+        pass ``cores=1`` so the chains of each run one after the other.
+    scheduler : str or distributed.Client, optional
+        Calibrate on an existing Dask cluster instead: its scheduler's address
+        (``"tcp://HOST:PORT"``) or a client.  The cluster is left running.
+    display : TaskDisplay, optional
+        Shows each formulation queued, running (compiling, sampling), done or failed
+        (:mod:`kohpymc.progress`); default plain lines through ``progress``.
     **calibrate_kwargs :
         Further keywords for :func:`kohpymc.calibrate`.
 
@@ -377,7 +352,10 @@ def run_study(
     0.53
     """
     say = progress or (lambda _msg: None)
-    tolerance, formulations = _checked_study(physics, validation, tolerance, workers, formulations)
+    tolerance, formulations = _checked_study(
+        physics, validation, tolerance, workers, scheduler, formulations
+    )
+    display = display or (LineDisplay(say) if progress else TaskDisplay())
     identifiability, failures = _check_identifiability(physics, calibration, formulations, say)
     settings = dict(draws=draws, tune=tune, chains=chains, target_accept=target_accept)
     settings.update(progressbar=progressbar, **calibrate_kwargs)
@@ -385,7 +363,16 @@ def run_study(
         physics, calibration, validation, tolerance, validation_weights, random_seed, settings
     )
     todo = [label for label in formulations if label not in failures]
-    outcomes = _calibrate_all(job, formulations, todo, workers, say)
+    # one formulation: no cluster to start (an existing one is used as asked)
+    execution = {"workers": workers if len(todo) > 1 else 1, "scheduler": scheduler}
+    say(f"calibrating {len(todo)} formulation(s)" + _where(workers, scheduler, len(todo)))
+    outcomes = {
+        label: (scored, seconds, error)
+        for label, scored, seconds, error in _calibrate_all(
+            job, formulations, todo, execution, display
+        )
+    }
+    display.close()
     scored, wall = _collect(outcomes, todo, failures, say)
     results = {k: s.combined_idata() for k, s in scored.items()}
     metrics = {k: s.scores for k, s in scored.items()}
@@ -414,11 +401,20 @@ def run_study(
     return result
 
 
-def _checked_study(physics, validation, tolerance, workers, formulations):
+def _where(workers: int, scheduler: Any, n: int) -> str:
+    """Where the calibrations run, for the progress line."""
+    if scheduler is not None:
+        where = scheduler if isinstance(scheduler, str) else "of the given client"
+        return f" on the Dask cluster {where}"
+    if workers > 1 and n > 1:
+        return f" on a local Dask cluster of {workers} worker processes"
+    return ""
+
+
+def _checked_study(physics, validation, tolerance, workers, scheduler, formulations):
     """Check the study's inputs before any sampling; returns ε and the formulations."""
     tolerance = check_validation_data(physics, validation, tolerance)
-    if not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    check_execution(workers, scheduler)
     formulations = dict(formulations or default_formulations(physics.inputs))
     if not formulations:
         raise ValueError("no formulations to run")

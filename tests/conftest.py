@@ -143,3 +143,20 @@ def write_study():
     """``write_study(folder, toml=None, **replace)``: a small beam study TOML + CSVs +
     physics file in ``folder`` (``replace`` edits the TOML text); returns its path."""
     return _write_study
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """A real ``dask.distributed.LocalCluster`` of 2 single-threaded worker processes, shared
+    by every test that needs an existing cluster (starting one costs seconds). Configured as
+    the README recommends for ``dask scheduler``: a task whose worker dies fails at once."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        cluster = LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+            silence_logs=logging.CRITICAL,
+        )  # fmt: skip
+    yield cluster
+    cluster.close()

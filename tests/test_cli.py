@@ -67,3 +67,36 @@ def test_discover_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, write_s
     err = capsys.readouterr().err
     assert str(path) in err and "too few data points" in err and "3 rows" in err
     assert not out.exists() and not report.exists()
+
+
+def test_study_on_an_existing_dask_cluster_matches_in_process(tmp_path, capsys, write_study,
+                                                              dask_cluster):  # fmt: skip
+    """`kohpymc study --scheduler ADDRESS` on a real LocalCluster of 2 worker processes gives
+    the in-process run's table (same seed); only the client writes the output folder."""
+    m34 = (
+        'M3 = { type = "input_dependent", mean = ["x"], log_variance = ["x"] }\n'
+        'M4 = { type = "gp", inputs = ["x"], mean = ["x", "P", "x*P"] }'
+    )
+    path = write_study(tmp_path, **{m34: 'M1 = "constant"'})
+    here, there = tmp_path / "here", tmp_path / "there"
+    assert main(["study", str(path), "--out", str(here), "--no-figures"]) == 0
+    capsys.readouterr()
+    address = dask_cluster.scheduler_address
+    args = ["study", str(path), "--out", str(there), "--no-figures", "--scheduler", address]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert f"on the Dask cluster {address}" in printed
+    assert "M0: done in" in printed and "M1: done in" in printed and "draws/s" in printed
+    first = pd.read_csv(here / "table.csv", index_col=0)
+    pd.testing.assert_frame_equal(first, pd.read_csv(there / "table.csv", index_col=0))
+    assert list(first.index) == ["M0", "M1", "combined"]
+    assert {p.name for p in here.iterdir()} == {p.name for p in there.iterdir()}
+
+
+def test_command_line_execution_wins_over_the_file(tmp_path, capsys, write_study):
+    path = write_study(tmp_path, **{"seed = 4": 'seed = 4\n[execution]\nscheduler = "tcp://h:1"'})
+    out = tmp_path / "results"
+    assert main(["study", str(path), "--out", str(out), "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "workers must be a positive integer, got 0" in err
+    assert not out.exists()

@@ -110,6 +110,24 @@ def test_shipped_beam_study_matches_the_generator():
         ({"draws = 100": "draws = 0"}, "[sampling.draws]", "positive integer"),
         ({"draws = 100": 'draws = 100\nmode = "numba"'}, "[sampling.mode]", "'numba'"),
         ({"draws = 100": "draws = 100\nworkers = 0"}, "[sampling.workers]", "positive integer"),
+        ({"seed = 4": "seed = 4\n[execution]\nworkers = 0"}, "[execution.workers]", "positive"),
+        ({"seed = 4": 'seed = 4\n[execution]\nworkers = "2"'}, "[execution.workers]", "'2'"),
+        ({"seed = 4": "seed = 4\n[execution]\nnodes = 2"}, "[execution]", "nodes"),
+        (
+            {"seed = 4": 'seed = 4\n[execution]\nscheduler = "my cluster"'},
+            "[execution.scheduler]",
+            "tcp://HOST:PORT",
+        ),
+        (
+            {"seed = 4": 'seed = 4\n[execution]\nworkers = 2\nscheduler = "tcp://h:8786"'},
+            "[execution]",
+            "not both",
+        ),
+        (
+            {"seed = 4": "seed = 4\nworkers = 2\n[execution]\nworkers = 3"},
+            "[execution.workers]",
+            "[sampling] workers = 2",
+        ),
     ],
 )
 def test_bad_study_files_name_file_and_key(tmp_path, write_study, replace, key, words):
@@ -118,6 +136,20 @@ def test_bad_study_files_name_file_and_key(tmp_path, write_study, replace, key, 
         load_study(path)
     message = str(info.value)
     assert str(path) in message and key in message and words in message
+
+
+def test_execution_is_read_and_sampling_workers_is_its_alias(tmp_path, write_study):
+    spec = load_study(write_study(tmp_path))
+    assert spec.execution == {} and "workers" not in spec.run_kwargs()
+    new = {"seed = 4": "seed = 4\n[execution]\nworkers = 2"}
+    old = {"seed = 4": "seed = 4\nworkers = 2"}
+    for replace in (new, old):
+        spec = load_study(write_study(tmp_path, **replace))
+        assert spec.execution == {"workers": 2} and "workers" not in spec.sampling
+        assert spec.run_kwargs()["workers"] == 2
+    address = {"seed = 4": 'seed = 4\n[execution]\nscheduler = "tcp://10.0.0.5:8786"'}
+    spec = load_study(write_study(tmp_path, **address))
+    assert spec.run_kwargs()["scheduler"] == "tcp://10.0.0.5:8786"
 
 
 def test_compile_mode_is_read(tmp_path, write_study):

@@ -36,9 +36,11 @@ def small_study(beam_physics, beam_data, beam_validation, tmp_path_factory):
     return result, out
 
 
-def test_same_seed_gives_identical_tables(small_study, beam_physics, beam_data, beam_validation):
-    """The same seed gives the same table, also with the formulations calibrated two at a
-    time in forked processes (where the failing one is reported the same way)."""
+def test_same_seed_gives_identical_tables(
+    small_study, beam_physics, beam_data, beam_validation, dask_cluster
+):
+    """The same seed gives the same table, also with the formulations calibrated as tasks on
+    a Dask cluster of 2 worker processes (where the failing one is reported the same way)."""
     first, _ = small_study
     again = run_study(
         beam_physics,
@@ -47,7 +49,7 @@ def test_same_seed_gives_identical_tables(small_study, beam_physics, beam_data, 
         {"M0": NoDiscrepancy(), "M1": ConstantBias(), "bad": GaussianProcess(["no_such_input"])},
         tolerance=0.75,
         random_seed=3,
-        workers=2,
+        scheduler=dask_cluster.scheduler_address,
         cores=1,
         **SMALL,
     )
@@ -62,6 +64,11 @@ def test_same_seed_gives_identical_tables(small_study, beam_physics, beam_data, 
 def test_workers_must_be_a_positive_integer(beam_physics, beam_data, beam_validation):
     with pytest.raises(ValueError, match="workers must be a positive integer, got 0"):
         run_study(beam_physics, beam_data, beam_validation, tolerance=0.75, workers=0)
+    with pytest.raises(ValueError, match="not both"):
+        run_study(
+            beam_physics, beam_data, beam_validation, tolerance=0.75, workers=2,
+            scheduler="tcp://127.0.0.1:8786",
+        )  # fmt: skip
 
 
 def test_failed_formulation_is_reported_and_others_kept(small_study):

@@ -119,6 +119,7 @@ def sample_posterior(
     starts: Sequence[Mapping[str, Any]] = (),
     mode: str | None = None,
     sample_kwargs: Mapping[str, Any] | None = None,
+    space: ValueSpace | None = None,
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
 
@@ -138,6 +139,9 @@ def sample_posterior(
     sample_kwargs : dict, optional
         Extra keywords for :func:`pymc.sample` / :func:`pymc.sample_smc`, or for
         :func:`nutpie.sample` (e.g. ``maxdepth``, ``low_rank_modified_mass_matrix``).
+    space : ValueSpace, optional
+        ``value_space(model)`` compiled earlier, to sample without compiling again (e.g.
+        many data sets swapped into one model's shared variables); default: compile now.
 
     Returns
     -------
@@ -171,7 +175,10 @@ def sample_posterior(
         if name == "smc":
             return _run_smc(model, settings, kwargs, progressbar), report
         start = time.perf_counter()
-        space = value_space(model, mode=mode)
+        if space is None:
+            space = value_space(model, mode=mode)
+        elif space.model is not model:
+            raise ValueError("space must be value_space(model) of the model being sampled")
         report.timings["compile"] = time.perf_counter() - start
         reparam = _plan(space, starts, seed, reparameterize, report)
         idata: az.InferenceData | None = None

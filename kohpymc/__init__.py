@@ -26,6 +26,7 @@ from kohpymc.initialization import MultistartResult, multistart_least_squares, p
 from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
+from kohpymc.sbc import CalibrationCheck, check_calibration
 from kohpymc.study import StudyResult, run_study
 from kohpymc.validation import Reliability, reliability
 
@@ -77,5 +78,8 @@ __all__ = [
     "StudyConfigError",
     "discover",
     "DiscoveryReport",
+    # does a set-up recover the truth? (simulation-based calibration)
+    "check_calibration",
+    "CalibrationCheck",
     "__version__",
 ]

@@ -62,7 +62,7 @@ import pandas as pd
 import pymc as pm
 import pytensor
 import xarray as xr
-from pytensor.graph.basic import Constant
+from pytensor.tensor.variable import TensorConstant
 from scipy import stats
 
 from kohpymc.config import CheckSpec, StudySpec, load_study
@@ -229,7 +229,7 @@ def swappable_observations(model: pm.Model, y: np.ndarray) -> tuple[pm.Model, An
     found = [
         v
         for v in fgraph.variables
-        if isinstance(v, Constant) and np.shape(v.data) == y.shape and np.array_equal(v.data, y)
+        if isinstance(v, TensorConstant) and v.data.shape == y.shape and np.array_equal(v.data, y)
     ]
     if not found:
         raise ValueError("the model's graph holds no constant equal to the observed values")
@@ -868,9 +868,9 @@ def check_calibration(
         say(f"{len(done)} of {settings.replicates} replicates reused from {out}")
     timings: dict[str, Any] = {}
     todo = [i for i in range(settings.replicates) if i not in done]
-    fitter = _prepare(spec, settings, recipe, timings) if todo else None
     records, failures = dict(done), {}
     if todo:
+        fitter = _prepare(spec, settings, recipe, timings)
         tasks = _tasks(spec, settings, recipe, fitter, todo, seeds)
         for index, result, error in _collect(tasks, workers, scheduler, say, settings):
             if error is not None:

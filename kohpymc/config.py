@@ -70,6 +70,7 @@ import pandas as pd
 
 from kohpymc.checks import (
     check_compile_mode,
+    check_count,
     check_physics_runs,
     check_sampler,
     check_tolerance,
@@ -467,10 +468,11 @@ def _sampling_section(path: Path, doc: dict) -> dict:
     return sampling_doc
 
 
-def _positive_int(path: Path, key: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise _err(path, key, f"must be a positive integer, got {value!r}")
-    return value
+def _count(path: Path, key: str, value: Any, minimum: int = 1) -> int:
+    try:
+        return check_count(value, key, minimum=minimum)
+    except ValueError as err:
+        raise _err(path, key, str(err).removeprefix(f"{key} ")) from err
 
 
 def _check_section(path: Path, table: dict, physics: PhysicsModel, formulations) -> CheckSpec:
@@ -486,12 +488,9 @@ def _check_section(path: Path, table: dict, physics: PhysicsModel, formulations)
     spec.formulation = label
     for key in ("replicates", "draws", "tune", "chains", "rank_draws"):
         if key in table:
-            setattr(spec, key, _positive_int(path, f"check.{key}", table[key]))
+            setattr(spec, key, _count(path, f"check.{key}", table[key]))
     if "seed" in table:
-        seed = table["seed"]
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise _err(path, "check.seed", f"must be a non-negative integer, got {seed!r}")
-        spec.seed = seed
+        spec.seed = _count(path, "check.seed", table["seed"], minimum=0)
     simulate = table.get("simulate", {})
     if not isinstance(simulate, dict):
         raise _err(path, "check.simulate", "must be a table")

@@ -65,6 +65,7 @@ import xarray as xr
 from pytensor.tensor.variable import TensorConstant
 from scipy import stats
 
+from kohpymc.checks import check_count
 from kohpymc.config import CheckSpec, StudySpec, load_study
 from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import RHAT_MAX, n_divergences, sampler_diagnostics
@@ -128,8 +129,8 @@ def _resolve(spec: StudySpec, overrides: Mapping[str, Any]) -> CheckSettings:
     """Command-line values, else ``[check]``, else ``[sampling]``, else the defaults."""
     check, sampling = spec.check, spec.sampling
 
-    def pick(key: str, default: Any) -> Any:
-        for value in (overrides.get(key), getattr(check, key), sampling.get(key)):
+    def pick(key: str, default: Any, sampling_key: str | None = None) -> Any:
+        for value in (overrides.get(key), getattr(check, key), sampling.get(sampling_key or key)):
             if value is not None:
                 return value
         return default
@@ -143,21 +144,13 @@ def _resolve(spec: StudySpec, overrides: Mapping[str, Any]) -> CheckSettings:
     replicates = pick("replicates", None)
     if replicates is None:
         raise ValueError(f"{spec.source}: give the number of replicates ([check] replicates)")
-    seed = next(
-        (
-            s
-            for s in (overrides.get("seed"), check.seed, sampling.get("random_seed"))
-            if s is not None
-        ),
-        0,
-    )
     settings = CheckSettings(
         formulation=label,
         replicates=replicates,
         draws=pick("draws", 1000),
         tune=pick("tune", 1000),
         chains=pick("chains", 4),
-        seed=int(seed),
+        seed=pick("seed", 0, "random_seed"),
         rank_draws=pick("rank_draws", 99),
         sampler=sampling.get("sampler", "smc" if sampling.get("method") == "smc" else None),
         target_accept=sampling.get("target_accept")
@@ -171,11 +164,8 @@ def _resolve(spec: StudySpec, overrides: Mapping[str, Any]) -> CheckSettings:
 
 def _check_settings(settings: CheckSettings) -> None:
     for key in ("replicates", "draws", "tune", "chains", "rank_draws"):
-        value = getattr(settings, key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{key} must be a positive integer, got {value!r}")
-    if settings.seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {settings.seed!r}")
+        check_count(getattr(settings, key), key)
+    check_count(settings.seed, "seed", minimum=0)
     if settings.rank_draws > settings.draws * settings.chains:
         raise ValueError(
             f"rank_draws = {settings.rank_draws} thinned draws need at least that many "

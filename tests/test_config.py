@@ -192,7 +192,7 @@ def test_check_table_is_read(tmp_path, write_study):
     ("old", "new", "key"),
     [
         ('formulation = "M3"', 'formulation = "M9"', r"check\.formulation.*'M9'"),
-        ("draws = 300", "draws = 0", r"check\.draws.*positive integer"),
+        ("draws = 300", "draws = 0", r"check\.draws\] must be an integer >= 1, got 0"),
         ("noise_sd = 1.5", "noise_sd = -1", r"check\.simulate\.noise_sd.*positive"),
         ("noise_sd = 1.5", "noise = 1", r"check\.simulate\] unknown key.*'noise'"),
         ("noise_sd = 1.5", 'noise_sd = 1\nsigma_obs = {prior = "halfnormal", sigma = 1}',

@@ -182,7 +182,7 @@ def test_check_bad_input_exits_2(tmp_path, capsys):
     assert main(["check", study, "--formulation", "M9", "--out", str(tmp_path)]) == 2
     assert "'M9'" in capsys.readouterr().err
     assert main(["check", study, "--replicates", "0", "--out", str(tmp_path)]) == 2
-    assert "replicates must be a positive integer" in capsys.readouterr().err
+    assert "replicates must be an integer >= 1" in capsys.readouterr().err
     assert main(["check", study, "--rank-draws", "5000", "--out", str(tmp_path)]) == 2
     assert "rank_draws" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing written

@@ -573,7 +573,7 @@ def _problems(idata, result: dict, settings: CheckSettings, report) -> list[str]
     problems = []
     r_hat = max(result["r_hat"].values())
     if not r_hat <= RHAT_MAX:
-        problems.append(f"r_hat {r_hat:.3f} > {RHAT_MAX}")
+        problems.append(f"r_hat {r_hat:.4f} > {RHAT_MAX}")
     ess = min(min(result["ess_bulk"].values()), min(result["ess_tail"].values()))
     if not ess >= settings.min_ess:
         problems.append(f"ESS {ess:.0f} < {settings.min_ess}")
@@ -759,7 +759,9 @@ class CalibrationCheck:
     failures : dict index -> str
         Replicates whose fit raised.
     timings : dict
-        Seconds: the set-up (build, compile), each replicate's fit, the wall time.
+        Seconds: ``setup_compile`` (building and compiling the fitted model, when this run
+        fitted replicates), ``replicate_mean``/``_median``/``s_total`` (each replicate's fit,
+        reused ones as measured when they were fitted) and ``wall`` (this run).
     reused : int
         Replicates read back from an earlier run.
     files : list of Path
@@ -936,10 +938,10 @@ def _finish(spec, settings, recipe, records, failures, done, timings, started, o
     names = list(ordered[0]["rank"])
     table = coverage_table(usable, names, settings.rank_draws)
     passed, line = verdict(table, len(ordered), len(ordered) - len(usable), settings.formulation)
-    fresh_seconds = [r["seconds"] for i, r in records.items() if i not in done]
-    if fresh_seconds:
-        timings["replicate_mean"] = statistics.fmean(fresh_seconds)
-        timings["replicate_median"] = statistics.median(fresh_seconds)
+    seconds = [float(r["seconds"]) for r in ordered]  # reused ones: when they were fitted
+    timings["replicate_mean"] = statistics.fmean(seconds)
+    timings["replicate_median"] = statistics.median(seconds)
+    timings["replicates_total"] = sum(seconds)
     timings["wall"] = time.perf_counter() - started
     result = CalibrationCheck(
         settings, passed, line, table, sbc_files.ranks_dataset(ordered, names, settings),

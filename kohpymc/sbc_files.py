@@ -186,14 +186,15 @@ def plot_rank_histograms(ranks: xr.Dataset) -> Figure:
         edges = np.arange(bins + 1) * (n_ranked + 1) / bins
         n = values.size
         low, high = stats.binom.ppf([0.005, 0.995], n, 1 / bins)
-        ax.axhspan(low, high, color="0.85", zorder=0, label="99 % band (uniform)")
-        ax.axhline(n / bins, color="0.5", lw=1)
-        ax.stairs(counts, edges, fill=True, color="C0", alpha=0.8)
+        ax.stairs(counts, edges, fill=True, color="C0", alpha=0.75, zorder=1)
+        ax.axhspan(low, high, color="0.45", alpha=0.25, lw=0, zorder=2, label="99 % if uniform")
+        ax.axhline(n / bins, color="0.3", lw=1, zorder=3)
+        ax.set_ylim(0, 1.2 * max(high, counts.max(initial=0), 1))
         ax.set_title(f"{name}  (χ² p = {p:.2g})", fontsize=9)
         ax.set_xlabel(f"rank of the truth among {n_ranked} draws")
         ax.set_xlim(0, n_ranked + 1)
     axes[0][0].set_ylabel("replicates")
-    axes[0][0].legend(fontsize=7, loc="lower left")
+    axes[0][0].legend(fontsize=7, loc="upper right", framealpha=0.9)
     fig.tight_layout()
     return fig
 

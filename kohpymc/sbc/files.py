@@ -23,12 +23,14 @@ import numpy as np
 import xarray as xr
 from scipy import stats
 
+from kohpymc.sbc.summary import rank_uniformity
 from kohpymc.study_files import markdown_table, write_atomic
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from kohpymc.sbc import CalibrationCheck, CheckSettings
+    from kohpymc.sbc.check import CalibrationCheck
+    from kohpymc.sbc.settings import CheckSettings
 
 __all__ = [
     "plot_rank_histograms",
@@ -120,7 +122,7 @@ def ranks_dataset(
 
     Examples
     --------
-    >>> from kohpymc.sbc import CheckSettings
+    >>> from kohpymc.sbc.settings import CheckSettings
     >>> rec = {"index": 0, "seed": 5, "rank": {"a": 3}, "truth": {"a": 1.0},
     ...        "cover50": {"a": True}, "cover90": {"a": True}, "r_hat": {"a": 1.0},
     ...        "ess_bulk": {"a": 400.0}, "ess_tail": {"a": 300.0},
@@ -173,8 +175,6 @@ def plot_rank_histograms(ranks: xr.Dataset) -> Figure:
     2
     """
     import matplotlib.pyplot as plt
-
-    from kohpymc.sbc import rank_uniformity
 
     n_ranked = int(ranks.attrs["rank_draws"])
     usable = ranks["rank"].isel(replicate=np.flatnonzero(ranks["usable"].values))

@@ -184,6 +184,10 @@ def check_calibration(
     True
     """
     started = time.perf_counter()
+    if (workers > 1 or scheduler) and _run_tasks() is _run_tasks_in_process:
+        raise ValueError(
+            "--workers > 1 or --scheduler need kohpymc.execution (Dask), not in this build"
+        )
     spec = study if isinstance(study, StudySpec) else load_study(study)
     overrides = dict(
         replicates=replicates, formulation=formulation, draws=draws, tune=tune,
@@ -206,8 +210,13 @@ def check_calibration(
     todo = [i for i in range(settings.replicates) if i not in done]
     records, failures = dict(done), {}
     if todo:
+        say(f"{settings.formulation}: composing and compiling the fitted model (once)")
         fitter = _prepare(spec, settings, recipe, timings)
         tasks = _tasks(spec, settings, recipe, fitter, todo, seeds)
+        say(
+            f"{settings.formulation}: compiled in {timings['setup_compile']:.1f} s; fitting "
+            f"{len(todo)} replicate(s), {settings.chains} × {settings.draws} draws each"
+        )
         for index, result, error in _collect(tasks, workers, scheduler, say, settings):
             if error is not None:
                 failures[index] = error

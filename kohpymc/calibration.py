@@ -205,6 +205,19 @@ def _add_log_likelihood(idata: az.InferenceData, built, plain) -> None:
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
 
 
+def _explained(problem: str, report: Any) -> str:
+    """A flat-direction warning with the combinations the identifiability check names."""
+    if "flat in some direction" not in problem or report is None or report.identifiable:
+        return problem
+    return problem + "; the identifiability check names: " + "; ".join(report.confounded())
+
+
+def _variance_pairs(discrepancy: Discrepancy) -> list[tuple[str, str, str]]:
+    """σ_obs with the formulation's parameter whose variance adds to σ_obs² (if any)."""
+    partner = discrepancy.noise_partner()
+    return [] if partner is None else [("sigma_obs", *partner)]
+
+
 def calibrate(
     physics: PhysicsModel,
     data: CalibrationData,
@@ -312,11 +325,14 @@ def calibrate(
         reparameterize=reparameterize,
         mode=mode if mode is not None else _default_mode(built.model, data),
         sample_kwargs=sample_kwargs,
+        variance_pairs=_variance_pairs(discrepancy),
     )
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
     problems = convergence_problems(idata) if sampling.sampler != "smc" else []
-    problems += sampling.reparameterization.get("warnings", [])
+    problems += [
+        _explained(text, report) for text in sampling.reparameterization.get("warnings", [])
+    ]
     idata.attrs.update(
         {
             "formulation": discrepancy.label,

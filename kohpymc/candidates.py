@@ -1,22 +1,48 @@
-"""A library of candidate discrepancy terms built from a model's inputs.
+"""Candidate discrepancy terms shaped like physics, built from a model's inputs.
 
-The discovery workflow (issue 5) looks for a missing effect ``c · φ(x)`` among terms made
-from the model's own inputs: powers ``x_k^m``, products of two inputs ``x_j x_k``, decaying
-exponentials ``exp(-x_k / s)`` at a few fixed scales ``s`` (relative to the input's
-range) and logarithms of positive inputs, plus user-supplied terms with a physical meaning.
-Each term knows which inputs it depends on and how to print itself ("c * P * x").
+The discovery workflow looks for a missing effect ``c · φ(x)`` among terms made from the
+model's own inputs:
+
+* **monomials** ``∏ x_i^{p_i}`` of one, two or three inputs with exponents from a
+  configurable set (default ``-2, -1, -½, ½, 1, 2, 3, 4``; negative and fractional powers
+  only for inputs that are strictly positive on the data), e.g. ``t^3/m``;
+* **shifted powers** ``(x - x_ref)^p`` (``p = 2, 3, 4``) for an input whose natural zero
+  lies elsewhere (a temperature near 20 °C): the reference is given by the user or, for an
+  input whose values stay more than one range away from 0, its median;
+* **logarithms** of strictly positive inputs;
+* **shaped terms with a fitted scale** ``c``: saturation ``x / (1 + x/c)`` (non-negative
+  inputs), threshold ``max(0, x - c)`` and decay ``exp(-(x - x_min)/c)``.  The scale is
+  not gridded: the search fits it per term (:mod:`kohpymc.discovery.search`);
+* user terms with a physical meaning.
+
+Terms that depend on the physics model itself ("a parameter varies with an input",
+"the output scales with an input") are built by :mod:`kohpymc.discovery.drift`.  Each
+term knows which inputs it depends on and how to print itself (``"c * t^3/m"``).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
-__all__ = ["CandidateTerm", "candidate_library", "design_matrix"]
+__all__ = [
+    "DEFAULT_EXPONENTS",
+    "CandidateTerm",
+    "candidate_library",
+    "design_matrix",
+    "monomial_name",
+]
 
 TermFunction = Callable[[Mapping[str, np.ndarray]], np.ndarray]
+ShapeFunction = Callable[[Mapping[str, np.ndarray], float], np.ndarray]
+
+#: Default exponents of the monomials.
+DEFAULT_EXPONENTS: tuple[float, ...] = (-2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 3.0, 4.0)
 
 
 @dataclass(frozen=True)
@@ -26,16 +52,29 @@ class CandidateTerm:
     Attributes
     ----------
     name : str
-        Short unique name, e.g. ``"P*x"``, ``"x^2"``, ``"exp(-t/25)"``.
+        Short unique name, e.g. ``"t^3/m"``, ``"P*x"``, ``"max(0,T-c)"``.
     inputs : tuple of str
         Inputs the term depends on.
     function : callable
-        ``function(inputs) -> array`` with one value per row.
-    decay_scale : float, optional
-        For ``exp(-x / s)`` terms: the scale ``s`` the column was built with.  When the
-        term is added to a model (:func:`kohpymc.discovery.augmented_physics`) the scale
-        becomes a calibrated parameter, so a fixed grid of scales only has to find the
-        right order of magnitude.
+        ``function(inputs) -> array`` with one value per row (for a shaped term: at its
+        fitted scale, or at the initial guess before the fit).
+    kind : str
+        ``"monomial"``, ``"shifted"``, ``"log"``, ``"saturation"``, ``"threshold"``,
+        ``"decay"``, ``"drift"``, ``"output"`` or ``"user"``.
+    shape : callable, optional
+        For a shaped term, ``shape(inputs, c)``: the column as a function of its scale.
+    scale, scale_bounds : float, (float, float), optional
+        The fitted scale (None before the fit) and the range searched.
+    parameter : str, optional
+        For a drift term: the physics parameter that varies, ``θ_j → θ_j + c · g(x)``.
+    modulation : callable, optional
+        For drift and output terms: ``g(x)``.
+    meaning : str, optional
+        The term in words, e.g. ``"E depends on T, linearly"``.
+    complexity : int
+        A rough count of symbols (1 per input factor, +1 per non-integer or negative
+        exponent, +1 per fitted scale); breaks ties between terms that are equal on the
+        data.
 
     Examples
     --------
@@ -50,11 +89,22 @@ class CandidateTerm:
     name: str
     inputs: tuple[str, ...]
     function: TermFunction
-    decay_scale: float | None = None
+    kind: str = "user"
+    shape: ShapeFunction | None = None
+    scale: float | None = None
+    scale_bounds: tuple[float, float] | None = None
+    parameter: str | None = None
+    modulation: TermFunction | None = None
+    meaning: str | None = None
+    complexity: int = 1
 
     @property
     def expression(self) -> str:
         """The term with its coefficient, e.g. ``"c * P * x"``."""
+        if self.kind == "drift":
+            return f"{self.parameter} -> {self.parameter} + c * {self.name.split('~', 1)[1]}"
+        if self.kind == "output":
+            return f"G * (1 + c * {self.name.split('*', 1)[1]})"
         return "c * " + self.name.replace("*", " * ")
 
     def __call__(self, inputs: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -66,20 +116,167 @@ class CandidateTerm:
         n = len(np.asarray(inputs[self.inputs[0]])) if self.inputs else values.size
         return np.broadcast_to(values, (n,)).astype(float)
 
+    def with_scale(self, scale: float) -> CandidateTerm:
+        """The shaped term at a fitted scale (name and function updated).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> lib = candidate_library({"x": np.linspace(0.0, 4.0, 9)}, exponents=(1.0,),
+        ...                         logarithms=False)
+        >>> sat = next(t for t in lib if t.kind == "saturation").with_scale(2.0)
+        >>> sat.name, float(sat({"x": np.array([2.0])})[0])
+        ('x/(1+x/2)', 1.0)
+        """
+        if self.shape is None:
+            raise ValueError(f"candidate term {self.name!r} has no scale to fit")
+        shape, c = self.shape, float(scale)
+        return dataclasses.replace(
+            self,
+            name=_shaped_name(self.kind, self.inputs[0], c, self.name),
+            function=lambda d: shape(d, c),
+            scale=c,
+        )
+
 
 def _fmt(value: float) -> str:
     return f"{value:.3g}"
+
+
+def _power(name: str, p: float) -> str:
+    """``x``, ``x^2``, ``sqrt(x)``, ``x^1.5`` for |p|."""
+    q = Fraction(abs(p)).limit_denominator(8)
+    if q == 1:
+        return name
+    if q == Fraction(1, 2):
+        return f"sqrt({name})"
+    return f"{name}^{q.numerator}" if q.denominator == 1 else f"{name}^{float(q):g}"
+
+
+def monomial_name(powers: Mapping[str, float]) -> str:
+    """``"t^3/m"``, ``"sqrt(x)*P"``, ``"1/(m*L^2)"``: a product of powers as text.
+
+    Examples
+    --------
+    >>> monomial_name({"t": 3, "m": -1})
+    't^3/m'
+    >>> monomial_name({"m": -1, "L": -2})
+    '1/(m*L^2)'
+    """
+    num = [_power(k, p) for k, p in powers.items() if p > 0]
+    den = [_power(k, p) for k, p in powers.items() if p < 0]
+    text = "*".join(num) if num else "1"
+    if den:
+        text += "/" + (den[0] if len(den) == 1 else "(" + "*".join(den) + ")")
+    return text
+
+
+def _shaped_name(kind: str, k: str, c: float | None, fallback: str) -> str:
+    cs = "c" if c is None else _fmt(c)
+    if kind == "saturation":
+        return f"{k}/(1+{k}/{cs})"
+    if kind == "threshold":
+        return f"max(0,{k}-{cs})"
+    if kind == "decay":
+        return fallback.split("/")[0] + f"/{cs})"
+    return fallback
+
+
+def _monomials(arrays, varying, exponents, max_inputs) -> list[CandidateTerm]:
+    positive = {k for k in varying if np.min(arrays[k]) > 0}
+    terms: list[CandidateTerm] = []
+    for size in range(1, max_inputs + 1):
+        for combo in itertools.combinations(varying, size):
+            allowed = [
+                [p for p in exponents if k in positive or (p > 0 and float(p).is_integer())]
+                for k in combo
+            ]
+            for powers in itertools.product(*allowed):
+                pw = dict(zip(combo, powers, strict=True))
+                odd = sum(1 for p in powers if p < 0 or not float(p).is_integer())
+                terms.append(
+                    CandidateTerm(
+                        monomial_name(pw),
+                        combo,
+                        lambda d, pw=pw: np.prod(  # type: ignore[misc]
+                            [np.asarray(d[k], dtype=float) ** p for k, p in pw.items()], axis=0
+                        ),
+                        kind="monomial",
+                        complexity=size + odd,
+                    )
+                )
+    return terms
+
+
+def _reference(col: np.ndarray, given: float | None) -> float | None:
+    """The reference of a shifted power: given, or the median when 0 is far from the data."""
+    if given is not None:
+        return float(given)
+    lo, hi = float(np.min(col)), float(np.max(col))
+    span = hi - lo
+    far = lo > span or hi < -span
+    return float(np.median(col)) if far and span > 0 else None
+
+
+def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
+    terms: list[CandidateTerm] = []
+    ref = _reference(col, references.get(k))
+    if ref is not None:
+        for p in (2, 3, 4):
+            name = f"({k}-{_fmt(ref)})^{p}"
+            terms.append(
+                CandidateTerm(
+                    name, (k,), lambda d, k=k, r=ref, p=p: (np.asarray(d[k]) - r) ** p,  # type: ignore[misc]
+                    kind="shifted", complexity=2,
+                )
+            )  # fmt: skip
+    lo, hi = float(np.min(col)), float(np.max(col))
+    span = hi - lo
+    # the scale's range: from a twentieth of the data's range to ten times it
+    if "saturation" in shapes and lo >= 0:
+        terms.append(
+            CandidateTerm(
+                _shaped_name("saturation", k, None, ""), (k,),
+                lambda d, k=k, c=span: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),  # type: ignore[misc]
+                kind="saturation",
+                shape=lambda d, c, k=k: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),  # type: ignore[misc]
+                scale_bounds=(0.02 * span, 10 * max(span, hi)), complexity=3,
+            )
+        )  # fmt: skip
+    if "threshold" in shapes:
+        terms.append(
+            CandidateTerm(
+                _shaped_name("threshold", k, None, ""), (k,),
+                lambda d, k=k, c=0.5 * (lo + hi): np.maximum(0.0, np.asarray(d[k]) - c),  # type: ignore[misc]
+                kind="threshold",
+                shape=lambda d, c, k=k: np.maximum(0.0, np.asarray(d[k]) - c),  # type: ignore[misc]
+                scale_bounds=(lo + 0.05 * span, hi - 0.15 * span), complexity=3,
+            )
+        )  # fmt: skip
+    if "decay" in shapes:
+        origin = 0.0 if lo >= 0 else lo
+        head = f"exp(-{k}/" if origin == 0 else f"exp(-({k}-{_fmt(origin)})/"
+        terms.append(
+            CandidateTerm(
+                head + "c)", (k,),
+                lambda d, k=k, o=origin, c=0.3 * span: np.exp(-(np.asarray(d[k]) - o) / c),  # type: ignore[misc]
+                kind="decay",
+                shape=lambda d, c, k=k, o=origin: np.exp(-(np.asarray(d[k]) - o) / c),  # type: ignore[misc]
+                scale_bounds=(0.02 * span, 5 * span), complexity=3,
+            )
+        )  # fmt: skip
+    return terms
 
 
 def candidate_library(
     inputs: Mapping[str, np.ndarray],
     names: Sequence[str] | None = None,
     *,
-    max_power: int = 3,
-    interactions: bool = True,
-    exponentials: bool = True,
+    exponents: Sequence[float] = DEFAULT_EXPONENTS,
+    max_inputs: int = 3,
     logarithms: bool = True,
-    exponential_scales: Sequence[float] = (0.05, 0.1, 0.2, 0.4, 0.8),
+    shapes: Sequence[str] = ("saturation", "threshold", "decay"),
+    references: Mapping[str, float] | None = None,
     extra: Mapping[str, tuple[Sequence[str], TermFunction]] | None = None,
 ) -> list[CandidateTerm]:
     """Candidate terms from the named inputs (and user terms).
@@ -87,21 +284,23 @@ def candidate_library(
     Parameters
     ----------
     inputs : mapping name -> array
-        Input values of the data (used for the exponential scales and to decide which
-        inputs are positive or constant).
+        Input values of the data (used to decide which inputs are positive or constant,
+        and for the ranges of the fitted scales).
     names : sequence of str, optional
         Inputs to build terms from; default all of ``inputs``.
-    max_power : int
-        Powers ``x^1 .. x^max_power`` of each input.
-    interactions : bool
-        Products ``x_j * x_k`` of two different inputs.
-    exponentials : bool
-        ``exp(-x / s)`` with ``s = f · range(x)`` for ``f`` in ``exponential_scales``
-        (inputs that are non-negative only: a decay from the origin, e.g. in time).
+    exponents : sequence of float
+        Exponents of each factor of a monomial (0 excluded).  Negative and non-integer
+        exponents are used only for inputs that are strictly positive on the data.
+    max_inputs : int
+        Largest number of different inputs in one monomial (1-3).
     logarithms : bool
         ``log(x)`` for strictly positive inputs.
-    exponential_scales : sequence of float
-        Scales ``f`` of the exponentials, as fractions of the input's range.
+    shapes : sequence of str
+        Shaped terms with a fitted scale: any of ``"saturation"``, ``"threshold"``,
+        ``"decay"``.
+    references : mapping name -> float, optional
+        Reference values of inputs whose natural zero is elsewhere (adds
+        ``(x - x_ref)^p``); inputs far from 0 get their median automatically.
     extra : mapping name -> (inputs, function), optional
         User terms with physical meaning, e.g. ``{"x^2*P": (["x", "P"], f)}``.
 
@@ -115,42 +314,30 @@ def candidate_library(
     --------
     >>> import numpy as np
     >>> data = {"x": np.linspace(1, 10, 5), "P": np.array([1.0, 1.0, 2.0, 2.0, 3.0])}
-    >>> [t.name for t in candidate_library(data, max_power=2, exponentials=False)]
-    ['x', 'x^2', 'log(x)', 'P', 'P^2', 'log(P)', 'x*P']
+    >>> lib = candidate_library(data, exponents=(-1, 1, 2), shapes=())
+    >>> [t.name for t in lib][:8]
+    ['1/x', 'x', 'x^2', '1/P', 'P', 'P^2', '1/(x*P)', 'P/x']
+    >>> len(lib)
+    17
     """
     names = list(inputs) if names is None else list(names)
     missing = [k for k in names if k not in inputs]
     if missing:
         raise KeyError(f"candidate library: input(s) {missing} not in the data")
-    if max_power < 1:
-        raise ValueError(f"max_power must be at least 1, got {max_power}")
+    if not 1 <= max_inputs <= 3:
+        raise ValueError(f"max_inputs must be 1, 2 or 3, got {max_inputs}")
+    if any(p == 0 for p in exponents):
+        raise ValueError("exponents: 0 is not an exponent (the constant is always a candidate)")
+    unknown = set(shapes) - {"saturation", "threshold", "decay"}
+    if unknown:
+        raise ValueError(f"unknown shape(s) {sorted(unknown)}")
     arrays = {k: np.asarray(inputs[k], dtype=float) for k in names}
     varying = [k for k in names if np.ptp(arrays[k]) > 0]
-    terms: list[CandidateTerm] = []
+    terms = _monomials(arrays, varying, sorted(set(exponents)), max_inputs)
     for k in varying:
-        col = arrays[k]
-        for m in range(1, max_power + 1):
-            name = k if m == 1 else f"{k}^{m}"
-            terms.append(CandidateTerm(name, (k,), lambda d, k=k, m=m: np.asarray(d[k]) ** m))
-        if exponentials and np.min(col) >= 0:
-            for f in exponential_scales:
-                s = float(f * np.ptp(col))
-                terms.append(
-                    CandidateTerm(
-                        f"exp(-{k}/{_fmt(s)})",
-                        (k,),
-                        lambda d, k=k, s=s: np.exp(-np.asarray(d[k]) / s),
-                        decay_scale=s,
-                    )
-                )
-        if logarithms and np.min(col) > 0:
-            terms.append(CandidateTerm(f"log({k})", (k,), lambda d, k=k: np.log(d[k])))
-    if interactions:
-        for i, a in enumerate(varying):
-            for b in varying[i + 1 :]:
-                terms.append(
-                    CandidateTerm(f"{a}*{b}", (a, b), lambda d, a=a, b=b: np.asarray(d[a]) * d[b])
-                )
+        if logarithms and np.min(arrays[k]) > 0:
+            terms.append(CandidateTerm(f"log({k})", (k,), lambda d, k=k: np.log(d[k]), kind="log"))  # type: ignore[misc]
+        terms += _single_input_shapes(k, arrays[k], shapes, dict(references or {}))
     for name, (term_inputs, function) in (extra or {}).items():
         if not callable(function):
             raise TypeError(f"candidate term {name!r}: function is not callable")
@@ -173,8 +360,8 @@ def design_matrix(terms: Sequence[CandidateTerm], inputs: Mapping[str, np.ndarra
     Examples
     --------
     >>> import numpy as np
-    >>> terms = candidate_library({"x": np.array([1.0, 2.0])}, max_power=2,
-    ...                           exponentials=False, logarithms=False)
+    >>> terms = candidate_library({"x": np.array([1.0, 2.0])}, exponents=(1, 2),
+    ...                           logarithms=False, shapes=())
     >>> design_matrix(terms, {"x": np.array([1.0, 2.0])})
     array([[1., 1.],
            [2., 4.]])

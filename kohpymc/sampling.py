@@ -34,10 +34,10 @@ import numpy as np
 import pymc as pm
 
 from kohpymc.checks import SAMPLERS, check_sampler
-from kohpymc.reparameterization import Coordinates, Reparameterization, plan
+from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.value_space import ValueSpace, value_space
 
-__all__ = ["SAMPLERS", "SamplingReport", "choose_sampler", "sample_posterior"]
+__all__ = ["SAMPLERS", "SamplingReport", "choose_sampler", "sample_posterior", "variance_shares"]
 
 
 @dataclass
@@ -119,6 +119,7 @@ def sample_posterior(
     starts: Sequence[Mapping[str, Any]] = (),
     mode: str | None = None,
     sample_kwargs: Mapping[str, Any] | None = None,
+    variance_pairs: Sequence[Sequence[str]] = (),
     space: ValueSpace | None = None,
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
@@ -139,6 +140,11 @@ def sample_posterior(
     sample_kwargs : dict, optional
         Extra keywords for :func:`pymc.sample` / :func:`pymc.sample_smc`, or for
         :func:`nutpie.sample` (e.g. ``maxdepth``, ``low_rank_modified_mass_matrix``).
+    variance_pairs : sequence of (str, str) or (str, str, kind)
+        Parameters whose variances add up in the likelihood (σ_obs next to an iid
+        discrepancy sd, or to a log-variance's intercept with kind ``"log_variance"``);
+        with ``reparameterize`` they are sampled as total sd and log ratio
+        (:func:`variance_shares`).
     space : ValueSpace, optional
         ``value_space(model)`` compiled earlier, to sample without compiling again (e.g.
         many data sets swapped into one model's shared variables); default: compile now.
@@ -180,7 +186,8 @@ def sample_posterior(
         elif space.model is not model:
             raise ValueError("space must be value_space(model) of the model being sampled")
         report.timings["compile"] = time.perf_counter() - start
-        reparam = _plan(space, starts, seed, reparameterize, report)
+        shares = variance_shares(space, variance_pairs)
+        reparam = _plan(space, starts, seed, reparameterize, report, shares)
         idata: az.InferenceData | None = None
         failures: list[str] = []
         if name == "nutpie":
@@ -226,18 +233,60 @@ def _user_starts(space: ValueSpace, starts: Sequence[Mapping[str, Any]]) -> list
     return out
 
 
+def variance_shares(space: ValueSpace, pairs: Sequence[Sequence[str]]) -> VarianceShare | None:
+    """Value-space indices of ``(σ_a, b[, kind])`` pairs for :class:`VarianceShare`.
+
+    ``σ_a`` must be a free, scalar, log-transformed parameter; ``b`` a scalar
+    log-transformed sd (kind ``"sd"``, the default) or the coefficients of a log-variance
+    (kind ``"log_variance"``: its first entry, untransformed).  Pairs naming anything
+    else (e.g. σ_obs when the noise sd is known) are left out.
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:
+    ...     a = pm.HalfNormal("a", 1.0)
+    ...     b = pm.HalfNormal("b", 1.0)
+    ...     _ = pm.Normal("y", 0.0, pm.math.sqrt(a**2 + b**2), observed=[1.0, -1.0])
+    >>> variance_shares(value_space(model), [("a", "b")]).pairs
+    ((0, 1, 1.0),)
+    """
+    first: dict[str, tuple[int, int, str]] = {}  # name -> (flat index, size, transform)
+    start = 0
+    for rv, shape in zip(space.model.free_RVs, space.shapes, strict=True):
+        size = int(np.prod(shape, dtype=int))
+        first[rv.name] = (start, size, space.transforms[start] if size else "")
+        start += size
+    found, names = [], []
+    for a, b, *kind in pairs:
+        scale = 2.0 if kind and kind[0] == "log_variance" else 1.0
+        wanted_b = ("identity", None) if scale == 2.0 else ("log", 1)
+        if a not in first or b not in first or a == b or first[a][1:] != (1, "log"):
+            continue
+        index_b, size_b, transform_b = first[b]
+        if transform_b != wanted_b[0] or (wanted_b[1] is not None and size_b != wanted_b[1]):
+            continue
+        found.append((first[a][0], index_b, scale))
+        names.append((a, b))
+    if not found:
+        return None
+    return VarianceShare(tuple(found), tuple(names))
+
+
 def _plan(
     space: ValueSpace,
     starts: Sequence[Mapping[str, Any]],
     seed: int,
     reparameterize: bool,
     report: SamplingReport,
+    shares: VarianceShare | None = None,
 ) -> Reparameterization | None:
     if not reparameterize:
         report.reparameterization = {"kind": "none", "reason": "reparameterize=False"}
         return None
     begin = time.perf_counter()
-    reparam = plan(space, _user_starts(space, starts), seed=seed)
+    reparam = plan(space, _user_starts(space, starts), seed=seed, shares=shares)
     report.timings["mode_and_laplace"] = time.perf_counter() - begin
     report.reparameterization = reparam.to_dict()
     return reparam

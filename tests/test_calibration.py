@@ -191,6 +191,7 @@ def _time_series(seed=SEED):
     return physics, CalibrationData({"t": t}, y, noise_sd=0.05)
 
 
+@pytest.mark.slow  # ~50 s unloaded; M5 mechanics stay in test_formulation_contract
 def test_nonstationary_gp_on_time_series_with_shrinking_noise():
     physics, data = _time_series()
     with warnings.catch_warnings():
@@ -299,3 +300,24 @@ def test_other_physics_natural_units_unknown_noise_and_an_ignored_input():
     from_cal = reliability(cal, held_out, tolerance=10.0, noise_sd=6.0)
     from_pred = reliability(pred, held_out, tolerance=10.0, noise_sd=6.0)
     assert abs(from_cal.mu_r - from_pred.mu_r) < 5 * max(from_pred.mcse, 1e-3)
+
+
+def test_a_structural_ridge_is_explained_by_the_identifiability_check():
+    """y = (a + b)·x with priors 1e4 wide and data fixing a + b to 1e-3: the Hessian at the mode
+    is singular to working precision, and the sampler's warning names the combination the
+    identifiability check finds, instead of only reporting long trajectories."""
+    from kohpymc.priors import Normal
+
+    x = np.linspace(0.5, 2.0, 12)
+    physics = PhysicsModel(
+        lambda i, p: (p["a"] + p["b"]) * i["x"],
+        {"a": Normal(0.0, 1e4), "b": Normal(0.0, 1e4)},
+        inputs=["x"],
+    )
+    data = CalibrationData({"x": x}, 3.0 * x, noise_sd=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate(physics, data, draws=30, tune=30, chains=1, random_seed=SEED)
+    (flat,) = [p for p in cal.problems if "flat in some direction" in p]
+    assert "the identifiability check names: a and b are confounded" in flat
+    assert "a + b" in flat

@@ -300,9 +300,7 @@ def test_fisher_reports_m2_noise_confounding_in_original_units():
 
 def test_product_of_parameters_on_very_different_scales():
     """y = a·b·x: the output is flat where Δa/a = -Δb/b, i.e. along (a, -b) in the
-    parameters' own units.  Taylor check at a = 2e5, b = 3e-3 (ten decades apart); the
-    Fisher check at a = 2e3, b = 3e-2 (its uninformative-parameter cut, 1e-6 on √I_jj
-    relative to the largest, would drop ``a`` at the wider spread)."""
+    parameters' own units.  Both checks at a = 2e5, b = 3e-3 (eight decades apart)."""
     x = np.linspace(0.5, 2.0, 10)
     prod = PhysicsModel(
         lambda i, p: p["a"] * p["b"] * i["x"],
@@ -311,8 +309,8 @@ def test_product_of_parameters_on_very_different_scales():
     )
     taylor = taylor_check(prod, {"x": x}, {"a": 2.0e5, "b": 3.0e-3})
     data = CalibrationData({"x": x}, 60.0 * x, noise_sd=0.5)
-    fisher = fisher_information_check(prod, data, point={"a": 2.0e3, "b": 3.0e-2})
-    for report, ratio in ((taylor, "1 : -1.5e-08"), (fisher, "1 : -1.5e-05")):
+    fisher = fisher_information_check(prod, data, point={"a": 2.0e5, "b": 3.0e-3})
+    for report, ratio in ((taylor, "1 : -1.5e-08"), (fisher, "1 : -1.5e-08")):
         a, b = report.point["a"], report.point["b"]
         assert report.non_identifiable_sets == [["a", "b"]]
         (direction,) = report.null_directions
@@ -322,3 +320,19 @@ def test_product_of_parameters_on_very_different_scales():
         assert text.startswith("a and b are confounded")
         assert f"Δa : Δb = {ratio}" in text
         assert "a·b" in text and "a + b" not in text and "a/b" not in text
+
+
+@pytest.mark.parametrize("unit", [1.0, 1e9, 1e-9])
+def test_fisher_verdict_does_not_depend_on_the_units_of_a_parameter(unit):
+    """E in GPa, Pa or EPa-scaled units next to an unknown noise sd: always identifiable, rank
+    2 (the cut for "no information" is √I_jj times the prior spread, which is unit-free)."""
+    x = np.linspace(0.5, 2.0, 20)
+    physics = PhysicsModel(
+        lambda i, p: p["E"] / unit * i["x"],
+        {"E": Uniform(150.0 * unit, 250.0 * unit)},
+        inputs=["x"],
+    )
+    y = 200.0 * x + np.random.default_rng(3).normal(0.0, 0.3, x.size)
+    report = fisher_information_check(physics, CalibrationData({"x": x}, y))
+    assert report.identifiable, report.confounded()
+    assert report.rank == 2

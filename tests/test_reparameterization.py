@@ -5,8 +5,14 @@ import numpy as np
 import pymc as pm
 import pytest
 
-from kohpymc.reparameterization import Coordinates, Reparameterization, find_mode, plan
-from kohpymc.sampling import sample_posterior
+from kohpymc.reparameterization import (
+    Coordinates,
+    Reparameterization,
+    VarianceShare,
+    find_mode,
+    plan,
+)
+from kohpymc.sampling import sample_posterior, variance_shares
 from kohpymc.value_space import value_space
 
 SEED = 20261123
@@ -139,3 +145,123 @@ def test_separated_modes_are_reported():
         pm.Normal("y", a**2, 0.05, observed=[4.0, 4.02, 3.98])
     reparam = plan(value_space(model), seed=SEED, n_design=8)
     assert any("separated modes" in w for w in reparam.warnings), reparam.warnings
+
+
+def test_variance_share_map_is_volume_preserving_with_the_right_gradient():
+    """(t, u) -> (ln a, ln b): round trip, a² + b² = e^{2t}, b/a = e^u, Jacobian det 1, and
+    the pulled-back gradient against finite differences of a test function."""
+    shares = VarianceShare(((0, 2, 1.0),))
+    w = np.array([0.4, 7.0, -1.3])
+    v = shares.forward(w)
+    np.testing.assert_allclose(shares.inverse(v), w, rtol=1e-12)
+    assert np.exp(2 * v[0]) + np.exp(2 * v[2]) == pytest.approx(np.exp(2 * w[0]))
+    assert v[2] - v[0] == pytest.approx(w[2])
+    assert v[1] == w[1]
+    jac = np.column_stack(
+        [(shares.forward(w + e) - shares.forward(w - e)) / 2e-6 for e in np.eye(3) * 1e-6]
+    )
+    assert np.linalg.det(jac) == pytest.approx(1.0, rel=1e-8)
+
+    def f(v):
+        return np.sin(v[0]) * v[2] ** 2 + v[1] * v[2]
+
+    grad_v = np.array([np.cos(v[0]) * v[2] ** 2, v[2], 2 * v[0 + 2] * np.sin(v[0]) + v[1]])
+    fd = _finite_difference_gradient(lambda u: f(shares.forward(u)), w)
+    np.testing.assert_allclose(shares.pull_back(w, grad_v), fd, rtol=1e-6, atol=1e-8)
+
+
+def _sum_of_squares_model():
+    """Only a² + b² is informed (noise next to an iid discrepancy), n = 40."""
+    y = np.random.default_rng(SEED).normal(0.0, 0.5, 40)
+    with pm.Model() as model:
+        a = pm.HalfNormal("a", 1.0)
+        b = pm.HalfNormal("b", 1.0)
+        pm.Normal("y", 0.0, pm.math.sqrt(a**2 + b**2), observed=y)
+    return model, y
+
+
+def _grid_moments(y):
+    """Posterior mean and sd of a and b by quadrature on a dense grid."""
+    grid = np.linspace(1e-4, 1.5, 1200)
+    a, b = np.meshgrid(grid, grid, indexing="ij")
+    s2 = a**2 + b**2
+    logp = -0.5 * (a**2 + b**2) - 0.5 * y.size * np.log(s2) - 0.5 * np.sum(y**2) / s2
+    p = np.exp(logp - logp.max())
+    p /= p.sum()
+    out = {}
+    for name, x in (("a", a), ("b", b)):
+        mean = float((p * x).sum())
+        out[name] = (mean, float(np.sqrt((p * (x - mean) ** 2).sum())))
+    return out
+
+
+def test_sum_of_squares_pair_is_sampled_in_variance_share_coordinates():
+    """The curved ridge a² + b² = const: sampled as (total sd, log ratio) with 0 divergences;
+    the means and sds of a and b match dense quadrature within 4 Monte Carlo errors."""
+    model, y = _sum_of_squares_model()
+    idata, report = sample_posterior(
+        model, draws=1000, tune=1000, chains=2, random_seed=SEED, variance_pairs=[("a", "b")]
+    )
+    assert report.reparameterization["kind"].startswith("variance-share"), report
+    assert "sum of squares" in report.reparameterization["reason"]
+    assert int(idata.sample_stats.diverging.sum()) == 0
+    reference = _grid_moments(y)
+    for name, (mean, sd) in reference.items():
+        draws = idata.posterior[name].values.ravel()
+        ess = float(az.ess(idata, var_names=[name])[name])
+        assert ess > 400
+        assert abs(draws.mean() - mean) < 4 * sd / np.sqrt(ess), name
+        assert abs(draws.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess) + 0.02, name
+
+
+def test_variance_pairs_naming_a_fixed_parameter_are_ignored():
+    """σ_obs known (not a free parameter): no share map, no error."""
+    model, _ = _sum_of_squares_model()
+    assert variance_shares(value_space(model), [("sigma_obs", "b")]) is None
+
+
+def test_variance_share_with_a_log_variance_entry():
+    """c = 2: the entry is ln σ_b² ; round trip, sum of squares, gradient, det = 2."""
+    shares = VarianceShare(((1, 0, 2.0),))
+    w = np.array([0.8, -0.2])
+    v = shares.forward(w)
+    np.testing.assert_allclose(shares.inverse(v), w, rtol=1e-12)
+    assert np.exp(2 * v[1]) + np.exp(v[0]) == pytest.approx(np.exp(2 * w[1]))
+    jac = np.column_stack(
+        [(shares.forward(w + e) - shares.forward(w - e)) / 2e-6 for e in np.eye(2) * 1e-6]
+    )
+    assert abs(np.linalg.det(jac)) == pytest.approx(2.0, rel=1e-7)
+    grad_v = np.array([np.cos(v[0]) * v[1], np.sin(v[0]) + 3 * v[1] ** 2])
+    fd = _finite_difference_gradient(lambda u: (lambda x: np.sin(x[0]) * x[1] + x[1] ** 3)(
+        shares.forward(u)), w)  # fmt: skip
+    np.testing.assert_allclose(shares.pull_back(w, grad_v), fd, rtol=1e-6, atol=1e-8)
+
+
+def _line_physics(jacobian):
+    from kohpymc import CalibrationData, PhysicsModel
+    from kohpymc.priors import Normal
+
+    x = np.linspace(0.0, 2.0, 15)
+    y = 1.5 * x + np.random.default_rng(SEED).normal(0.0, 0.1, x.size)
+    physics = PhysicsModel(
+        lambda i, p: p["a"] * i["x"],
+        {"a": Normal(1.0, 2.0)},
+        inputs=["x"],
+        jacobian=jacobian,
+    )
+    return physics, CalibrationData({"x": x}, y, noise_sd=0.1)
+
+
+@pytest.mark.parametrize("factor", [1.0, 1.3])
+def test_a_wrong_physics_jacobian_is_reported(factor):
+    """A Jacobian 30 % off gives a log-density gradient that finite differences contradict:
+    the plan warns and names sampler='smc'; the right Jacobian gives no warning."""
+    from kohpymc.model import compose_model
+
+    physics, data = _line_physics(lambda i, p: {"a": factor * i["x"]})
+    space = value_space(compose_model(physics, data, None).model)
+    reparam = plan(space, seed=SEED)
+    flagged = [w for w in reparam.warnings if "finite differences" in w]
+    assert bool(flagged) == (factor != 1.0), reparam.warnings
+    if flagged:
+        assert "sampler='smc'" in flagged[0]

@@ -14,7 +14,15 @@ from kohpymc.sampling import choose_sampler
 SEED = 20261123
 
 
-@pytest.mark.parametrize("name", ["arrhenius", "collinear", "multiplicative"])
+@pytest.mark.parametrize(
+    "name",
+    # one hard case in the default suite; all three under `make test-slow`
+    [
+        pytest.param("arrhenius", marks=pytest.mark.slow),
+        pytest.param("collinear", marks=pytest.mark.slow),
+        "multiplicative",
+    ],
+)
 def test_hard_posteriors_converge_at_default_settings(name):
     """Unknown noise, natural units, default settings: r̂ <= 1.01, bulk ESS >= 400 and no
     divergences for every parameter, and what the data inform covers the truth (4 sd)."""
@@ -60,6 +68,62 @@ def test_pymc_sampler_starts_at_the_mode_and_says_so():
     assert sampling["sampler"] == "pymc"
     assert cal.idata.attrs["sampler"] == "pymc"
     assert abs(float(cal.posterior["a"].mean()) - 2.5) < 4 * float(cal.posterior["a"].std())
+
+
+def _two_load_beam():
+    from kohpymc.examples import beam
+
+    known = beam.generate_data((2.5, 3.0), seed=2026)
+    data = kp.CalibrationData(
+        {k: np.asarray(v) for k, v in known.inputs.items()}, known.y, output_name="u"
+    )
+    return beam.physics_model(), data
+
+
+@pytest.mark.parametrize(
+    "formulation, pair",
+    [
+        pytest.param(kp.IIDGaussian(), ("sigma_obs", "delta_sd"), marks=pytest.mark.slow),
+        (kp.InputDependentGaussian(mean=["x", "P"]), ("sigma_obs", "delta_logvar")),
+    ],
+    ids=["M2", "M3"],
+)
+def test_noise_and_its_partner_get_variance_share_coordinates(formulation, pair):
+    """With the noise sd unknown, σ_obs and the discrepancy's variance share one flat entry of
+    value space each, found by name; the plan samples them as total sd and log ratio."""
+    from kohpymc.model import compose_model
+    from kohpymc.reparameterization import plan
+    from kohpymc.sampling import variance_shares
+    from kohpymc.value_space import value_space
+
+    physics, data = _two_load_beam()
+    space = value_space(compose_model(physics, data, formulation).model)
+    shares = variance_shares(space, [("sigma_obs", *formulation.noise_partner())])
+    assert shares is not None and shares.names == (pair,)
+    ((i, j, scale),) = shares.pairs
+    assert space.names[i] == "sigma_obs_log__"
+    assert space.names[j].startswith(pair[1])  # the sd's log, or the first coefficient
+    assert scale == (1.0 if pair[1] == "delta_sd" else 2.0)
+    reparam = plan(space, seed=SEED, shares=shares)
+    assert reparam.kind.startswith("variance-share"), reparam.reason
+    assert "sigma_obs and " + pair[1] in reparam.reason
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("label", ["M0", "M1", "M2", "M3", "M4"])
+def test_two_load_beam_with_unknown_noise_has_no_divergences(label):
+    """Issue 15's acceptance: the two-load beam study written as a new user would (no noise
+    sd, default formulations over x and P, default settings, the study's per-label seeds)."""
+    from kohpymc.discrepancy.defaults import default_formulations
+    from kohpymc.validation import derived_seed
+
+    physics, data = _two_load_beam()
+    formulation = default_formulations(physics.inputs)[label]
+    cal = kp.calibrate(
+        physics, data, formulation, random_seed=derived_seed(2026, label, 0), warn=False
+    )
+    assert int(cal.idata.sample_stats["diverging"].sum()) == 0, cal.problems
+    assert float(az.rhat(cal.idata).to_array().max()) <= 1.01, cal.problems
 
 
 def test_a_compiled_space_is_reused_with_new_shared_data():

@@ -24,14 +24,17 @@ evidence (type-II maximum likelihood).
 from __future__ import annotations
 
 from kohpymc.discovery.augment import augmented_physics
-from kohpymc.discovery.evidence import TermSelection, select_terms
+from kohpymc.discovery.evidence import TermSelection, log_bayes_factor
 from kohpymc.discovery.regions import disagreement_regions
 from kohpymc.discovery.report import DiscoveryReport
+from kohpymc.discovery.selection import null_probabilities, select_terms
 from kohpymc.discovery.workflow import discover
 
 __all__ = [
     "TermSelection",
     "select_terms",
+    "log_bayes_factor",
+    "null_probabilities",
     "DiscoveryReport",
     "augmented_physics",
     "disagreement_regions",

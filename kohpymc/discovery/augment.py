@@ -2,21 +2,56 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 __all__ = ["augmented_physics"]
 
 
-def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
-    """``G(x; θ) + Σ_k c_k φ_k(x)`` as a new :class:`~kohpymc.PhysicsModel`.
+def _drift_is_exact(physics, drifts, inputs, theta) -> bool:
+    """Whether the physics function takes a parameter that varies per row."""
+    if inputs is None or not drifts:
+        return True
+    x = {k: np.asarray(inputs[k], dtype=float) for k in physics.inputs}
+    own = {k: float(theta[k]) for k in physics.parameters}
+    try:
+        base = np.asarray(physics.function(x, own), dtype=float)
+        for _, t in drifts:
+            varied = dict(own)
+            varied[t.parameter] = own[t.parameter] + np.zeros(base.size)
+            out = np.asarray(physics.function(x, varied), dtype=float)
+            if out.shape != base.shape or not np.allclose(out, base, rtol=1e-10, atol=0):
+                return False
+    except Exception:  # noqa: BLE001 - any failure means: not vectorised in θ
+        return False
+    return True
 
-    The coefficients are parameters ``c_<k>`` with ``Normal(0, coefficient_sd[k])`` priors.
-    A decaying exponential ``exp(-x / s)`` (a term with ``decay_scale``) gets its scale as
-    a parameter ``tau_<k>`` too, with a ``LogNormal(log s, 0.7)`` prior (a factor 2 either
-    way within one sd).  The physics function is called with its own inputs and
-    parameters only; a user Jacobian of ``physics`` is extended with the term columns.
+
+def augmented_physics(
+    physics,
+    terms,
+    coefficient_sd: Sequence[float],
+    *,
+    offset_sd: float | None = None,
+    inputs: Mapping[str, np.ndarray] | None = None,
+    theta: Mapping[str, float] | None = None,
+):
+    """``G(x; θ) + Σ_k c_k φ_k(x) [+ c_0]`` as a new :class:`~kohpymc.PhysicsModel`.
+
+    The coefficients are parameters ``c_<k>`` with ``Normal(0, coefficient_sd[k])``
+    priors.  By kind of term:
+
+    * a drift term ("θ_j varies with x") replaces ``θ_j`` by ``θ_j + c_k g(x)`` inside
+      the physics function when the function accepts a parameter that varies per row
+      (checked on ``inputs`` at ``theta``), else adds ``c_k (∂G/∂θ_j)(x; θ) g(x)``;
+    * an output term multiplies the model by ``1 + c_k g(x)``;
+    * any other term is added, a shaped one at its fitted scale.
+
+    ``offset_sd`` adds a constant ``c_0 ~ Normal(0, offset_sd)`` (the constant that is
+    part of every explanation, :mod:`kohpymc.discovery.search`).  A user Jacobian of
+    ``physics`` is extended with the term columns when all terms are additive; otherwise
+    the augmented model uses finite differences.
 
     Examples
     --------
@@ -32,70 +67,69 @@ def augmented_physics(physics, terms, coefficient_sd: Sequence[float]):
     22.0
     """
     from kohpymc.physics import PhysicsModel
-    from kohpymc.priors import LogNormal, Normal
+    from kohpymc.priors import Normal
 
     if physics.backend != "numpy":
         raise NotImplementedError("augmenting a pytensor-backend physics model is not supported")
     coefs = [f"c_{k + 1}" for k in range(len(terms))]
-    taus = {
-        k: f"tau_{k + 1}" for k, t in enumerate(terms) if getattr(t, "decay_scale", None)
-    }  # fmt: skip
-    clash = (set(coefs) | set(taus.values())) & set(physics.parameters)
+    clash = (set(coefs) | {"c_0"}) & set(physics.parameters)
     if clash:
         raise ValueError(f"augmented model: parameter name(s) {sorted(clash)} already used")
-    original = physics.function
-    own = list(physics.parameters)
-    inputs = list(dict.fromkeys(list(physics.inputs) + [i for t in terms for i in t.inputs]))
-
-    def column(k, t, x, params):
-        if k in taus:
-            return np.exp(-np.asarray(x[t.inputs[0]], dtype=float) / params[taus[k]])
-        return t(x)
+    drifts = [(c, t) for c, t in zip(coefs, terms, strict=True) if t.kind == "drift"]
+    outputs = [(c, t) for c, t in zip(coefs, terms, strict=True) if t.kind == "output"]
+    added = [(c, t) for c, t in zip(coefs, terms, strict=True)
+             if t.kind not in ("drift", "output")]  # fmt: skip
+    exact = _drift_is_exact(physics, drifts, inputs, theta or physics.prior_mean())
+    original, own_names = physics.function, list(physics.parameters)
+    all_inputs = [*physics.inputs, *(i for t in terms for i in t.inputs)]
+    model_inputs = list(dict.fromkeys(all_inputs))
 
     def function(x, params):
-        base = original({k: x[k] for k in physics.inputs}, {k: params[k] for k in own})
-        extra = sum(
-            params[c] * column(k, t, x, params)
-            for k, (c, t) in enumerate(zip(coefs, terms, strict=True))
-        )
-        return base + extra
+        own = {k: params[k] for k in own_names}
+        xs = {k: x[k] for k in physics.inputs}
+        extra = sum(params[c] * t(x) for c, t in added) if added else 0.0
+        if exact:
+            for c, t in drifts:
+                own[t.parameter] = own[t.parameter] + params[c] * t.modulation(x)
+        elif drifts:
+            J = physics.jacobian_matrix(xs, own)
+            for c, t in drifts:
+                extra = extra + params[c] * J[:, own_names.index(t.parameter)] * t.modulation(x)
+        base = np.asarray(original(xs, own), dtype=float)
+        factor = 1.0 + sum(params[c] * t.modulation(x) for c, t in outputs) if outputs else 1.0
+        offset = params["c_0"] if offset_sd is not None else 0.0
+        return base * factor + extra + offset
 
     jacobian = None
-    if physics.jacobian is not None:
+    if physics.jacobian is not None and not drifts and not outputs:
         user = physics.jacobian
 
         def jacobian(x, params):
-            J = user({k: x[k] for k in physics.inputs}, {k: params[k] for k in own})
+            J = user({k: x[k] for k in physics.inputs}, {k: params[k] for k in own_names})
             if isinstance(J, dict):
-                J = np.column_stack([np.asarray(J[p], dtype=float) for p in physics.parameters])
-            cols = [np.asarray(J, dtype=float).reshape(-1, len(own))]
-            cols += [column(k, t, x, params) for k, t in enumerate(terms)]
-            for k, tau in taus.items():  # d/dτ c exp(-x/τ) = c x / τ² exp(-x/τ)
-                xk = np.asarray(x[terms[k].inputs[0]], dtype=float)
-                cols.append(params[coefs[k]] * xk / params[tau] ** 2 * np.exp(-xk / params[tau]))
+                J = np.column_stack([np.asarray(J[p], dtype=float) for p in own_names])
+            cols = [np.asarray(J, dtype=float).reshape(-1, len(own_names))]
+            cols += [t(x) for _, t in added]
+            if offset_sd is not None:
+                cols.append(np.ones(cols[0].shape[0]))
             return np.column_stack(cols)
 
     params = dict(physics.parameters)
     params.update({c: Normal(0.0, float(s)) for c, s in zip(coefs, coefficient_sd, strict=True)})
-    params.update(
-        {tau: LogNormal(float(np.log(terms[k].decay_scale)), 0.7) for k, tau in taus.items()}
-    )
+    if offset_sd is not None:
+        params["c_0"] = Normal(0.0, float(offset_sd))
+    pieces = [_named(c, t) for c, t in zip(coefs, terms, strict=True)]
+    pieces += ["c_0"] if offset_sd is not None else []
     return PhysicsModel(
         function,
         params,
-        inputs,
+        model_inputs,
         jacobian=jacobian,
         fd_scheme=physics.fd_scheme,
-        name=f"{physics.name} + "
-        + " + ".join(
-            _named(c, t, taus.get(k)) for k, (c, t) in enumerate(zip(coefs, terms, strict=True))
-        ),
+        name=f"{physics.name} + " + " + ".join(pieces),
     )
 
 
-def _named(coefficient: str, term, tau: str | None = None) -> str:
-    """``"c_1 * x * P"``: the term's expression with its coefficient's (and scale's) name."""
-    text = term.expression.replace("c *", f"{coefficient} *", 1)
-    if tau is not None:
-        text = f"{coefficient} * exp(-{term.inputs[0]}/{tau})"
-    return text
+def _named(coefficient: str, term) -> str:
+    """``"c_1 * x * P"``: the term's expression with its coefficient's name."""
+    return term.expression.replace("c *", f"{coefficient} *", 1)

@@ -1,35 +1,120 @@
-"""The term comparison: Bayesian evidence of candidate subsets (see :mod:`kohpymc.discovery`)."""
+"""Closed-form evidence of candidate terms on a linearised residual (see :mod:`kohpymc.discovery`).
+
+Around the calibrated point θ̂ the residual ``r = y - G(x; θ̂)`` is modelled as
+
+    r = J Δθ + [1, Φ_S] c + ε,      ε ~ N(0, σ² I),
+
+with ``J = ∂G/∂θ`` at θ̂ (one Gauss-Newton step: Δθ re-fits the physics parameters jointly
+with the terms), the constant ``1`` (unless the physics parameters can already shift the
+level) and the columns ``Φ_S`` of a candidate subset S.  Priors (Zellner's g-prior with
+the physics parameters as common parameters, Liang et al. 2008, JASA 103:410):
+
+* ``Δθ`` flat (common to every model, so its improper constant cancels in a ratio);
+* ``c | σ ~ N(0, g σ² (Φ̃ᵀΦ̃)⁻¹)`` with ``Φ̃`` the added columns with the span of ``J``
+  projected out, ``g = n`` (unit information) by default;
+* ``σ`` known (the data's noise sd) or ``p(σ) ∝ 1/σ`` (integrated out, never plugged in).
+
+With ``p = rank J``, ``k`` added columns, ``RSS₀`` the residual sum of squares of the
+physics-only fit and ``RSS_S`` that with the terms, the Bayes factor against "nothing
+missing" is, σ known::
+
+    log B = -k/2 log(1 + g) + g/(1 + g) · (RSS₀ - RSS_S) / (2σ²)
+
+and σ integrated out::
+
+    log B = (n - p - k)/2 log(1 + g) - (n - p)/2 log(1 + g RSS_S/RSS₀)
+"""
 
 from __future__ import annotations
 
-import itertools
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
-from kohpymc.identifiability import analyse_matrix
+__all__ = ["TermSelection", "log_bayes_factor"]
 
-__all__ = ["TermSelection", "select_terms"]
+
+def log_bayes_factor(
+    rss0: float,
+    rss: np.ndarray | float,
+    n: int,
+    p: int,
+    k: np.ndarray | int,
+    *,
+    noise_sd: float | None,
+    g: float | None = None,
+) -> np.ndarray:
+    """Log Bayes factor of ``k`` added columns against the physics-only fit.
+
+    Parameters
+    ----------
+    rss0 : float
+        Residual sum of squares after the Gauss-Newton re-fit of θ alone.
+    rss : array or float
+        Residual sum of squares with the added columns (one per subset).
+    n, p : int
+        Number of rows and rank of the physics Jacobian.
+    k : array or int
+        Number of added columns per subset (a fitted scale counts as one more).
+    noise_sd : float or None
+        Known noise sd, or None (σ integrated out with ``p(σ) ∝ 1/σ``).
+    g : float, optional
+        The g of the g-prior; default ``n``.
+
+    Returns
+    -------
+    array
+        ``log B`` per subset.
+
+    Examples
+    --------
+    >>> round(float(log_bayes_factor(10.0, 10.0, 20, 1, 1, noise_sd=None)), 3)  # no fit gain
+    -1.522
+    >>> float(log_bayes_factor(10.0, 2.0, 20, 1, 1, noise_sd=1.0)) > 0
+    True
+    """
+    g = float(n if g is None else g)
+    rss = np.asarray(rss, dtype=float)
+    k = np.asarray(k, dtype=float)
+    if noise_sd is not None:
+        return -0.5 * k * np.log1p(g) + g / (1 + g) * (rss0 - rss) / (2 * noise_sd**2)
+    ratio = np.clip(rss / rss0, 0.0, 1.0) if rss0 > 0 else np.ones_like(rss)
+    return 0.5 * (n - p - k) * np.log1p(g) - 0.5 * (n - p) * np.log1p(g * ratio)
 
 
 @dataclass
 class TermSelection:
-    """Result of :func:`select_terms`.
+    """Result of :func:`kohpymc.discovery.select_terms`: a posterior over explanations.
 
     Attributes
     ----------
     best : tuple of str
-        Names of the most probable subset (empty: nothing missing).
+        Names of the most probable explanation (empty: nothing missing; ``("1",)``: a
+        constant offset).
     probability_none : float
-        Posterior probability that no candidate term is needed.
+        Posterior probability that nothing is missing.
     inclusion : dict name -> float
-        Posterior inclusion probability of each admissible candidate.
+        Posterior inclusion probability of each term that appears in an explanation.
     subsets : list of (tuple of str, float)
-        Subsets with their posterior probabilities, most probable first.
+        Explanations with their posterior probabilities, most probable first ("nothing
+        missing" is the empty tuple).
     rejected : dict name -> str
-        Candidates rejected before the comparison, with the reason.
+        Candidates dropped before the comparison, with the reason.
+    merged : dict name -> str
+        Candidates equal to another on the data (up to the physics parameters and a
+        constant): name -> the name kept.
+    p_value : float or None
+        Share of simulated null residuals with a probability of "nothing missing" at
+        most the observed one (None when not calibrated).
+    false_alarm : float
+        The false-alarm rate the decision is calibrated to.
+    terms : dict name -> CandidateTerm
+        Terms of the explanations (shaped ones at their fitted scale).
+    log_bayes_factors : dict tuple -> float
+        Log Bayes factor of each explanation against "nothing missing".
+    constant : bool
+        Whether a constant offset is part of every explanation (False when the physics
+        parameters can shift the level themselves).
     """
 
     best: tuple[str, ...]
@@ -37,156 +122,22 @@ class TermSelection:
     inclusion: dict[str, float]
     subsets: list[tuple[tuple[str, ...], float]]
     rejected: dict[str, str] = field(default_factory=dict)
+    merged: dict[str, str] = field(default_factory=dict)
+    p_value: float | None = None
+    false_alarm: float = 0.01
+    terms: dict = field(default_factory=dict)
+    log_bayes_factors: dict = field(default_factory=dict)
+    constant: bool = True
 
+    @property
+    def significant(self) -> bool:
+        """Whether something is missing at the calibrated false-alarm rate.
 
-def _log_evidence(r: np.ndarray, base: np.ndarray, Phi: np.ndarray, coef_sd: float, sd):
-    """Log N(r; 0, base + σ² I + s_c² Φ Φᵀ); ``sd`` a float or None (maximised)."""
-    extra = base + (coef_sd**2) * (Phi @ Phi.T) if Phi.size else base
-    n = r.size
-
-    def logpdf(log_sd: float) -> float:
-        cov = extra + np.exp(2 * log_sd) * np.eye(n)
-        chol = np.linalg.cholesky(cov)
-        z = np.linalg.solve(chol, r)
-        return float(-0.5 * z @ z - np.sum(np.log(np.diag(chol))) - 0.5 * n * np.log(2 * np.pi))
-
-    if sd is not None:
-        return logpdf(np.log(sd))
-    scale = max(float(np.std(r)), 1e-12)
-    res = minimize_scalar(
-        lambda s: -logpdf(s), bounds=(np.log(scale) - 12, np.log(scale) + 2), method="bounded"
-    )
-    return -float(res.fun)
-
-
-def select_terms(
-    residual: np.ndarray,
-    jacobian: np.ndarray,
-    candidates: np.ndarray,
-    names: Sequence[str],
-    *,
-    noise_sd: float | None,
-    parameter_sd: Sequence[float],
-    coefficient_sd: float | None = None,
-    max_terms: int = 2,
-    rtol: float = 1e-7,
-) -> TermSelection:
-    """Posterior over small subsets of candidate terms for the residual of a calibrated model.
-
-    Parameters
-    ----------
-    residual : array (n,)
-        ``y - G(x; θ̂)``.
-    jacobian : array (n, p)
-        ``∂G/∂θ`` at θ̂.
-    candidates : array (n, k)
-        Candidate columns (see :func:`kohpymc.candidates.design_matrix`).
-    names : sequence of str
-        Names of the candidate columns.
-    noise_sd : float or None
-        Measurement-noise sd; None estimates it per subset (type-II ML).
-    parameter_sd : sequence of float
-        Prior sd of each physics parameter around θ̂ (e.g. its prior's sd).
-    coefficient_sd : float, optional
-        Prior sd of each coefficient of a unit-sd candidate column; default ``2 · sd(r)``
-        (at least ``noise_sd``).
-    max_terms : int
-        Largest subset size considered.
-    rtol : float
-        Relative singular-value tolerance of the identifiability check.
-
-    Returns
-    -------
-    TermSelection
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> x = np.linspace(0, 1, 40)
-    >>> J = np.c_[np.ones_like(x)]                      # the physics can shift the level
-    >>> Phi = np.c_[x, x**2, np.ones_like(x)]           # the last one it can mimic
-    >>> r = 0.5 + 2.0 * x**2 + rng.normal(0, 0.05, x.size)
-    >>> sel = select_terms(r, J, Phi, ["x", "x^2", "1"], noise_sd=0.05, parameter_sd=[10.0])
-    >>> sel.best, sorted(sel.rejected)
-    (('x^2',), ['1'])
-    """
-    r = np.asarray(residual, dtype=float).reshape(-1)
-    J = np.asarray(jacobian, dtype=float).reshape(r.size, -1)
-    C = np.asarray(candidates, dtype=float).reshape(r.size, -1)
-    names = [str(n) for n in names]
-    if C.shape[1] != len(names):
-        raise ValueError(f"{C.shape[1]} candidate columns but {len(names)} names")
-    if C.shape[1] == 0:
-        raise ValueError("no candidate terms to select from")
-    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J)) and np.all(np.isfinite(C))):
-        raise ValueError("residual, Jacobian and candidate columns must be finite")
-    if max_terms < 1:
-        raise ValueError("max_terms must be at least 1")
-    theta_sd = np.asarray(parameter_sd, dtype=float).reshape(-1)
-    if theta_sd.size != J.shape[1]:
-        raise ValueError(f"{theta_sd.size} parameter sds for {J.shape[1]} Jacobian columns")
-    if r.size <= J.shape[1] + 1:
-        raise ValueError(
-            f"too few data points ({r.size}) for {J.shape[1]} parameters and any candidate term"
-        )
-
-    rejected, admissible = _screen(J, C, names, rtol)
-    if not admissible:
-        raise ValueError(
-            "every candidate term was rejected: "
-            + "; ".join(f"{k}: {v}" for k, v in rejected.items())
-        )
-    scale = np.std(C[:, admissible], axis=0)
-    scale = np.where(scale > 0, scale, np.abs(C[:, admissible]).max(axis=0))
-    Phi = C[:, admissible] / scale
-    adm_names = [names[j] for j in admissible]
-    base = (J * theta_sd**2) @ J.T
-    s_c = coefficient_sd or max(2.0 * float(np.std(r)), noise_sd or 0.0)
-    sizes = range(0, min(max_terms, len(adm_names)) + 1)
-    log_post: list[float] = []
-    subsets: list[tuple[int, ...]] = []
-    for size in sizes:
-        combos = list(itertools.combinations(range(len(adm_names)), size))
-        prior = np.log(0.5) if size == 0 else np.log(0.5 / (len(sizes) - 1) / len(combos))
-        for combo in combos:
-            ev = _log_evidence(r, base, Phi[:, list(combo)], s_c, noise_sd)
-            subsets.append(combo)
-            log_post.append(ev + prior)
-    lp = np.array(log_post)
-    post = np.exp(lp - lp.max())
-    post /= post.sum()
-    order = np.argsort(-post, kind="stable")
-    inclusion = {
-        name: float(sum(p for s, p in zip(subsets, post, strict=True) if i in s))
-        for i, name in enumerate(adm_names)
-    }
-    ranked = [(tuple(adm_names[i] for i in subsets[o]), float(post[o])) for o in order]
-    return TermSelection(
-        best=ranked[0][0],
-        probability_none=float(post[0]),
-        inclusion=inclusion,
-        subsets=ranked,
-        rejected=rejected,
-    )
-
-
-def _screen(J: np.ndarray, C: np.ndarray, names: list[str], rtol: float):
-    """Candidates rejected before the comparison (with the reason) and the admissible ones."""
-    rejected: dict[str, str] = {}
-    admissible: list[int] = []
-    for j, name in enumerate(names):
-        col = C[:, j]
-        if np.ptp(col) == 0 and np.all(col == 0):
-            rejected[name] = "identically zero on the data"
-            continue
-        labels = [f"theta{i}" for i in range(J.shape[1])] + [name]
-        report = analyse_matrix(np.column_stack([J, col]), labels, rtol=rtol)
-        if report.rank < J.shape[1] + 1:
-            rejected[name] = (
-                "not identifiable together with the physics parameters (its column lies in "
-                "the span of dG/dtheta)"
-            )
-            continue
-        admissible.append(j)
-    return rejected, admissible
+        Examples
+        --------
+        >>> TermSelection((), 0.9, {}, [((), 0.9)], p_value=0.4).significant
+        False
+        """
+        if self.p_value is None:
+            return bool(self.probability_none < self.false_alarm)
+        return bool(self.p_value <= self.false_alarm)

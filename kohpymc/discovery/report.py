@@ -7,7 +7,7 @@ from typing import Any
 
 from kohpymc.discovery.evidence import TermSelection
 
-__all__ = ["DiscoveryReport"]
+__all__ = ["DiscoveryReport", "explanations"]
 
 
 @dataclass
@@ -76,6 +76,7 @@ class DiscoveryReport:
         >>> r.to_dict()["significant"], r.to_dict()["effect"]
         (False, None)
         """
+        sel = self.selection
         return {
             "significant": self.significant,
             "effect": self.effect,
@@ -85,12 +86,54 @@ class DiscoveryReport:
             "parameters": self.parameters,
             "parameters_sd": self.parameters_sd,
             "criterion": {
-                "probability_nothing_missing": self.selection.probability_none,
+                "probability_nothing_missing": sel.probability_none,
+                "p_value": sel.p_value,
+                "false_alarm_rate": self.threshold,
                 "threshold": self.threshold,
             },
+            "explanations": explanations(sel),
             "input_probability": self.input_probability,
-            "rejected_candidates": self.selection.rejected,
-            "top_subsets": [
-                {"terms": list(s), "probability": p} for s, p in self.selection.subsets[:5]
-            ],
+            "rejected_candidates": sel.rejected,
+            "merged_candidates": len(sel.merged),
+            "top_subsets": [{"terms": list(s), "probability": p} for s, p in sel.subsets[:5]],
         }
+
+
+def _describe(sel: TermSelection, subset: tuple[str, ...]) -> dict:
+    if not subset:
+        return {"terms": [], "expression": "nothing missing", "inputs": [], "meaning": []}
+    terms = [sel.terms.get(n) for n in subset if n != "1"]
+    pieces = [t.expression if t is not None else f"c * {n}"
+              for n, t in zip([n for n in subset if n != "1"], terms, strict=True)]  # fmt: skip
+    if sel.constant:
+        pieces.append("c_0")
+    inputs = list(dict.fromkeys(i for t in terms if t is not None for i in t.inputs))
+    meaning = [t.meaning or f"an additive term {t.name} in {', '.join(t.inputs)}"
+               for t in terms if t is not None]  # fmt: skip
+    return {
+        "terms": list(subset),
+        "expression": " + ".join(pieces) if terms else "c_0 (a constant offset)",
+        "inputs": inputs,
+        "meaning": meaning if terms else ["a constant offset"],
+    }
+
+
+def explanations(sel: TermSelection, top: int = 10) -> list[dict]:
+    """The ``top`` explanations with their posterior probabilities (and "nothing missing").
+
+    Examples
+    --------
+    >>> sel = TermSelection((), 0.9, {}, [((), 0.9), (("1",), 0.1)])
+    >>> [(e["expression"], e["probability"]) for e in explanations(sel)]
+    [('nothing missing', 0.9), ('c_0 (a constant offset)', 0.1)]
+    """
+    ranked = list(sel.subsets[:top])
+    if not any(not s for s, _ in ranked):
+        ranked.append(((), sel.probability_none))
+    out = []
+    for subset, p in ranked:
+        entry = _describe(sel, subset)
+        entry["probability"] = float(p)
+        entry["log_bayes_factor"] = sel.log_bayes_factors.get(subset)
+        out.append(entry)
+    return out

@@ -8,11 +8,13 @@ from typing import Any
 
 import numpy as np
 
+from kohpymc.candidates import DEFAULT_EXPONENTS
 from kohpymc.checks import check_physics_runs, check_validation_data
 from kohpymc.discovery.augment import augmented_physics
-from kohpymc.discovery.evidence import select_terms
+from kohpymc.discovery.drift import physics_terms
 from kohpymc.discovery.regions import _main_effect_share, disagreement_regions
 from kohpymc.discovery.report import DiscoveryReport
+from kohpymc.discovery.selection import select_terms
 from kohpymc.validation import fit_and_score
 
 __all__ = ["discover"]
@@ -29,8 +31,8 @@ def _evaluate_or_explain(model, inputs, params, what: str) -> np.ndarray:
     return out
 
 
-def _checked_inputs(physics, calibration, validation, tolerance, threshold, candidates, extra):
-    """Check everything before any sampling; return the candidates and their design."""
+def _checked_inputs(physics, calibration, validation, tolerance, threshold, candidates, library):
+    """Check everything before any sampling; return the candidates (not yet physics terms)."""
     from kohpymc.candidates import candidate_library, design_matrix
 
     check_validation_data(physics, validation, tolerance)
@@ -48,15 +50,16 @@ def _checked_inputs(physics, calibration, validation, tolerance, threshold, cand
             "any candidate term"
         )
     check_physics_runs(physics, calibration, "calibration")
-    candidates = list(candidate_library(calibration.inputs, extra=extra) if candidates is None
-                      else candidates)  # fmt: skip
+    if candidates is None:
+        candidates = candidate_library(calibration.inputs, **library)
+    candidates = list(candidates)
     if not candidates:
         raise ValueError("the candidate library is empty")
     try:
-        Phi = design_matrix(candidates, calibration.inputs)
+        design_matrix(candidates, calibration.inputs)
     except ValueError as err:
         raise ValueError(f"candidate library on the calibration data: {err}") from err
-    return candidates, Phi
+    return candidates
 
 
 def _moments(idata, names) -> tuple[dict[str, float], dict[str, float]]:
@@ -75,8 +78,11 @@ def discover(
     tolerance: float,
     candidates: Sequence[Any] | None = None,
     extra_terms: Any = None,
-    max_terms: int = 2,
+    exponents: Sequence[float] = DEFAULT_EXPONENTS,
+    references: dict[str, float] | None = None,
+    max_terms: int = 3,
     threshold: float = 0.01,
+    null_draws: int = 299,
     region_level: float = 0.01,
     draws: int = 1000,
     tune: int = 1000,
@@ -86,28 +92,31 @@ def discover(
 ) -> DiscoveryReport:
     """Find, name and add a missing effect; show the validation gap before and after.
 
-    1. *Where*: calibrate the physics model as given (no discrepancy); standardised
-       residuals ``z = (y - G(x; θ̄)) / σ`` on the calibration data and reliability
-       r(x) on the validation data (θ̄ the posterior mean).
-    2. *Whether and what*: :func:`select_terms` over the candidate library built from
-       every input column of the calibration data, linearised at θ̄.  **Criterion:** a
-       missing effect is reported only when the posterior probability of "nothing
-       missing" is below ``threshold`` (default 0.01: evidence of more than 99 : 1 at
-       even prior odds, with the prior mass of "something missing" split over all
-       candidate subsets, so a larger library does not raise the false-alarm rate).
-       The inputs of the selected term(s) are the named inputs; ``input_probability``
-       gives, for every input, the posterior probability that the missing effect
-       depends on it.
+    1. *Where*: calibrate the physics model as given (no discrepancy); residuals
+       ``y - G(x; θ̄)`` on the calibration data and reliability r(x) on the validation
+       data (θ̄ the posterior mean).
+    2. *Whether and what*: :func:`select_terms` over the candidate space
+       (:func:`kohpymc.candidates.candidate_library` on every input column of the
+       calibration data, plus :func:`kohpymc.discovery.drift.physics_terms`: "a
+       parameter varies with an input", "the output scales with an input"), linearised
+       at θ̄ so the physics parameters are re-fitted jointly with the terms, with the
+       noise sd of the data when it is known and σ integrated out when it is not.
+       **Criterion:** a missing effect is reported when the probability of "nothing
+       missing" is smaller than on all but a ``threshold`` share of residuals
+       simulated under the model as given (``null_draws`` of them): the false-alarm
+       rate is ``threshold`` by construction (for the linearised model).
     3. *Where, as ranges*: for each named input the rows are cut into up to 8 bins of
        equal count; a calibration bin fails when ``Σ z²`` exceeds its χ² quantile at
        ``region_level / 8`` (Bonferroni over the bins), a validation bin when its mean
        reliability is below 0.5.  Adjacent failing bins are merged.
-    4. *Add*: the selected term(s) with coefficients ``c_k`` (normal priors scaled to
+    4. *Add*: the terms of the most probable explanation (and the constant offset that
+       comes with every explanation) with coefficients ``c_k`` (normal priors scaled to
        the residual) are added (:func:`augmented_physics`) and calibrated jointly with θ.
-    5. *Gap*: μ_r, RMSE and 90 % coverage on the validation data before and after.
+    5. *Gap*: μ_r, RMSE and 90 % coverage on the validation data (never used to select
+       the terms) before and after.
 
-    All inputs are checked before any sampling (empty or non-finite candidate library,
-    too few rows); the augmented model is evaluated once before it is recalibrated.
+    All inputs are checked before any sampling; the augmented model is evaluated once
+    before it is recalibrated.  Two MCMC calibrations in all; the search is analytic.
     Nothing is written to disk.
 
     Parameters
@@ -119,14 +128,18 @@ def discover(
     tolerance : float
         ε of the reliability metric.
     candidates : sequence of CandidateTerm, optional
-        Replace the generated library.
+        Replace the generated candidate space (no physics terms are added then).
     extra_terms : mapping, optional
         User terms added to the generated library (see
         :func:`kohpymc.candidates.candidate_library`).
+    exponents, references :
+        Exponents of the monomials and reference values of shifted inputs.
     max_terms : int
-        Largest number of terms added together.
+        Largest number of terms in one explanation.
     threshold : float
-        Significance threshold on the probability of "nothing missing".
+        False-alarm rate of the decision (calibrated by simulation).
+    null_draws : int
+        Simulated null residuals of the calibration.
     region_level : float
         Family-wise level of the per-bin χ² test that marks failing ranges.
     draws, tune, chains, random_seed :
@@ -145,11 +158,13 @@ def discover(
     ...                   beam.generate_data((3.5,), seed=2), tolerance=0.75,
     ...                   random_seed=1)  # doctest: +SKIP
     >>> report.effect, report.inputs  # doctest: +SKIP
-    ('c * x * P', ['x', 'P'])
+    ('c * x * P + c_0', ['x', 'P'])
     """
     say = progress or (lambda _m: None)
-    candidates, Phi = _checked_inputs(
-        physics, calibration, validation, tolerance, threshold, candidates, extra_terms
+    library = {"exponents": exponents, "references": references, "extra": extra_terms}
+    generated = candidates is None
+    candidates = _checked_inputs(
+        physics, calibration, validation, tolerance, threshold, candidates, library
     )
     sampler = {"draws": draws, "tune": tune, "chains": chains}
 
@@ -162,29 +177,49 @@ def discover(
 
     say("calibrating the model as given ...")
     fit = _locate_residuals(physics, calibration, run)
-    say("comparing candidate terms ...")
-    selection, input_probability = _select(physics, calibration, candidates, Phi, fit, max_terms)
+    if generated:
+        candidates += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
+    say(f"comparing {len(candidates)} candidate terms ...")
+    selection = select_terms(
+        fit.resid,
+        physics.jacobian_matrix(calibration.inputs, fit.theta),
+        candidates,
+        inputs=calibration.inputs,
+        noise_sd=calibration.noise_sd,
+        max_terms=max_terms,
+        false_alarm=threshold,
+        null_draws=null_draws,
+        random_seed=0 if random_seed is None else int(random_seed),
+    )
     common = {
         "selection": selection,
-        "input_probability": input_probability,
+        "input_probability": _input_probability(selection, calibration.inputs),
         "threshold": threshold,
         "before": fit.idata,
     }
-    if not selection.probability_none < threshold:
-        say(f"nothing missing (P = {selection.probability_none:.3g} that nothing is missing)")
+    if not selection.significant:
+        say(f"nothing missing (p = {selection.p_value:.3g} under the model as given)")
         return _nothing_missing_report(physics, calibration, fit, common)
-    # the most probable non-empty subset (the overall best when something is missing, unless
-    # the mass is spread so thin over many subsets that "nothing" still ranks first)
-    best = next((subset for subset, _ in selection.subsets if subset), ())
-    by_name = {t.name: t for t in candidates}
-    chosen = [by_name[n] for n in best]
+    best = next(subset for subset, _ in selection.subsets if subset)
+    chosen = [selection.terms[n] for n in best if n != "1"]
     named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
-    effect = " + ".join(t.expression for t in chosen)
-    say(f"missing effect: {effect} (P(nothing missing) = {selection.probability_none:.2g})")
+    say(f"missing effect: {_effect_text(chosen, selection.constant)} "
+        f"(P = {dict(selection.subsets)[best]:.2g}; p = {selection.p_value:.3g})")  # fmt: skip
     where = _where_it_fails(calibration, validation, named_inputs, fit, region_level)
     return _augment_and_refit(
         physics, calibration, validation, chosen, named_inputs, where, fit, run, say, common
     )
+
+
+def _input_probability(selection, inputs) -> dict[str, float]:
+    """Posterior probability that the missing effect depends on each input."""
+    out = {k: 0.0 for k in inputs}
+    for subset, p in selection.subsets:
+        used = {i for n in subset if n != "1" and selection.terms.get(n) is not None
+                for i in selection.terms[n].inputs}  # fmt: skip
+        for k in used:
+            out[k] = out.get(k, 0.0) + p
+    return {k: float(min(v, 1.0)) for k, v in out.items()}
 
 
 @dataclass
@@ -196,47 +231,26 @@ class _AsGiven:
     constant: Any
     theta: dict[str, float]
     theta_sd: dict[str, float]
-    sigma: float | None
     resid: np.ndarray
     z: np.ndarray
 
 
 def _locate_residuals(physics, calibration, run) -> _AsGiven:
-    """Step 1: calibrate as given; residuals ``y - G(x; θ̄)`` and their standardised ``z``."""
+    """Step 1: calibrate as given; residuals ``y - G(x; θ̄)`` and their standardised ``z``.
+
+    ``z`` (for the failing ranges only, never for the evidence) uses the data's noise
+    sd, else the posterior mean of σ.
+    """
     before, scores_before, const_before = run(physics, "as given")
     theta, theta_sd_post = _moments(before, list(physics.parameters))
     g_hat = _evaluate_or_explain(physics, calibration.inputs, theta, "calibration inputs")
     post = before.posterior
     sigma = calibration.noise_sd
-    if sigma is None:
-        sigma = float(post["sigma_obs"].mean()) if "sigma_obs" in post else None
+    if sigma is None and "sigma_obs" in post:
+        sigma = float(post["sigma_obs"].mean())
     resid = calibration.y - g_hat
     z = resid / (float(np.std(resid)) if sigma is None else sigma)
-    return _AsGiven(before, scores_before, const_before, theta, theta_sd_post, sigma, resid, z)
-
-
-def _select(physics, calibration, candidates, Phi, fit: _AsGiven, max_terms: int):
-    """Step 2: the term comparison at θ̄ and the probability that each input matters."""
-    params = list(physics.parameters)
-    J = physics.jacobian_matrix(calibration.inputs, fit.theta)
-    selection = select_terms(
-        fit.resid,
-        J,
-        Phi,
-        [t.name for t in candidates],
-        noise_sd=fit.sigma,
-        parameter_sd=[float(physics.parameters[k].sd()) for k in params],
-        max_terms=max_terms,
-    )
-    by_name = {t.name: t for t in candidates}
-    all_inputs = list(dict.fromkeys(i for t in candidates for i in t.inputs))
-    input_probability = {
-        k: float(
-            sum(p for subset, p in selection.subsets if any(k in by_name[n].inputs for n in subset))
-        )
-        for k in all_inputs
-    }
-    return selection, input_probability
+    return _AsGiven(before, scores_before, const_before, theta, theta_sd_post, resid, z)
 
 
 def _nothing_missing_report(physics, calibration, fit: _AsGiven, common: dict) -> DiscoveryReport:
@@ -252,7 +266,7 @@ def _nothing_missing_report(physics, calibration, fit: _AsGiven, common: dict) -
         parameters_sd={"before": fit.theta_sd, "after": dict(fit.theta_sd)},
         physics=physics,
         after=fit.idata,
-        key_input=max(share, key=share.get),
+        key_input=max(share, key=share.get),  # type: ignore[arg-type]
         residuals={"before": fit.resid, "after": fit.resid},
         **common,
     )
@@ -272,12 +286,13 @@ def _where_it_fails(calibration, validation, named_inputs, fit: _AsGiven, region
             input_name=k,
             source="calibration",
         )
-        where += disagreement_regions(
-            validation.inputs[k],
-            lambda rows: float(np.mean(rel[rows])) < 0.5,
-            input_name=k,
-            source="validation",
-        )
+        if k in validation.inputs:
+            where += disagreement_regions(
+                validation.inputs[k],
+                lambda rows: float(np.mean(rel[rows])) < 0.5,
+                input_name=k,
+                source="validation",
+            )
     return where
 
 
@@ -287,13 +302,14 @@ def _augment_and_refit(
     """Steps 4 and 5: add the chosen term(s), check, recalibrate and report."""
     params = list(physics.parameters)
     theta = fit.theta
-    scale = max(2.0 * float(np.std(fit.resid)), fit.sigma or 0.0)
+    scale = 2.0 * max(float(np.std(fit.resid)), float(np.abs(np.mean(fit.resid))), 1e-300)
     coef_sd = [scale / max(float(np.std(t(calibration.inputs))), 1e-300) for t in chosen]
-    augmented = augmented_physics(physics, chosen, coef_sd)
-    start = {  # θ̄, no added term, scales at their prior centre
-        k: theta[k] if k in theta else (0.0 if k.startswith("c_") else prior.mean())
-        for k, prior in augmented.parameters.items()
-    }
+    offset = common["selection"].constant
+    augmented = augmented_physics(
+        physics, chosen, coef_sd, offset_sd=scale if offset else None,
+        inputs=calibration.inputs, theta=theta,
+    )  # fmt: skip
+    start = {k: theta.get(k, 0.0) for k in augmented.parameters}  # θ̄, no added term
     for what, data in (("calibration", calibration), ("validation", validation)):
         _evaluate_or_explain(augmented, data.inputs, start, f"{what} inputs (augmented model)")
     say(f"recalibrating {augmented.name} ...")
@@ -305,7 +321,7 @@ def _augment_and_refit(
     share = {k: _main_effect_share(calibration.inputs[k], added) for k in named_inputs}
     return DiscoveryReport(
         significant=True,
-        effect=_effect_text(chosen, after_mean),
+        effect=_effect_text(chosen, offset),
         inputs=named_inputs,
         where=where,
         validation={"before": fit.scores, "after": scores_after},
@@ -313,19 +329,15 @@ def _augment_and_refit(
         parameters_sd={"before": fit.theta_sd, "after": after_sd},
         physics=augmented,
         after=after,
-        key_input=max(share, key=share.get),
+        key_input=max(share, key=share.get) if share else physics.inputs[0],  # type: ignore[arg-type]
         residuals={"before": fit.resid, "after": calibration.y - g_after},
         **common,
     )
 
 
-def _effect_text(chosen, after_mean: dict[str, float]) -> str:
-    """``"c * x * P + ..."``; a calibrated decay scale is reported by its value."""
-    pieces = []
-    for k, t in enumerate(chosen):
-        tau = f"tau_{k + 1}"
-        if tau in after_mean:  # the decay scale was calibrated: report its value
-            pieces.append(f"c * exp(-{t.inputs[0]}/{after_mean[tau]:.3g})")
-        else:
-            pieces.append(t.expression)
-    return " + ".join(pieces)
+def _effect_text(chosen, offset: bool) -> str:
+    """``"c * t^3/m + c_0"``; a constant offset alone is ``"c_0 (a constant offset)"``."""
+    if not chosen:
+        return "c_0 (a constant offset)"
+    text = " + ".join(t.expression for t in chosen)
+    return text + " + c_0" if offset else text

@@ -250,6 +250,23 @@ class Discrepancy(ABC):
         """Inputs the discrepancy depends on (beyond the physics inputs)."""
         return ()
 
+    def noise_partner(self) -> tuple[str, str] | None:
+        """The parameter whose variance adds to σ_obs² in the likelihood, or None.
+
+        ``(name, "sd")`` for a scalar sd σ_δ (only σ_obs² + σ_δ² is identified when the
+        noise is unknown), ``(name, "log_variance")`` for coefficients whose first entry
+        is the log-variance at the centre of the inputs.  The sampler then uses
+        total-sd / log-ratio coordinates for the pair
+        (:class:`kohpymc.reparameterization.VarianceShare`).
+
+        Examples
+        --------
+        >>> from kohpymc.discrepancy import IIDGaussian, NoDiscrepancy
+        >>> IIDGaussian().noise_partner(), NoDiscrepancy().noise_partner()
+        (('delta_sd', 'sd'), None)
+        """
+        return None
+
     @abstractmethod
     def build(self, ctx: ModelContext) -> Likelihood:
         """Add parameters and the observed variable ``"y"``; return the record."""

@@ -45,6 +45,10 @@ class IIDGaussian(IndependentDiscrepancy, kind="iid"):
         self.mean_prior = None if mean_prior is None else as_prior(mean_prior, name="delta_mean")
         self.sd_prior = None if sd_prior is None else as_prior(sd_prior, name="delta_sd")
 
+    def noise_partner(self) -> tuple[str, str] | None:
+        """``delta_sd``: only σ_obs² + σ_δ² enters the likelihood."""
+        return ("delta_sd", "sd")
+
     def mean_function(self, ctx: ModelContext) -> MeanSpec:
         """The constant μ_δ, stored as the scalar ``delta_mean``."""
         return LinearBasis((), prior=self.mean_prior, scalar=True)

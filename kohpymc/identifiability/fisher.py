@@ -94,9 +94,12 @@ def fisher_information_check(
             if i != j:
                 info[j, i] += t
     info = 0.5 * (info + info.T)
-    # correlation scaling sqrt(I_ii); parameters with no information stay exactly zero
+    # correlation scaling sqrt(I_ii); parameters with no information stay exactly zero.
+    # "No information" is judged unit-free: sqrt(I_jj) times the prior's spread of the
+    # parameter (how many information-sds the prior spans), not sqrt(I_jj) across units.
     diag = np.sqrt(np.clip(np.diag(info), 0.0, None))
-    informative = diag > rtol * max(diag.max(), 1e-300)
+    spans = diag * _prior_spreads(model, entries)
+    informative = spans > rtol * max(spans.max(), 1e-300)
     d = np.where(informative, diag, 1.0)
     scaled = info / np.outer(d, d)
     scaled[~informative, :] = 0.0
@@ -113,3 +116,22 @@ def fisher_information_check(
     )
     report.matrix = info
     return report
+
+
+def _prior_spreads(model: Any, entries: list, n: int = 256, seed: int = 0) -> np.ndarray:
+    """Robust prior spread ((q95 − q05) / 3.29) of every flattened entry; 1 if undrawable."""
+    import pymc as pm
+
+    rvs = list(dict.fromkeys(rv for rv, _, _ in entries))
+    try:
+        draws = pm.draw(rvs, draws=n, random_seed=seed, mode="FAST_COMPILE")
+    except NotImplementedError:  # improper priors (pm.Flat) cannot be drawn
+        return np.ones(len(entries))
+    by_rv = dict(zip(rvs, [draws] if len(rvs) == 1 else draws, strict=True))
+    out = np.empty(len(entries))
+    for i, (rv, _, k) in enumerate(entries):
+        values = np.asarray(by_rv[rv], float).reshape(n, -1)[:, 0 if k is None else k]
+        q05, q95 = np.quantile(values, [0.05, 0.95])
+        spread = (q95 - q05) / 3.29
+        out[i] = spread if np.isfinite(spread) and spread > 0 else 1.0
+    return out

@@ -89,6 +89,8 @@ class Fitter:
     space: ValueSpace
     parameters: dict[str, tuple[str, tuple[int, ...]]]
     compile_seconds: float
+    #: σ_obs and the formulation's variance partner, sampled as calibrate samples them
+    variance_pairs: tuple[tuple[str, ...], ...] = ()
 
 
 def _ranked_parameters(model: pm.Model, names: list[str]) -> dict[str, tuple[str, tuple]]:
@@ -124,13 +126,20 @@ def _parameter_names(physics: PhysicsModel, model: pm.Model, created: tuple[str,
 
 
 def build_fitter(physics, data: CalibrationData, formulation: Discrepancy, mode) -> Fitter:
+    """Compose the fitted model once, make its observations swappable, compile it."""
     start = time.perf_counter()
     built = compose_model(physics, data, formulation)
     model, observed = swappable_observations(built.model, data.y)
     space = value_space(model, mode=mode)
     names = _parameter_names(physics, model, built.formulation_variables)
+    partner = formulation.noise_partner()  # as kohpymc.calibrate passes it to the sampler
     return Fitter(
-        model, observed, space, _ranked_parameters(model, names), time.perf_counter() - start
+        model,
+        observed,
+        space,
+        _ranked_parameters(model, names),
+        time.perf_counter() - start,
+        () if partner is None else (("sigma_obs", *partner),),
     )
 
 
@@ -332,6 +341,7 @@ def fit_replicate(task: Replicate) -> dict[str, Any]:
         random_seed=fit_seed,
         reparameterize=settings.reparameterize,
         mode=settings.mode,
+        variance_pairs=fitter.variance_pairs,
     )
     result = _score(idata, fitter, task, settings)
     result["problems"] = _problems(idata, result, settings, report)

@@ -28,6 +28,7 @@ from kohpymc.model import build_model
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
 from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
+from kohpymc.sbc import CalibrationCheck, check_calibration
 from kohpymc.study import StudyResult, run_study
 from kohpymc.validation import Reliability, reliability
 
@@ -86,5 +87,8 @@ __all__ = [
     "TaskDisplay",
     "report_phase",
     "report_note",
+    # does a set-up recover the truth? (simulation-based calibration)
+    "check_calibration",
+    "CalibrationCheck",
     "__version__",
 ]

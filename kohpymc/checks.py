@@ -23,6 +23,7 @@ __all__ = [
     "check_tolerance",
     "check_physics_runs",
     "check_validation_data",
+    "check_count",
 ]
 
 #: PyTensor compile modes for the log density of PyMC's NUTS
@@ -175,3 +176,20 @@ def check_execution(workers: Any, scheduler: Any) -> None:
         raise ValueError(
             "give workers (a local cluster) or scheduler (an existing cluster), not both"
         )
+
+
+def check_count(value: Any, name: str, *, minimum: int = 1) -> int:
+    """``value`` as an integer ``>= minimum`` (a count, a seed), or ``ValueError`` naming it.
+
+    Examples
+    --------
+    >>> check_count(200, "replicates")
+    200
+    >>> check_count(0, "draws")
+    Traceback (most recent call last):
+    ...
+    ValueError: draws must be an integer >= 1, got 0
+    """
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return value

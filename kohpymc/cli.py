@@ -1,4 +1,4 @@
-"""Command line: ``kohpymc study STUDY.toml [--out DIR]`` and ``kohpymc discover``.
+"""Command line: ``kohpymc study STUDY.toml [--out DIR]``, ``kohpymc discover``, ``kohpymc check``.
 
 ``study`` runs :func:`kohpymc.run_study` on a study file (:mod:`kohpymc.config`),
 showing each formulation's progress (:mod:`kohpymc.progress`: live lines on a terminal,
@@ -8,6 +8,11 @@ plain lines otherwise, nothing with ``--quiet``) and the validation table at the
 ``discover STUDY.toml [--json OUT] [--out DIR]`` runs :func:`kohpymc.discovery.discover`
 on the same file.  Exit status 0 on success, 2 for a bad study file or data, 1 when
 every formulation failed.
+
+``check STUDY.toml --replicates N`` runs simulation-based calibration
+(:func:`kohpymc.sbc.check_calibration`) and prints the coverage table and the verdict.
+Exit status 0 on PASS, 3 on FAIL (the set-up does not recover the truth), 2 for bad
+input, 1 when no replicate could be fitted.
 """
 
 from __future__ import annotations
@@ -176,6 +181,55 @@ def _discover(args: argparse.Namespace) -> int:
     return 0
 
 
+#: exit status of ``kohpymc check`` when the set-up does not recover the truth
+CHECK_FAILED = 3
+
+
+def _check(args: argparse.Namespace) -> int:
+    from kohpymc.sbc import check_calibration
+
+    spec = _load(args)
+    if spec is None:
+        return 2
+    label = args.formulation or spec.check.formulation or "M0"
+    out = Path(args.out) if args.out else Path(f"{spec.out_dir}_check_{label}")
+    say = None if args.quiet else (lambda msg: print(msg, flush=True))
+    try:
+        result = check_calibration(
+            spec,
+            replicates=args.replicates,
+            formulation=args.formulation,
+            draws=args.draws,
+            tune=args.tune,
+            chains=args.chains,
+            seed=args.seed,
+            rank_draws=args.rank_draws,
+            out_dir=out,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            fresh=args.fresh,
+            progress=say,
+        )
+    except (ValueError, KeyError, NotImplementedError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except RuntimeError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    from kohpymc.study_files import markdown_table
+
+    print()
+    print(markdown_table(result.table))
+    if result.flagged or result.failures:
+        print(
+            f"\n{len(result.flagged)} replicate(s) with sampler trouble and "
+            f"{len(result.failures)} failed, left out (see {out}/check.json)"
+        )
+    print(f"\n{result.verdict}")
+    print(f"\nresults in {out}/ (table.md, table.csv, ranks.nc, ranks.png, check.json)")
+    return 0 if result.passed else CHECK_FAILED
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``kohpymc`` command.
 
@@ -210,6 +264,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     disc.add_argument("--json", help="write the JSON report here")
     disc.add_argument("--out", help="folder for report.json, before/after NetCDF, figure")
     disc.set_defaults(run=_discover)
+    check = sub.add_parser(
+        "check",
+        parents=[common],
+        help="simulation-based calibration: does this set-up recover the truth?",
+        description="Exit status: 0 PASS, 3 FAIL, 2 bad input, 1 no replicate finished.",
+    )
+    check.add_argument("study", help="study TOML file (its [check] table sets defaults)")
+    check.add_argument("--replicates", type=int, help="simulated data sets (else [check])")
+    check.add_argument("--formulation", help="label of the formulation to check (default M0)")
+    check.add_argument("--rank-draws", type=int, help="thinned draws a rank is among (99)")
+    check.add_argument("--out", help="output folder (default: <[output] dir>_check_<label>)")
+    check.add_argument("--workers", type=int, default=1, help="Dask worker processes")
+    check.add_argument("--scheduler", help="address of a running Dask scheduler")
+    check.add_argument("--fresh", action="store_true", help="recompute every replicate")
+    check.set_defaults(run=_check)
     args = parser.parse_args(argv)
     _quiet_libraries()
     return args.run(args)

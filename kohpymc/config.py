@@ -43,6 +43,14 @@ formulations and sampler settings::
     [output]                          # optional; the CLI's --out wins
     dir = "beam_study"
 
+    [check]                           # optional: settings of `kohpymc check` (kohpymc.sbc)
+    formulation = "M0"
+    replicates = 200
+    draws = 400                       # the check's own (shorter) chains
+    [check.simulate]                  # optional: a data-generating process that differs
+    noise_sd = 0.5                    # from the fitted model, to see the check fail
+    parameters = { E = { prior = "uniform", lower = 300, upper = 400 } }
+
 Every problem is reported with the file and the key at fault.  Formulation types are the
 registered kinds (:func:`kohpymc.formulation_kinds`: ``none``, ``constant``, ``iid``,
 ``input_dependent``, ``gp``, ``nonstationary_gp``, ``grid_gp``, ``scaled_gp``, ...); the
@@ -53,6 +61,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 import sys
 import tomllib
 from collections.abc import Callable, Mapping
@@ -64,6 +73,7 @@ import pandas as pd
 
 from kohpymc.checks import (
     check_compile_mode,
+    check_count,
     check_physics_runs,
     check_sampler,
     check_scheduler,
@@ -75,8 +85,9 @@ from kohpymc.discrepancy import Discrepancy, FormulationSpecError, from_dict
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.execution import ship_by_value
 from kohpymc.physics import PhysicsModel
+from kohpymc.priors import as_prior
 
-__all__ = ["StudyConfigError", "StudySpec", "load_study"]
+__all__ = ["CheckSpec", "StudyConfigError", "StudySpec", "load_study"]
 
 
 class StudyConfigError(ValueError):
@@ -98,7 +109,57 @@ _SECTIONS: dict[str, set[str] | None] = {
     },
     "execution": {"workers", "scheduler"},
     "output": {"dir"},
+    "check": {
+        "formulation", "replicates", "draws", "tune", "chains", "seed", "rank_draws", "simulate",
+    },
 }  # fmt: skip
+
+_SIMULATE_KEYS = {"parameters", "noise_sd", "sigma_obs"}
+
+
+@dataclass
+class CheckSpec:
+    """The ``[check]`` table: settings of ``kohpymc check`` and the data-generating process.
+
+    Settings left out are ``None`` (the command line or ``[sampling]`` decide).  The
+    ``simulate_*`` fields describe where simulated data come from when that should differ
+    from the fitted model (a deliberately wrong set-up); by default the truth is drawn
+    from the fitted model's own prior.
+
+    Attributes
+    ----------
+    formulation : str or None
+        Label of the formulation to check (one of ``[formulations]``).
+    replicates, draws, tune, chains, seed, rank_draws : int or None
+        Number of simulated data sets, the sampler settings of each fit, the base seed and
+        the number of thinned posterior draws a rank is computed among.
+    simulate_parameters : dict name -> Prior
+        Priors the true physics parameters are drawn from instead of ``[physics.parameters]``.
+    simulate_noise_sd : float or None
+        Simulate with this fixed noise sd (the fit keeps ``[data] noise_sd`` or calibrates σ).
+    simulate_noise_prior : Prior or None
+        Draw the simulation's noise sd from this prior instead.
+    """
+
+    formulation: str | None = None
+    replicates: int | None = None
+    draws: int | None = None
+    tune: int | None = None
+    chains: int | None = None
+    seed: int | None = None
+    rank_draws: int | None = None
+    simulate_parameters: dict[str, Any] = field(default_factory=dict)
+    simulate_noise_sd: float | None = None
+    simulate_noise_prior: Any = None
+
+    @property
+    def simulates_the_fitted_model(self) -> bool:
+        """Whether the data-generating process is the fitted model (no override)."""
+        return (
+            not self.simulate_parameters
+            and self.simulate_noise_sd is None
+            and (self.simulate_noise_prior is None)
+        )
 
 
 @dataclass
@@ -121,6 +182,8 @@ class StudySpec:
     out_dir : Path
         Output folder (``[output] dir`` relative to the file, default
         ``<file stem>_results`` beside it).
+    check : CheckSpec
+        The ``[check]`` table (``kohpymc check``).
     """
 
     source: Path
@@ -133,6 +196,7 @@ class StudySpec:
     sampling: dict[str, Any] = field(default_factory=dict)
     out_dir: Path = Path("study_results")
     execution: dict[str, Any] = field(default_factory=dict)
+    check: CheckSpec = field(default_factory=CheckSpec)
 
     def run_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :func:`kohpymc.run_study` for this study."""
@@ -274,6 +338,7 @@ def load_study(path: str | Path) -> StudySpec:
     formulations = _formulations_section(path, doc, inputs, time)
     sampling_doc = _sampling_section(path, doc)
     execution = _execution_section(path, doc, sampling_doc.pop("workers", None))
+    check = _check_section(path, doc.get("check", {}), physics, formulations)
     out = doc.get("output", {}).get("dir")
     out_dir = (base / out) if out else base / f"{path.stem}_results"
     return StudySpec(
@@ -287,6 +352,7 @@ def load_study(path: str | Path) -> StudySpec:
         sampling=sampling_doc,
         out_dir=out_dir,
         execution=execution,
+        check=check,
     )
 
 
@@ -447,3 +513,62 @@ def _execution_section(path: Path, doc: dict, old_workers: Any) -> dict[str, Any
                 "cluster), not both",
             )  # fmt: skip
     return table
+
+
+def _count(path: Path, key: str, value: Any, minimum: int = 1) -> int:
+    try:
+        return check_count(value, key, minimum=minimum)
+    except ValueError as err:
+        raise _err(path, key, str(err).removeprefix(f"{key} ")) from err
+
+
+def _check_section(path: Path, table: dict, physics: PhysicsModel, formulations) -> CheckSpec:
+    """``[check]``: settings of ``kohpymc check`` and an optional simulation override."""
+    spec = CheckSpec()
+    label = table.get("formulation")
+    if label is not None and (not isinstance(label, str) or label not in formulations):
+        raise _err(
+            path,
+            "check.formulation",
+            f"{label!r} is not one of the formulations {list(formulations)}",
+        )
+    spec.formulation = label
+    for key in ("replicates", "draws", "tune", "chains", "rank_draws"):
+        if key in table:
+            setattr(spec, key, _count(path, f"check.{key}", table[key]))
+    if "seed" in table:
+        spec.seed = _count(path, "check.seed", table["seed"], minimum=0)
+    simulate = table.get("simulate", {})
+    if not isinstance(simulate, dict):
+        raise _err(path, "check.simulate", "must be a table")
+    _check_keys(path, "check.simulate", simulate, _SIMULATE_KEYS)
+    _simulate_section(path, simulate, physics, spec)
+    return spec
+
+
+def _simulate_section(path: Path, simulate: dict, physics: PhysicsModel, spec: CheckSpec) -> None:
+    """``[check.simulate]``: priors of the true parameters and the simulation's noise."""
+    params = simulate.get("parameters", {})
+    if not isinstance(params, dict):
+        raise _err(path, "check.simulate.parameters", "must be a table of parameter priors")
+    for name, value in params.items():
+        key = f"check.simulate.parameters.{name}"
+        if name not in physics.parameters:
+            raise _err(path, key, f"is not a physics parameter {list(physics.parameters)}")
+        try:
+            spec.simulate_parameters[name] = as_prior(value, name=name)
+        except (TypeError, ValueError) as err:
+            raise _err(path, key, str(err)) from err
+    if "noise_sd" in simulate and "sigma_obs" in simulate:
+        raise _err(path, "check.simulate", "give noise_sd (fixed) or sigma_obs (a prior), not both")
+    if "noise_sd" in simulate:
+        value = simulate["noise_sd"]
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        if not ok or not math.isfinite(value) or value <= 0:
+            raise _err(path, "check.simulate.noise_sd", f"must be a positive number, got {value!r}")
+        spec.simulate_noise_sd = float(value)
+    if "sigma_obs" in simulate:
+        try:
+            spec.simulate_noise_prior = as_prior(simulate["sigma_obs"], name="sigma_obs")
+        except (TypeError, ValueError) as err:
+            raise _err(path, "check.simulate.sigma_obs", str(err)) from err

@@ -121,6 +121,7 @@ def sample_posterior(
     mode: str | None = None,
     sample_kwargs: Mapping[str, Any] | None = None,
     variance_pairs: Sequence[Sequence[str]] = (),
+    space: ValueSpace | None = None,
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
 
@@ -145,6 +146,9 @@ def sample_posterior(
         discrepancy sd, or to a log-variance's intercept with kind ``"log_variance"``);
         with ``reparameterize`` they are sampled as total sd and log ratio
         (:func:`variance_shares`).
+    space : ValueSpace, optional
+        ``value_space(model)`` compiled earlier, to sample without compiling again (e.g.
+        many data sets swapped into one model's shared variables); default: compile now.
 
     Returns
     -------
@@ -179,7 +183,10 @@ def sample_posterior(
             return _run_smc(model, settings, kwargs, progressbar), report
         start = time.perf_counter()
         report_phase("compiling")
-        space = value_space(model, mode=mode)
+        if space is None:
+            space = value_space(model, mode=mode)
+        elif space.model is not model:
+            raise ValueError("space must be value_space(model) of the model being sampled")
         report.timings["compile"] = time.perf_counter() - start
         shares = variance_shares(space, variance_pairs)
         reparam = _plan(space, starts, seed, reparameterize, report, shares)

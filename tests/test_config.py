@@ -196,3 +196,47 @@ def test_not_toml_and_missing_file(tmp_path, write_study):
         load_study(bad)
     with pytest.raises(StudyConfigError, match="not found"):
         load_study(tmp_path / "absent.toml")
+
+
+CHECK = """
+[check]
+formulation = "M3"
+replicates = 50
+draws = 300
+[check.simulate]
+noise_sd = 1.5
+[check.simulate.parameters]
+E = { prior = "uniform", lower = 300, upper = 400 }
+"""
+
+
+def test_check_table_is_read(tmp_path, write_study):
+    spec = load_study(write_study(tmp_path, write_study(tmp_path).read_text() + CHECK))
+    check = spec.check
+    assert (check.formulation, check.replicates, check.draws, check.tune) == ("M3", 50, 300, None)
+    assert check.simulate_noise_sd == 1.5 and check.simulate_noise_prior is None
+    assert check.simulate_parameters["E"].args == {"lower": 300.0, "upper": 400.0}
+    assert not check.simulates_the_fitted_model
+    assert load_study(write_study(tmp_path)).check.simulates_the_fitted_model
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key"),
+    [
+        ('formulation = "M3"', 'formulation = "M9"', r"check\.formulation.*'M9'"),
+        ("draws = 300", "draws = 0", r"check\.draws\] must be an integer >= 1, got 0"),
+        ("noise_sd = 1.5", "noise_sd = -1", r"check\.simulate\.noise_sd.*positive"),
+        ("noise_sd = 1.5", "noise = 1", r"check\.simulate\] unknown key.*'noise'"),
+        ("noise_sd = 1.5", 'noise_sd = 1\nsigma_obs = {prior = "halfnormal", sigma = 1}',
+         r"check\.simulate\] give noise_sd .* or sigma_obs"),
+        ("E = { prior", "G = { prior", r"check\.simulate\.parameters\.G.*not a physics"),
+        ('prior = "uniform", lower = 300', 'prior = "uniform", lower = 500',
+         r"check\.simulate\.parameters\.E.*lower"),
+    ],
+)  # fmt: skip
+def test_check_table_mistakes_name_the_key(tmp_path, write_study, old, new, key):
+    text = write_study(tmp_path).read_text() + CHECK.replace(old, new)
+    path = write_study(tmp_path, text)
+    with pytest.raises(StudyConfigError, match=key) as info:
+        load_study(path)
+    assert str(path) in str(info.value)

@@ -124,3 +124,32 @@ def test_two_load_beam_with_unknown_noise_has_no_divergences(label):
     )
     assert int(cal.idata.sample_stats["diverging"].sum()) == 0, cal.problems
     assert float(az.rhat(cal.idata).to_array().max()) <= 1.01, cal.problems
+
+
+def test_a_compiled_space_is_reused_with_new_shared_data():
+    """sample_posterior(space=...) samples the posterior of the data now in the model's
+    shared variables, without compiling: conjugate normal mean, exact posterior."""
+    import pymc as pm
+
+    from kohpymc.sampling import sample_posterior
+    from kohpymc.value_space import value_space
+
+    with pm.Model() as model:
+        y = pm.Data("y_data", np.zeros(5))
+        mu = pm.Normal("mu", 0.0, 10.0)
+        pm.Normal("y", mu, 1.0, observed=y)
+    space = value_space(model)
+    new = np.array([2.0, 3.0, 4.0, 2.5, 3.5])
+    pm.set_data({"y_data": new}, model=model)
+    idata, report = sample_posterior(
+        model, space=space, draws=400, tune=300, chains=2, random_seed=SEED
+    )
+    exact_mean, exact_sd = new.sum() / (5 + 1e-2), 1 / np.sqrt(5 + 1e-2)
+    post = idata.posterior["mu"]
+    assert abs(float(post.mean()) - exact_mean) < 0.25 * exact_sd  # ~5 Monte-Carlo SEs
+    assert abs(float(post.std()) / exact_sd - 1) < 0.15
+    assert report.timings["compile"] < 0.01
+    with pm.Model() as other:
+        pm.Normal("mu", 0.0, 1.0)
+    with pytest.raises(ValueError, match="value_space"):
+        sample_posterior(other, space=space)

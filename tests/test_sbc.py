@@ -203,3 +203,14 @@ def test_decay_m0_recovers_the_truth_in_200_replicates(spec, tmp_path):
     assert list(result.table.index) == ["A", "k", "sigma_obs"]
     assert (abs(result.table["cover90"] - 0.90) <= 0.05).all(), result.table
     assert len(result.flagged) <= 0.05 * 200
+
+
+def test_replicates_on_a_dask_cluster_match_the_in_process_ones(spec, quick_check, dask_cluster):
+    """The same 3 replicates through an existing cluster (``--scheduler``): same ranks."""
+    first, _ = quick_check
+    on_cluster = sbc.check_calibration(
+        spec, replicates=3, seed=SEED, scheduler=dask_cluster.scheduler_address, **QUICK
+    )
+    by_index = {r["index"]: r for r in on_cluster.records}
+    for record in first.records:
+        assert by_index[record["index"]]["rank"] == record["rank"]

@@ -4,7 +4,9 @@
 showing each formulation's progress (:mod:`kohpymc.progress`: live lines on a terminal,
 plain lines otherwise, nothing with ``--quiet``) and the validation table at the end;
 ``--workers N`` / ``--scheduler ADDRESS`` run the formulations on a Dask cluster
-(:mod:`kohpymc.execution`).
+(:mod:`kohpymc.execution`).  Each formulation's results are written to the output folder
+as soon as they are finished; running the same command again reuses every formulation
+whose inputs are unchanged ("M0: reused"), ``--fresh`` recomputes all.
 ``discover STUDY.toml [--json OUT] [--out DIR]`` runs :func:`kohpymc.discovery.discover`
 on the same file.  Exit status 0 on success, 2 for a bad study file or data, 1 when
 every formulation failed.
@@ -71,7 +73,7 @@ def _execution_overrides(args: argparse.Namespace, execution: dict) -> dict:
 
 def _study(args: argparse.Namespace) -> int:
     from kohpymc.progress import task_display
-    from kohpymc.study import run_study
+    from kohpymc.study import StudyStepError, run_study
 
     spec = _load(args)
     if spec is None:
@@ -94,7 +96,13 @@ def _study(args: argparse.Namespace) -> int:
             progress=None if args.quiet else display.write,
             display=display,
             progressbar=args.progressbar,
+            fresh=args.fresh,
         )
+    except StudyStepError as err:
+        print(f"error: {err}", file=sys.stderr)
+        kept = ", ".join(f"{k}.nc" for k in err.result.results) if err.result else "nothing"
+        print(f"finished formulations kept in {out}/: {kept} (see study.json)", file=sys.stderr)
+        return 1
     except (ValueError, KeyError) as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
@@ -253,6 +261,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     study.add_argument("--out", help="output folder (default: [output] dir of the file)")
     study.add_argument("--no-figures", action="store_true", help="skip the figures")
     study.add_argument("--progressbar", action="store_true", help="PyMC's progress bar")
+    study.add_argument(
+        "--fresh", action="store_true", help="recompute every formulation (no reuse of --out)"
+    )
     where = study.add_mutually_exclusive_group()
     where.add_argument(
         "--workers", type=int, help="formulations at once on a local Dask cluster of N processes"

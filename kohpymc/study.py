@@ -14,26 +14,40 @@ discrepancy formulations, and
    reliability weights (Eq. 23), the LOO stacking weights on the calibration data for
    comparison (``az.compare``), and the weighted mixture (Eq. 24) as one InferenceData.
 
+σ of y_D in the reliability integral is the same for every formulation when one exists
+apart from them (known, or pooled from replicates with Eq. 28); otherwise each formulation
+scores with its own posterior draws of σ_obs, draw by draw
+(:func:`kohpymc.validation.validation_noise`).  The mixture is scored point by point as
+``Σ_k w_k r_k(x)`` and needs no σ of its own.
+
 A formulation that fails (an exception while building, sampling or predicting) is
-reported in the table and does not stop the others.  With ``out_dir`` the results are
-written as ``<label>.nc`` per formulation, ``combined.nc``, ``table.csv``, ``table.md``,
-``study.json`` and three figures; every file is written to a temporary name first and
+reported in the table and does not stop the others.  With ``out_dir``
+(:class:`kohpymc.study_files.StudyFolder`) each formulation's ``<label>.nc`` is written
+the moment it finishes and ``study.json`` records every step, so a failure in a later
+step (weights, mixture, figures) or a killed process loses no finished posterior.  A
+rerun into the same folder reuses every formulation whose inputs are unchanged (a
+fingerprint of the physics, the priors, the data, the formulation, the sampler settings
+and the kohpymc version, stored in the file) and re-predicts one whose validation data
+alone changed; ``fresh=True`` recomputes all.  Then ``combined.nc``, ``table.csv``,
+``table.md`` and three figures; every file is written to a temporary name first and
 renamed when complete.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import closing
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import arviz as az
 import numpy as np
 import pandas as pd
+import xarray as xr
 
 from kohpymc.calibration import Calibration
 from kohpymc.checks import check_execution, check_validation_data
@@ -43,25 +57,60 @@ from kohpymc.diagnostics import RHAT_MAX, sampler_diagnostics
 from kohpymc.discrepancy import Discrepancy
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.execution import run_tasks, runs_remotely
+from kohpymc.fingerprint import (
+    data_fingerprint,
+    digest,
+    formulation_fingerprint,
+    kohpymc_version,
+    physics_fingerprint,
+)
 from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
 from kohpymc.model import compose_model
 from kohpymc.physics import PhysicsModel
 from kohpymc.progress import LineDisplay, TaskDisplay
-from kohpymc.study_files import COMBINED, _write, markdown_table, write_atomic
+from kohpymc.study_files import (
+    CALIBRATION_HASH,
+    COMBINED,
+    VALIDATION_HASH,
+    StudyFolder,
+    markdown_table,
+    write_atomic,
+    write_results,
+    write_table,
+)
 from kohpymc.validation import (
     Scored,
     derived_seed,
+    describe_noise,
     fit_and_score,
-    validation_metrics,
-    validation_noise_sd,
+    predictive_scores,
+    score_calibration,
 )
 
 __all__ = [
     "StudyResult",
+    "StudyStepError",
     "run_study",
     "markdown_table",
     "write_atomic",
 ]
+
+
+class StudyStepError(RuntimeError):
+    """A study step after the calibrations failed; finished posteriors are on disk.
+
+    Attributes
+    ----------
+    step : str
+        The step that failed (``"weights and mixture"``, ``"figures"`` ...).
+    result : StudyResult or None
+        What finished (the calibrations, a table without weights).
+    """
+
+    def __init__(self, step: str, error: BaseException, result: StudyResult | None) -> None:
+        super().__init__(f"{step} failed: {type(error).__name__}: {error}")
+        self.step = step
+        self.result = result
 
 
 @dataclass
@@ -94,8 +143,11 @@ class StudyResult:
         Files written.
     calibrations : dict label -> Calibration
         The calibrated formulations (for :func:`kohpymc.predict` at other inputs).
-    noise_sd : dict label -> float or None
-        σ of y_D used in each formulation's reliability integral.
+    validation_noise : dict label -> dict
+        σ of y_D used in each formulation's reliability integral: ``source``, ``sd``
+        (the mean over draws when per draw), ``per_draw`` and a ``note``.
+    reused : list of str
+        Formulations taken from an earlier run's files (inputs unchanged).
     """
 
     results: dict[str, az.InferenceData]
@@ -108,7 +160,8 @@ class StudyResult:
     wall_time_s: dict[str, float] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
     calibrations: dict[str, Calibration] = field(default_factory=dict)
-    noise_sd: dict[str, float | None] = field(default_factory=dict)
+    validation_noise: dict[str, dict] = field(default_factory=dict)
+    reused: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         """The main columns of the table as text."""
@@ -121,7 +174,13 @@ class StudyResult:
         view = self.table[cols + extra + ["r_hat_max", "divergences", "status"]].copy()
         view["status"] = [s if len(s) <= 40 else s[:37] + "..." for s in view["status"]]
         with pd.option_context("display.width", 200, "display.max_columns", 30):
-            return view.to_string(float_format=lambda v: f"{v:.4g}")
+            text = view.to_string(float_format=lambda v: f"{v:.4g}")
+        if "validation_noise" in self.table:
+            used = self.table["validation_noise"].dropna()
+            text += "\n\nσ of y_D in the reliability integral:\n" + "\n".join(
+                f"  {label}: {value}" for label, value in used.items()
+            )
+        return text
 
 
 @dataclass
@@ -156,17 +215,104 @@ class _Job:
         scored = self.fit(label, disc)
         cal = scored.calibration
         payload = (cal.idata, cal.problems, cal.identifiability, cal.noise_sd_prior)
-        return payload, (scored.predictions, scored.scores, scored.constant, scored.noise_sd)
+        return payload, (scored.predictions, scored.scores, scored.constant, scored.noise)
+
+    def calibration_hash(self, label: str, disc: Discrepancy) -> str:
+        """Fingerprint of everything the formulation's posterior depends on."""
+        quiet = ("progressbar", "cores")  # neither changes a draw
+        return digest(
+            {
+                "kohpymc": kohpymc_version(),
+                "physics": physics_fingerprint(self.physics),
+                "data": data_fingerprint(self.calibration),
+                "formulation": formulation_fingerprint(disc),
+                "label": label,
+                "seed": self.random_seed,
+                "settings": {k: v for k, v in self.settings.items() if k not in quiet},
+            }
+        )
+
+    def validation_hash(self, calibration_hash: str) -> str:
+        """Fingerprint of the predictions and scores on top of the posterior's."""
+        weights = None if self.validation_weights is None else list(self.validation_weights)
+        return digest(
+            [
+                calibration_hash,
+                data_fingerprint(self.validation),
+                repr(float(self.tolerance)),
+                weights,
+            ]
+        )
+
+    def rebuild(self, disc: Discrepancy, idata: az.InferenceData, problems, report) -> Calibration:
+        """A Calibration around finished draws, its model rebuilt here (building is cheap)."""
+        noise_prior = self.settings.get("noise_sd_prior")
+        built = compose_model(self.physics, self.calibration, disc, noise_sd_prior=noise_prior)
+        return Calibration(
+            self.physics, self.calibration, disc, built, idata, problems, report, noise_prior
+        )
 
 
 def _rebuilt(job: _Job, disc: Discrepancy, payload: tuple) -> Scored:
-    """A worker's results as a Scored, with the model rebuilt here (building is cheap)."""
-    (idata, problems, report, noise_prior), rest = payload
-    built = compose_model(job.physics, job.calibration, disc, noise_sd_prior=noise_prior)
-    cal = Calibration(
-        job.physics, job.calibration, disc, built, idata, problems, report, noise_prior
+    """A worker's results as a Scored, with the model rebuilt here."""
+    (idata, problems, report, _noise_prior), rest = payload
+    return Scored(job.rebuild(disc, idata, problems, report), *rest)
+
+
+#: groups of a formulation's file that are the calibration itself (the rest is validation)
+_CALIBRATION_GROUPS = ("posterior", "sample_stats", "log_likelihood", "observed_data")
+#: attributes of a calibration's InferenceData as :func:`kohpymc.calibrate` sets them
+_CALIBRATION_ATTRS = (
+    "formulation",
+    "formulation_description",
+    "physics",
+    "noise_sd",
+    "method",
+    "sampler",
+    "sampling",
+    "reparameterization",
+    "compile_mode",
+    "wall_time_s",
+)
+
+
+def _from_file(job: _Job, label: str, disc: Discrepancy, idata: az.InferenceData):
+    """``(scored or None, how)`` from a formulation's earlier file, when still valid.
+
+    ``how`` is ``"reused"`` (posterior and scores unchanged), ``"rescored"`` (the
+    posterior is valid but the validation data or tolerance changed: predicted and scored
+    again) or the reason it cannot be used.
+    """
+    calibration_hash = job.calibration_hash(label, disc)
+    if idata.attrs.get(CALIBRATION_HASH) != calibration_hash:
+        return None, "inputs changed"
+    groups: dict[str, Any] = {g: idata[g] for g in _CALIBRATION_GROUPS if g in idata.groups()}
+    own = az.InferenceData(**groups)
+    own.attrs.update({k: idata.attrs[k] for k in _CALIBRATION_ATTRS if k in idata.attrs})
+    problems = json.loads(idata.attrs.get("sampler_problems", "[]"))
+    cal = job.rebuild(disc, own, problems, None)
+    needed = ("predictions", "predictions_constant_data")
+    stale = idata.attrs.get(VALIDATION_HASH) != job.validation_hash(calibration_hash)
+    if stale or any(g not in idata.groups() for g in needed):
+        return _score(job, label, cal), "rescored"
+    const = idata["predictions_constant_data"]
+    noise = {k[len("noise_") :]: v for k, v in const.attrs.items() if k.startswith("noise_")}
+    if "per_draw" in noise:
+        noise["per_draw"] = bool(noise["per_draw"])
+    scores = {k: float(idata.attrs[k]) for k in ("mu_r", "mu_r_mcse", "rmse", "coverage90")}
+    predictions = az.InferenceData(predictions=idata["predictions"])
+    return Scored(cal, predictions, scores, const, noise), "reused"
+
+
+def _score(job: _Job, label: str, cal: Calibration) -> Scored:
+    return score_calibration(
+        cal,
+        job.validation,
+        tolerance=job.tolerance,
+        validation_weights=job.validation_weights,
+        random_seed=job.random_seed,
+        label=label,
     )
-    return Scored(cal, *rest)
 
 
 def _check_identifiability(physics, calibration, formulations, say):
@@ -231,10 +377,13 @@ def _say_scores(say, label: str, scored: Scored, seconds: float) -> None:
 
 
 def _mixture(results, metrics, job: _Job, seed):
-    """Reliability weights (Eq. 23) and the weighted mixture (Eq. 24) with its scores."""
+    """Reliability weights (Eq. 23) and the weighted mixture (Eq. 24) with its scores.
+
+    The mixture's reliability is ``Σ_k w_k r_k(x)`` point by point (r is linear in the
+    predictive distribution), so it needs no σ of its own; RMSE and coverage come from
+    the mixed draws, whose ``y_pred`` carry each formulation's own noise.
+    """
     params = list(job.physics.parameters)
-    calibration, validation, tolerance = job.calibration, job.validation, job.tolerance
-    weights_v = job.validation_weights
     positive = {k: m["mu_r"] for k, m in metrics.items()}
     weights = reliability_weights(positive) if sum(positive.values()) > 0 else {}
     if not weights:
@@ -242,15 +391,26 @@ def _mixture(results, metrics, job: _Job, seed):
     combined = combine_posteriors(
         results, weights, var_names=params, predictions=results, random_seed=seed
     )
-    noise_sd = validation_noise_sd(validation, calibration, combined["posterior"])
-    scores, const = validation_metrics(combined, validation, tolerance, noise_sd, weights_v)
-    # r(x) is linear in the predictive distribution, so the mixture's μ_r is exactly
-    # Σ w_i μ_r,i; use that rather than the resampled draws' noisier estimate
-    scores["mu_r"] = float(sum(w * metrics[k]["mu_r"] for k, w in weights.items()))
-    scores["mu_r_mcse"] = float(
-        np.sqrt(sum((w * metrics[k]["mu_r_mcse"]) ** 2 for k, w in weights.items()))
+    pointwise = sum(
+        w * results[k].predictions_constant_data["reliability"] for k, w in weights.items()
     )
-    const.attrs.update({"mu_r": scores["mu_r"], "mu_r_mcse": scores["mu_r_mcse"]})
+    scores = {
+        "mu_r": float(sum(w * metrics[k]["mu_r"] for k, w in weights.items())),
+        "mu_r_mcse": float(
+            np.sqrt(sum((w * metrics[k]["mu_r_mcse"]) ** 2 for k, w in weights.items()))
+        ),
+        **predictive_scores(combined, job.validation),
+    }
+    const = xr.Dataset({"reliability": pointwise.rename("reliability")})
+    const["y_validation"] = xr.DataArray(job.validation.y, dims=("pred",))
+    const.attrs.update(
+        {
+            "mu_r": scores["mu_r"],
+            "mu_r_mcse": scores["mu_r_mcse"],
+            "tolerance": float(job.tolerance),
+            "noise_source": "each formulation's own (mixture of r_k(x))",
+        }
+    )
     combined.add_groups(predictions_constant_data=const)
     combined.attrs.update({k: float(v) for k, v in scores.items()})
     return weights, combined, scores
@@ -289,12 +449,14 @@ def run_study(
     workers: int = 1,
     scheduler: Any = None,
     display: TaskDisplay | None = None,
+    fresh: bool = False,
     **calibrate_kwargs: Any,
 ) -> StudyResult:
     """Check, calibrate, validate and weigh a set of discrepancy formulations.
 
     Runs the identifiability check, calibrations, validation metrics, weights and the
-    mixture, optionally writing everything to ``out_dir``.
+    mixture, optionally writing everything to ``out_dir`` (each formulation's file as
+    soon as it is finished; a rerun into the same folder reuses unchanged ones).
 
     Parameters
     ----------
@@ -314,7 +476,9 @@ def run_study(
         Seeds every calibration, prediction and the mixture; the same seed gives the
         same table.
     out_dir : path, optional
-        Folder to write results to (created if needed).
+        Folder to write results to (created if needed).  Formulations whose file there
+        has the fingerprint of this run's inputs are reused, not recomputed (a changed
+        validation set or tolerance only re-predicts and re-scores them).
     figures : bool
         Write the three figures (with ``out_dir``).
     reference : mapping, optional
@@ -335,12 +499,21 @@ def run_study(
     display : TaskDisplay, optional
         Shows each formulation queued, running (compiling, sampling), done or failed
         (:mod:`kohpymc.progress`); default plain lines through ``progress``.
+    fresh : bool
+        Recompute every formulation even when ``out_dir`` holds valid results.
     **calibrate_kwargs :
         Further keywords for :func:`kohpymc.calibrate`.
 
     Returns
     -------
     StudyResult
+
+    Raises
+    ------
+    StudyStepError
+        When a step after the calibrations fails (weights, mixture, writing, figures):
+        every finished formulation's file and a table without weights are on disk, and
+        the error's ``result`` holds what finished.
 
     Examples
     --------
@@ -362,43 +535,158 @@ def run_study(
     job = _Job(
         physics, calibration, validation, tolerance, validation_weights, random_seed, settings
     )
-    todo = [label for label in formulations if label not in failures]
+    output = _Output(figures, reference, derived_seed(random_seed, COMBINED, 2))
+    folder = StudyFolder(out_dir, fresh=fresh) if out_dir is not None else None
+    reused = _reuse_finished(job, formulations, failures, folder, say)
+    todo = [label for label in formulations if label not in failures and label not in reused]
     # one formulation: no cluster to start (an existing one is used as asked)
     execution = {"workers": workers if len(todo) > 1 else 1, "scheduler": scheduler}
-    say(f"calibrating {len(todo)} formulation(s)" + _where(workers, scheduler, len(todo)))
-    outcomes = {
-        label: (scored, seconds, error)
-        for label, scored, seconds, error in _calibrate_all(
-            job, formulations, todo, execution, display
-        )
-    }
+    if todo:
+        say(f"calibrating {len(todo)} formulation(s)" + _where(workers, scheduler, len(todo)))
+    outcomes: dict[str, tuple[Scored | None, float, str | None]] = {}
+    for label, outcome, seconds, error in _calibrate_all(
+        job, formulations, todo, execution, display
+    ):
+        outcomes[label] = (outcome, seconds, error)
+        if folder is not None:
+            _save(folder, job, label, formulations[label], outcome, seconds, error)
     display.close()
-    scored, wall = _collect(outcomes, todo, failures, say)
-    results = {k: s.combined_idata() for k, s in scored.items()}
-    metrics = {k: s.scores for k, s in scored.items()}
-    loo = _loo_comparison(results, say)
-    weights, combined, combined_scores = _mixture(
-        results, metrics, job, derived_seed(random_seed, COMBINED, 2)
+    try:
+        scored, wall = _collect(outcomes, reused, formulations, failures, say)
+    except RuntimeError as err:
+        if folder is not None:
+            folder.update(status="failed", error=str(err), failures=failures)
+        raise
+    return _finish(job, formulations, scored, wall, failures, identifiability, folder, say, output)
+
+
+def _reuse_finished(job, formulations, failures, folder, say) -> dict[str, Scored]:
+    """Formulations whose earlier files in the output folder are still valid."""
+    reused: dict[str, Scored] = {}
+    if folder is None:
+        return reused
+    for label, disc in formulations.items():
+        if label in failures:
+            folder.record(label, status="failed", error=failures[label])
+            continue
+        earlier = folder.finished(label)
+        scored, how = (
+            (None, "no file") if earlier is None else _from_file(job, label, disc, earlier)
+        )
+        if scored is None:
+            folder.record(label, status="queued")
+            if earlier is not None:
+                say(f"  {label}: recomputed ({how})")
+            continue
+        reused[label] = scored
+        if how == "rescored":
+            _save(folder, job, label, disc, scored, 0.0, None, status="rescored")
+        else:
+            folder.record(label, status="reused", file=f"{label}.nc", validation_noise=scored.noise)
+        say(f"  {label}: {how} ({folder.formulation_file(label)})")
+    return reused
+
+
+def _save(folder, job, label, disc, scored, seconds, error, status="done") -> None:
+    """Write a finished formulation's file at once, with its fingerprints; or its failure."""
+    if error is not None or scored is None:
+        folder.record(label, status="failed", error=error)
+        return
+    calibration_hash = job.calibration_hash(label, disc)
+    idata = scored.combined_idata()
+    idata.attrs[CALIBRATION_HASH] = calibration_hash
+    idata.attrs[VALIDATION_HASH] = job.validation_hash(calibration_hash)
+    cal = scored.calibration
+    path = folder.save_formulation(label, lambda p: cal.to_netcdf(p, idata))
+    folder.record(
+        label,
+        status=status,
+        file=path.name,
+        wall_time_s=round(float(seconds), 2),
+        validation_noise=scored.noise,
+        sampler_problems=list(cal.problems),
     )
-    if combined_scores is not None:
-        metrics[COMBINED] = combined_scores
-    table = _table(formulations, scored, results, metrics, weights, loo, failures, identifiability)
-    result = StudyResult(
+
+
+@dataclass
+class _Output:
+    """What the study writes besides the results (with ``out_dir``)."""
+
+    figures: bool
+    reference: Mapping[str, float] | None
+    mixture_seed: int | None
+
+
+def _finish(job, formulations, scored, wall, failures, identifiability, folder, say, output):
+    """Weights, mixture, table and files; a failure here keeps every finished posterior.
+
+    Raises :class:`StudyStepError` (with what finished and a table without weights)
+    after writing that table and the error to the output folder.
+    """
+    results = {k: s.combined_idata() for k, s in scored.items()}
+    metrics = {k: dict(s.scores) for k, s in scored.items()}
+    partial = StudyResult(
         results=results,
-        table=table,
-        weights=weights,
-        loo=loo,
-        combined=combined,
+        table=pd.DataFrame(),
+        weights={},
+        loo=None,
+        combined=None,
         failures=failures,
         identifiability=identifiability,
         wall_time_s=wall,
         calibrations={k: s.calibration for k, s in scored.items()},
-        noise_sd={k: s.noise_sd for k, s in scored.items()},
+        validation_noise={k: s.noise for k, s in scored.items()},
+        reused=[k for k in scored if k not in wall],
     )
-    if out_dir is not None:
-        _write(result, Path(out_dir), physics, validation, figures, reference)
-        say(f"wrote {len(result.files)} files to {out_dir}")
+    step = "LOO comparison"
+    try:
+        loo = _loo_comparison(results, say)
+        step = "weights and mixture"
+        weights, combined, combined_scores = _mixture(results, metrics, job, output.mixture_seed)
+        if combined_scores is not None:
+            metrics[COMBINED] = combined_scores
+        step = "table"
+        table = _table(
+            formulations, scored, results, metrics, weights, loo, failures, identifiability
+        )
+        result = replace(partial, table=table, weights=weights, loo=loo, combined=combined)
+        if folder is not None:
+            step = "writing results"
+            write_results(
+                result, folder, job.physics, job.validation, output.figures, output.reference
+            )
+            folder.update(status="complete", error=None)
+            result.files = list(folder.files)
+            say(f"wrote {len(result.files)} files to {folder.path}")
+    except Exception as err:
+        _keep_what_finished(partial, formulations, scored, metrics, folder, step, err)
+        raise StudyStepError(step, err, partial) from err
     return result
+
+
+def _keep_what_finished(partial, formulations, scored, metrics, folder, step, err) -> None:
+    """After a failed step: a table of the finished formulations, the error in the manifest."""
+    only = {k: v for k, v in metrics.items() if k != COMBINED}
+    try:
+        partial.table = _table(
+            formulations, scored, partial.results, only, {}, None, partial.failures,
+            partial.identifiability,
+        )  # fmt: skip
+    except Exception:  # noqa: BLE001 - the original error is the one to report
+        partial.table = pd.DataFrame({k: v for k, v in only.items()}).T
+    if folder is None:
+        return
+    try:
+        write_table(folder, partial.table)
+    finally:
+        folder.update(
+            status="failed",
+            error=f"{step} failed: {type(err).__name__}: {err}",
+            failures=partial.failures,
+            identifiability=partial.identifiability,
+            validation_noise=partial.validation_noise,
+        )
+        partial.files = list(folder.files)
 
 
 def _where(workers: int, scheduler: Any, n: int) -> str:
@@ -421,11 +709,16 @@ def _checked_study(physics, validation, tolerance, workers, scheduler, formulati
     return tolerance, formulations
 
 
-def _collect(outcomes, todo, failures, say) -> tuple[dict[str, Scored], dict[str, float]]:
-    """Scored formulations in the study's order (failures go into ``failures``)."""
+def _collect(outcomes, reused, formulations, failures, say):
+    """``(scored, wall)`` in the study's order, reused ones included (failures noted)."""
     scored: dict[str, Scored] = {}
     wall: dict[str, float] = {}
-    for label in todo:  # the formulations' order, whatever order they finished in
+    for label in formulations:  # the formulations' order, whatever order they finished in
+        if label in reused:
+            scored[label] = reused[label]
+            continue
+        if label not in outcomes:
+            continue
         outcome, seconds, error = outcomes[label]
         if error is not None:
             failures[label] = error
@@ -453,6 +746,7 @@ def _row(label, scored: Scored, results, identifiability) -> dict[str, Any]:
     row["r_hat_max"] = float(az.rhat(results[label].posterior).to_array().max())
     row["ess_bulk_min"] = float(diag["ess_bulk"].min())
     row["divergences"] = int(diag.attrs["divergences"])
+    row["validation_noise"] = describe_noise(scored.noise)
     row["identifiable"] = identifiability.get(label, {}).get("identifiable")
     row["status"] = "ok" if not cal.problems else "; ".join(cal.problems)
     return row
@@ -476,6 +770,7 @@ def _table(formulations, scored, results, metrics, weights, loo, failures, ident
         if label in scored:
             row.update(_row(label, scored[label], results, identifiability))
         elif label == COMBINED:
+            row["validation_noise"] = "mixture of each formulation's r(x)"
             row["status"] = "ok"
         else:
             row["status"] = f"failed: {failures.get(label, 'unknown')}"

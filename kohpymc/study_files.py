@@ -1,7 +1,15 @@
-"""Writing a study's results: atomic file writes, the Markdown table, the output folder.
+"""A study's output folder: atomic writes, the manifest, finished work kept and reused.
 
 Every file is written to a hidden temporary name first and renamed when complete
 (:func:`write_atomic`), so an interrupted run leaves no half-written file behind.
+
+:class:`StudyFolder` writes each formulation's ``<label>.nc`` the moment it is finished,
+with the fingerprints of its inputs in the file's attributes
+(``kohpymc_calibration_hash``, ``kohpymc_validation_hash``), and keeps ``study.json`` (the
+manifest: what is queued, done, reused or failed, and the study's state) up to date after
+every step.  A later run into the same folder finds a formulation's file and reuses it when
+its fingerprints match the ones computed now; the files, not the manifest, are the
+authority, so a run killed between two writes loses nothing that was written.
 """
 
 from __future__ import annotations
@@ -12,6 +20,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import arviz as az
 import numpy as np
 import pandas as pd
 
@@ -21,9 +30,13 @@ from kohpymc.physics import PhysicsModel
 if TYPE_CHECKING:
     from kohpymc.study import StudyResult
 
-__all__ = ["markdown_table", "write_atomic"]
+__all__ = ["markdown_table", "write_atomic", "StudyFolder"]
 
 COMBINED = "combined"
+MANIFEST = "study.json"
+#: NetCDF attributes holding a formulation's fingerprints
+CALIBRATION_HASH = "kohpymc_calibration_hash"
+VALIDATION_HASH = "kohpymc_validation_hash"
 
 
 def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
@@ -73,16 +86,143 @@ def write_atomic(path: Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
-def _write_atomic(path: Path, write: Callable[[Path], object], files: list[Path]) -> None:
-    files.append(write_atomic(path, write))
+class StudyFolder:
+    """The output folder of a study: per-formulation files, manifest and reuse.
+
+    Parameters
+    ----------
+    path : path
+        The folder (created on the first write).
+    fresh : bool
+        Ignore finished files: every formulation is recomputed (and overwritten).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = StudyFolder(tempfile.mkdtemp())
+    >>> folder.record("M0", status="queued")
+    >>> folder.manifest["formulations"]["M0"]["status"]
+    'queued'
+    """
+
+    def __init__(self, path: str | os.PathLike[str], fresh: bool = False) -> None:
+        self.path = Path(path)
+        self.fresh = fresh
+        self.manifest: dict[str, Any] = {"status": "running", "formulations": {}}
+        self.files: list[Path] = []
+
+    def formulation_file(self, label: str) -> Path:
+        """Where a formulation's InferenceData is written."""
+        return self.path / f"{label}.nc"
+
+    def finished(self, label: str) -> az.InferenceData | None:
+        """A formulation's earlier results, loaded into memory, or None (or ``fresh``).
+
+        A file that cannot be read (e.g. truncated by a crash of another program) counts
+        as absent and is recomputed.
+        """
+        path = self.formulation_file(label)
+        if self.fresh or not path.is_file():
+            return None
+        try:
+            idata = az.from_netcdf(str(path))
+            for group in idata.groups():
+                idata[group].load()
+        except Exception:  # noqa: BLE001 - an unreadable file is recomputed, not fatal
+            return None
+        return idata
+
+    def save_formulation(self, label: str, write: Callable[[Path], object]) -> Path:
+        """Write ``<label>.nc`` atomically through ``write(tmp_path)``."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        path = write_atomic(self.formulation_file(label), write)
+        self.files.append(path)
+        return path
+
+    def record(self, label: str, **entries: Any) -> None:
+        """Update a formulation's manifest entry and write the manifest."""
+        self.manifest["formulations"].setdefault(label, {}).update(_plain(entries))
+        self.write_manifest()
+
+    def update(self, **entries: Any) -> None:
+        """Update study-level manifest entries and write the manifest."""
+        self.manifest.update(_plain(entries))
+        self.write_manifest()
+
+    def write_manifest(self) -> Path:
+        """Write ``study.json`` atomically."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(self.manifest, indent=2) + "\n"
+        path = write_atomic(self.path / MANIFEST, lambda p: p.write_text(text))
+        if path not in self.files:
+            self.files.append(path)
+        return path
+
+    def write(self, name: str, write: Callable[[Path], object]) -> Path:
+        """Write a study-level file atomically (table, combined results, a figure)."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        path = write_atomic(self.path / name, write)
+        if path not in self.files:
+            self.files.append(path)
+        return path
 
 
-def _write(
+def _plain(value: Any) -> Any:
+    """JSON-ready copy: numpy scalars as Python numbers, NaN as None."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def write_table(folder: StudyFolder, table: pd.DataFrame) -> None:
+    """``table.csv`` and ``table.md``."""
+    folder.write("table.csv", lambda p: table.to_csv(p))
+    folder.write("table.md", lambda p: p.write_text(markdown_table(table) + "\n"))
+
+
+def write_results(
     result: StudyResult,
-    out: Path,
+    folder: StudyFolder,
     physics: PhysicsModel,
     validation: CalibrationData,
     figures: bool,
+    reference: Mapping[str, float] | None,
+) -> None:
+    """The study-level files: ``combined.nc``, the table, the manifest, the figures.
+
+    Each formulation's ``<label>.nc`` was written when it finished.
+    """
+    if result.combined is not None:
+        combined = result.combined
+        folder.write(f"{COMBINED}.nc", lambda p: combined.to_netcdf(str(p)))
+    write_table(folder, result.table)
+    folder.update(
+        weights=result.weights,
+        loo_weights=(
+            {} if result.loo is None else {k: float(v) for k, v in result.loo["weight"].items()}
+        ),
+        failures=result.failures,
+        identifiability=result.identifiability,
+        validation_noise=result.validation_noise,
+        wall_time_s=result.wall_time_s,
+    )
+    if figures:
+        _write_figures(result, folder, physics, validation, reference)
+
+
+def _write_figures(
+    result: StudyResult,
+    folder: StudyFolder,
+    physics: PhysicsModel,
+    validation: CalibrationData,
     reference: Mapping[str, float] | None,
 ) -> None:
     import matplotlib.pyplot as plt
@@ -93,33 +233,6 @@ def _write(
         plot_validation_predictions,
     )
 
-    out.mkdir(parents=True, exist_ok=True)
-    files = result.files
-    for label, idata in result.results.items():
-        cal = result.calibrations[label]
-        _write_atomic(out / f"{label}.nc", lambda p, c=cal, d=idata: c.to_netcdf(p, d), files)
-    if result.combined is not None:
-        combined = result.combined
-        _write_atomic(out / f"{COMBINED}.nc", lambda p: combined.to_netcdf(str(p)), files)
-    _write_atomic(out / "table.csv", lambda p: result.table.to_csv(p), files)
-    _write_atomic(
-        out / "table.md", lambda p: p.write_text(markdown_table(result.table) + "\n"), files
-    )
-    summary = {
-        "weights": result.weights,
-        "loo_weights": (
-            {} if result.loo is None else {k: float(v) for k, v in result.loo["weight"].items()}
-        ),
-        "failures": result.failures,
-        "identifiability": result.identifiability,
-        "validation_noise_sd": result.noise_sd,
-        "wall_time_s": result.wall_time_s,
-    }
-    _write_atomic(
-        out / "study.json", lambda p: p.write_text(json.dumps(summary, indent=2) + "\n"), files
-    )
-    if not figures:
-        return
     params = list(physics.parameters)
     figs = {
         "posteriors.png": plot_parameter_posteriors(
@@ -138,5 +251,5 @@ def _write(
         output_name=validation.output_name,
     )
     for name, fig in figs.items():
-        _write_atomic(out / name, lambda p, f=fig: f.savefig(p, dpi=120, format="png"), files)
+        folder.write(name, lambda p, f=fig: f.savefig(p, dpi=120, format="png"))
         plt.close(fig)

@@ -100,3 +100,69 @@ def test_command_line_execution_wins_over_the_file(tmp_path, capsys, write_study
     err = capsys.readouterr().err
     assert "workers must be a positive integer, got 0" in err
     assert not out.exists()
+
+
+def test_two_load_beam_study_without_noise_sd_completes_and_rerun_reuses(tmp_path, capsys):
+    """The shipped two-load beam study gives no noise sd (the common case): it completes,
+    writes every file, and the same command again reuses all five formulations."""
+    import json
+    from pathlib import Path
+
+    from kohpymc.examples import beam
+
+    study = str(Path(beam.__file__).parent / "beam_two_load_study.toml")
+    out = tmp_path / "two_load"
+    small = ["--draws", "150", "--tune", "150", "--chains", "2"]
+    assert main(["study", study, "--out", str(out), *small]) == 0
+    labels = ["M0", "M1", "M2", "M3", "M4"]
+    expected = {f"{k}.nc" for k in labels} | (EXPECTED - {"M0.nc", "M4.nc"})
+    assert expected <= {p.name for p in out.iterdir()}
+    table = pd.read_csv(out / "table.csv", index_col=0)
+    assert list(table.index) == [*labels, "combined"]
+    assert table["mu_r"].between(0, 1).all()
+    assert table.loc[labels, "validation_noise"].str.startswith("posterior draws").all()
+    manifest = json.loads((out / "study.json").read_text())
+    assert manifest["status"] == "complete"
+    assert manifest["formulations"]["M2"]["validation_noise"]["per_draw"] is True
+    capsys.readouterr()
+    assert main(["study", study, "--out", str(out), *small]) == 0
+    printed = capsys.readouterr().out
+    assert all(f"{k}: reused" in printed for k in labels)
+    pd.testing.assert_frame_equal(pd.read_csv(out / "table.csv", index_col=0), table)
+
+
+def test_study_killed_after_its_first_formulation_resumes(tmp_path, capsys, write_study):
+    """SIGKILL once M0.nc is written; the rerun reuses M0 and ends with the table of an
+    uninterrupted run with the same seed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = write_study(
+        tmp_path, **{"noise_sd = 0.316\n": "", 'M4 = { type = "gp", inputs = ["x"], mean = '
+                     '["x", "P", "x*P"] }': 'M1 = "constant"', "M3 = {": "# M3 = {"}
+    )  # fmt: skip
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    assert main(["study", str(path), "--out", str(whole), "--no-figures", "--quiet"]) == 0
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    command = [sys.executable, "-m", "kohpymc", "study", str(path), "--out", str(killed),
+               "--no-figures", "--quiet"]  # fmt: skip
+    process = subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.monotonic() + 300
+    while not (killed / "M0.nc").exists() and process.poll() is None:
+        assert time.monotonic() < deadline, "M0.nc never appeared"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert (killed / "M0.nc").exists() and not (killed / "table.csv").exists()
+    capsys.readouterr()
+    assert main(["study", str(path), "--out", str(killed), "--no-figures"]) == 0
+    assert "M0: reused" in capsys.readouterr().out
+    pd.testing.assert_frame_equal(
+        pd.read_csv(killed / "table.csv", index_col=0),
+        pd.read_csv(whole / "table.csv", index_col=0),
+    )

@@ -176,3 +176,116 @@ def test_table2_load_dependent_m3_m4_beat_m0_m2():
         gap = mu[label] - mu[best_simple]
         assert gap > 3 * np.hypot(se[label], se[best_simple]), (label, mu.to_dict())
     assert result.table.loc[["M3", "M4"], "divergences"].max() <= 2
+
+
+# --------------------------------------------------------------- nothing lost, resume
+
+
+def _unknown_noise(data):
+    from kohpymc import CalibrationData
+
+    return CalibrationData(data.inputs, data.y, output_name=data.output_name)
+
+
+def test_study_without_noise_sd_scores_each_formulation_with_its_own_sigma_draws(
+    beam_physics, beam_data, beam_validation, tmp_path
+):
+    """With the noise unknown everywhere, every formulation's r(x) uses its own σ_obs draws
+    (draw by draw), the mixture is Σ w_k r_k(x) point by point, and every file is written."""
+    from kohpymc import IIDGaussian
+
+    cal, val = _unknown_noise(beam_data), _unknown_noise(beam_validation)
+    result = run_study(
+        beam_physics, cal, val, {"M0": NoDiscrepancy(), "M2": IIDGaussian()},
+        tolerance=0.75, random_seed=3, out_dir=tmp_path, figures=False, **SMALL,
+    )  # fmt: skip
+    for label in ("M0", "M2"):
+        noise = result.validation_noise[label]
+        assert noise["source"] == "posterior draws of sigma_obs" and noise["per_draw"]
+        # recompute r(x) draw by draw from the stored draws: the same numbers
+        idata = result.results[label]
+        sigma = idata.posterior["sigma_obs"]
+        again = reliability(idata, val, 0.75, noise_sd=sigma)
+        np.testing.assert_allclose(
+            again.pointwise.values, idata.predictions_constant_data["reliability"].values
+        )
+        # ... and not what the posterior-mean σ gives
+        plugged = reliability(idata, val, 0.75, noise_sd=float(sigma.mean()))
+        assert abs(plugged.mu_r - again.mu_r) > 1e-4
+    assert "sigma_obs² + delta_sd²" in result.validation_noise["M2"]["note"]
+    weights = result.weights
+    mixed = sum(w * result.results[k].predictions_constant_data["reliability"]
+                for k, w in weights.items())  # fmt: skip
+    np.testing.assert_allclose(
+        result.combined.predictions_constant_data["reliability"].values, mixed.values
+    )
+    assert {"M0.nc", "M2.nc", "combined.nc", "table.csv", "study.json"} <= {
+        p.name for p in tmp_path.iterdir()
+    }
+    assert result.table.loc["M0", "validation_noise"].startswith("posterior draws of sigma_obs")
+
+
+def test_a_failing_mixture_step_keeps_every_finished_posterior(
+    beam_physics, beam_data, beam_validation, tmp_path, monkeypatch
+):
+    """An error after the calibrations (here injected into the mixture) leaves each finished
+    formulation's file, a table of what finished and the error in study.json; a rerun then
+    reuses both calibrations and completes."""
+    import json
+
+    import kohpymc.study as study_module
+    from kohpymc.study import StudyStepError
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected mixture failure")
+
+    monkeypatch.setattr(study_module, "combine_posteriors", broken)
+    formulations = {"M0": NoDiscrepancy(), "M1": ConstantBias()}
+    args = (beam_physics, beam_data, beam_validation, formulations)
+    with pytest.raises(StudyStepError, match="weights and mixture failed.*injected") as caught:
+        run_study(*args, tolerance=0.75, random_seed=3, out_dir=tmp_path, **SMALL)
+    for label in ("M0", "M1"):
+        back = az.from_netcdf(tmp_path / f"{label}.nc")
+        assert back.posterior["E"].shape == (2, 150)
+    table = pd.read_csv(tmp_path / "table.csv", index_col=0)
+    assert list(table.index) == ["M0", "M1"] and table["mu_r"].notna().all()
+    manifest = json.loads((tmp_path / "study.json").read_text())
+    assert manifest["status"] == "failed" and "injected" in manifest["error"]
+    assert {v["status"] for v in manifest["formulations"].values()} == {"done"}
+    assert set(caught.value.result.results) == {"M0", "M1"}
+    assert not list(tmp_path.glob(".*.part"))
+
+    monkeypatch.undo()
+    lines: list[str] = []
+    again = run_study(
+        *args, tolerance=0.75, random_seed=3, out_dir=tmp_path, progress=lines.append, **SMALL
+    )
+    assert again.reused == ["M0", "M1"]
+    assert any("M0: reused" in line for line in lines)
+    assert json.loads((tmp_path / "study.json").read_text())["status"] == "complete"
+
+
+def test_changed_prior_recomputes_only_the_formulation_that_uses_it(
+    beam_physics, beam_data, beam_validation, tmp_path
+):
+    from kohpymc import Normal
+
+    def run(m1, **extra):
+        return run_study(
+            beam_physics, beam_data, beam_validation, {"M0": NoDiscrepancy(), "M1": m1},
+            tolerance=0.75, random_seed=3, out_dir=tmp_path, figures=False, **SMALL, **extra,
+        )  # fmt: skip
+
+    first = run(ConstantBias())
+    stamp = {k: (tmp_path / f"{k}.nc").stat().st_mtime_ns for k in ("M0", "M1")}
+    second = run(ConstantBias(prior=Normal(0.0, 2.0)))
+    assert second.reused == ["M0"]
+    assert (tmp_path / "M0.nc").stat().st_mtime_ns == stamp["M0"]
+    assert (tmp_path / "M1.nc").stat().st_mtime_ns != stamp["M1"]
+    np.testing.assert_array_equal(
+        first.results["M0"].posterior["E"].values, second.results["M0"].posterior["E"].values
+    )
+    # fresh=True recomputes everything, to the same draws (same seed)
+    third = run(ConstantBias(prior=Normal(0.0, 2.0)), fresh=True)
+    assert third.reused == []
+    pd.testing.assert_frame_equal(second.table, third.table)

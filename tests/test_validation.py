@@ -51,16 +51,70 @@ def test_mcse_matches_spread_over_repeated_posteriors():
     assert reported == pytest.approx(spread, rel=0.2)
 
 
-def test_replicates_define_the_measurement_distribution():
+def test_replicates_give_the_pooled_sd_of_eq28_not_each_groups_own():
     ym = _draws(np.full((1, 5, 4), 1.0))
-    val = CalibrationData({"x": [0.0, 0.0, 1.0, 1.0]}, [0.8, 1.2, 3.0, 3.4], replicates="inputs")
+    y = [0.8, 1.2, 3.0, 3.4]
+    val = CalibrationData({"x": [0.0, 0.0, 1.0, 1.0]}, y, replicates="inputs")
     res = reliability(ym, val, tolerance=0.5)
     from scipy.stats import norm
 
-    sd0 = np.std([0.8, 1.2], ddof=1)
-    expected0 = norm.cdf((1.5 - 1.0) / sd0) - norm.cdf((0.5 - 1.0) / sd0)
-    assert res.pointwise.values[0] == pytest.approx(expected0)
+    pooled = np.sqrt(((0.2**2 + 0.2**2) + (0.2**2 + 0.2**2)) / 2)  # Eq. 28 by hand
+    assert val.noise_sd == pytest.approx(pooled)
+    expected = norm.cdf((1.5 - 0.8) / pooled) - norm.cdf((0.5 - 0.8) / pooled)
+    assert res.pointwise.values[0] == pytest.approx(expected)  # each row its own D
     assert res.pointwise.values[2] < 1e-6
+
+
+def test_per_draw_sigma_matches_brute_force_monte_carlo():
+    """σ varies over the draws: draw s of y_m is scored against y_D ~ N(D, σ_s²)."""
+    rng = np.random.default_rng(SEED)
+    ym = rng.normal([1.0, 2.5], [0.4, 0.3], size=(2, 400, 2))
+    sigma = xr.DataArray(rng.uniform(0.1, 1.0, size=(2, 400)), dims=("chain", "draw"))
+    val = CalibrationData({"x": [0.0, 1.0]}, [1.2, 2.0])
+    res = reliability(_draws(ym), val, tolerance=0.5, noise_sd=sigma)
+    n = 500
+    yd = val.y + sigma.values[None, ..., None] * rng.normal(size=(n, 2, 400, 2))
+    brute = (np.abs(yd - ym[None]) < 0.5).mean(axis=(0, 1, 2))
+    np.testing.assert_allclose(res.pointwise.values, brute, atol=4e-3)
+    with pytest.raises(ValueError, match="per-draw noise sd has"):
+        reliability(_draws(ym), val, 0.5, noise_sd=sigma.isel(draw=slice(0, 10)))
+
+
+def test_iid_discrepancy_scores_depend_only_on_the_sum_of_variances():
+    """M2 with unknown noise: y_m = G + δ with δ ~ N(0, σ_δ²) fresh per draw and σ_obs per
+    draw; any split of the same σ_obs² + σ_δ² gives the r(x) of the sum (closed form)."""
+    from scipy.stats import norm
+
+    rng = np.random.default_rng(SEED)
+    g, d, eps, total = 1.0, 1.4, 0.5, 0.6
+    for share in (0.2, 0.5, 0.9):
+        s_obs, s_delta = total * np.sqrt(share), total * np.sqrt(1 - share)
+        ym = g + s_delta * rng.normal(size=(4, 20_000, 1))
+        sigma = xr.DataArray(np.full((4, 20_000), s_obs), dims=("chain", "draw"))
+        val = CalibrationData({"x": [0.0]}, [d])
+        res = reliability(_draws(ym), val, eps, noise_sd=sigma)
+        exact = norm.cdf((g + eps - d) / total) - norm.cdf((g - eps - d) / total)
+        assert res.mu_r == pytest.approx(exact, abs=3e-3)
+
+
+def test_validation_noise_prefers_a_shared_sd_and_else_uses_the_draws():
+    from kohpymc import IIDGaussian
+    from kohpymc.validation import shared_validation_noise, validation_noise
+
+    post = xr.Dataset({"sigma_obs": (("chain", "draw"), np.full((2, 5), 0.4))})
+    unknown = CalibrationData({"x": [0.0, 1.0]}, [1.0, 2.0])
+    known = CalibrationData({"x": [0.0, 1.0]}, [1.0, 2.0], noise_sd=0.2)
+    replicated = CalibrationData({"x": [0.0, 0.0, 1.0, 1.0]}, [1, 1.2, 2, 2.4], replicates="inputs")
+    assert validation_noise(known, unknown, post).source == "validation noise_sd"
+    assert validation_noise(unknown, known, post).source == "calibration noise_sd"
+    pooled = validation_noise(replicated, unknown, post)
+    assert pooled.source == "pooled from the validation replicates (Eq. 28)"
+    assert shared_validation_noise(unknown, unknown) is None
+    drawn = validation_noise(unknown, unknown, post, IIDGaussian())
+    assert drawn.per_draw and drawn.to_dict()["sd"] == pytest.approx(0.4)
+    assert "sigma_obs² + delta_sd²" in drawn.note
+    with pytest.raises(ValueError, match="no noise sd for the validation data"):
+        validation_noise(unknown, unknown, xr.Dataset())
 
 
 def test_beam_table1_conclusions(beam_calibrations, beam_physics, beam_data, beam_validation):

@@ -9,9 +9,6 @@ and :func:`model_hash` what the compiled fitted model depends on.
 
 from __future__ import annotations
 
-import hashlib
-import inspect
-import json
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -20,6 +17,12 @@ import numpy as np
 
 from kohpymc.checks import check_count
 from kohpymc.config import StudySpec
+from kohpymc.fingerprint import (
+    data_fingerprint,
+    digest,
+    formulation_fingerprint,
+    physics_fingerprint,
+)
 
 __all__ = ["CheckSettings", "model_hash", "replicate_seed", "resolve", "setup_hash"]
 
@@ -123,19 +126,6 @@ def replicate_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=(index,)).generate_state(1)[0])
 
 
-def _source(function: Any) -> str:
-    if function is None:
-        return ""
-    try:
-        return inspect.getsource(function)
-    except (OSError, TypeError):
-        return f"{getattr(function, '__module__', '')}.{getattr(function, '__qualname__', '')}"
-
-
-def _digest(content: Any) -> str:
-    return hashlib.sha256(json.dumps(content, sort_keys=True, default=repr).encode()).hexdigest()
-
-
 def model_hash(spec: StudySpec, label: str, mode: str | None = None) -> str:
     """A hash of what the compiled fitted model depends on.
 
@@ -150,21 +140,11 @@ def model_hash(spec: StudySpec, label: str, mode: str | None = None) -> str:
     >>> model_hash(spec, "M0") == model_hash(spec, "M0") != model_hash(spec, "M1")
     True
     """
-    physics, data = spec.physics, spec.calibration
-    formulation = spec.formulations[label]
-    try:
-        described: Any = formulation.to_dict()
-    except TypeError:
-        described = repr(formulation)
-    return _digest(
+    return digest(
         {
-            "physics": [physics.name, physics.backend, _source(physics.function)],
-            "jacobian": _source(physics.jacobian),
-            "priors": {k: repr(v) for k, v in physics.parameters.items()},
-            "inputs": {k: hashlib.sha256(v.tobytes()).hexdigest() for k, v in data.inputs.items()},
-            "y": hashlib.sha256(np.asarray(data.y, float).tobytes()).hexdigest(),
-            "noise_sd": data.noise_sd,
-            "formulation": described,
+            "physics": physics_fingerprint(spec.physics),
+            "data": data_fingerprint(spec.calibration),
+            "formulation": formulation_fingerprint(spec.formulations[label]),
             "mode": mode,
         }
     )
@@ -190,7 +170,7 @@ def setup_hash(spec: StudySpec, settings: CheckSettings) -> str:
     from kohpymc import __version__
 
     check = spec.check
-    return _digest(
+    return digest(
         {
             "kohpymc": __version__,
             "model": model_hash(spec, settings.formulation, settings.mode),

@@ -64,7 +64,11 @@ from kohpymc.fingerprint import (
     kohpymc_version,
     physics_fingerprint,
 )
-from kohpymc.identifiability import IdentifiabilityWarning, check_formulation
+from kohpymc.identifiability import (
+    IdentifiabilityWarning,
+    check_formulation,
+    fisher_information_check,
+)
 from kohpymc.model import compose_model
 from kohpymc.physics import PhysicsModel
 from kohpymc.progress import LineDisplay, TaskDisplay
@@ -338,7 +342,31 @@ def _check_identifiability(physics, calibration, formulations, say):
                 IdentifiabilityWarning,
                 stacklevel=3,
             )
+        noise = _noise_confounding(physics, calibration, disc)
+        if noise is not None:
+            reports[label]["noise"] = noise
+            say(f"  {label}: with unknown noise, " + "; ".join(noise["confounded"]))
     return reports, failures
+
+
+def _noise_confounding(physics, calibration, disc) -> dict | None:
+    """The Fisher check's report when σ_obs is calibrated next to a discrepancy variance.
+
+    With unknown noise, M2's σ_obs and σ_δ enter the likelihood only as σ_obs² + σ_δ²
+    (likewise M3's log-variance intercept): the study says so before sampling.  ``None``
+    when the noise is known, the formulation has no such partner, or the check finds
+    the pair resolved.
+    """
+    if calibration.noise_sd is not None or disc.noise_partner() is None or calibration.n > 2000:
+        return None
+    try:
+        report = fisher_information_check(physics, calibration, disc)
+    except Exception:  # noqa: BLE001 - an extra diagnosis, never a reason to stop
+        return None
+    confounded = [text for text in report.confounded() if "sigma_obs" in text]
+    if not confounded:
+        return None
+    return {"kind": "fisher", "confounded": confounded}
 
 
 def _calibrate_all(

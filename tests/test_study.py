@@ -213,6 +213,10 @@ def test_study_without_noise_sd_scores_each_formulation_with_its_own_sigma_draws
         plugged = reliability(idata, val, 0.75, noise_sd=float(sigma.mean()))
         assert abs(plugged.mu_r - again.mu_r) > 1e-4
     assert "sigma_obs² + delta_sd²" in result.validation_noise["M2"]["note"]
+    # ... which the Fisher check says before any sampling
+    (text,) = result.identifiability["M2"]["noise"]["confounded"]
+    assert text.startswith("sigma_obs and delta_sd are confounded")
+    assert "noise" not in result.identifiability["M0"]
     weights = result.weights
     mixed = sum(w * result.results[k].predictions_constant_data["reliability"]
                 for k, w in weights.items())  # fmt: skip

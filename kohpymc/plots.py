@@ -35,6 +35,9 @@ def plot_parameter_posteriors(
 ) -> plt.Figure:
     """Marginal posterior densities of the physics parameters, one curve per formulation.
 
+    A positive parameter whose draws span two decades or more (1st to 99th percentile)
+    is drawn on a log10 axis (the axis label says so).
+
     Parameters
     ----------
     results : mapping label -> InferenceData
@@ -59,22 +62,31 @@ def plot_parameter_posteriors(
     names = list(var_names)
     fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
     for ax, name in zip(axes[0], names, strict=True):
-        for i, (label, idata) in enumerate(results.items()):
-            values = idata.posterior[name].values.ravel()
-            az.plot_kde(values, ax=ax, plot_kwargs={"color": f"C{i}", "label": label})
+        curves = {label: idata.posterior[name].values.ravel() for label, idata in results.items()}
         if combined is not None and name in combined.posterior:
-            az.plot_kde(
-                combined.posterior[name].values.ravel(),
-                ax=ax,
-                plot_kwargs={"color": "k", "linestyle": "--", "label": _COMBINED},
-            )
+            curves[_COMBINED] = combined.posterior[name].values.ravel()
+        log = _spans_decades(np.concatenate(list(curves.values())))
+        for i, (label, values) in enumerate(curves.items()):
+            style = {"color": "k", "linestyle": "--"} if label == _COMBINED else {"color": f"C{i}"}
+            az.plot_kde(np.log10(values) if log else values, ax=ax,
+                        plot_kwargs={**style, "label": label})  # fmt: skip
         if reference and name in reference:
-            ax.axvline(reference[name], color="0.4", linewidth=1, label="reference")
-        ax.set_xlabel(name)
+            value = np.log10(reference[name]) if log else reference[name]
+            ax.axvline(value, color="0.4", linewidth=1, label="reference")
+        ax.set_xlabel(f"log10 {name}" if log else name)
         ax.set_ylabel("posterior density")
     axes[0][0].legend(fontsize="small")
     fig.tight_layout()
     return fig
+
+
+def _spans_decades(values: np.ndarray) -> bool:
+    """Positive draws spread over two decades or more: plotted on a log10 axis."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0 or np.any(finite <= 0):
+        return False
+    lo, hi = np.quantile(finite, [0.01, 0.99])
+    return bool(hi / lo >= 100.0)
 
 
 def _main_input(coords: Mapping[str, np.ndarray]) -> str:
@@ -95,7 +107,9 @@ def plot_validation_predictions(
 
     One panel per formulation (and per mixture).  The x-axis is ``x_input`` (default: the
     input with the most distinct values); rows that differ in the other inputs are drawn
-    as separate series.
+    as separate series (the paper's Figs. 5/6/8).  When the other inputs do not form a
+    few series (a scattered design: more than 8 groups, or mostly single rows), every
+    validation point gets its own vertical 90 % interval and posterior mean instead.
 
     Parameters
     ----------
@@ -137,12 +151,15 @@ def plot_validation_predictions(
         nrow, ncol, figsize=(4.2 * ncol, 3.3 * nrow), squeeze=False, sharey=True
     )
     x_all = inputs[x_input]
+    scattered = len(groups) > 8 or np.median([len(i) for i in groups.values()]) < 3
     for ax, label in zip(axes.ravel(), labels, strict=False):
         draws = predictions[label].predictions[var_name].transpose(..., "pred").values
         draws = draws.reshape(-1, draws.shape[-1])
         mean = draws.mean(axis=0)
         lo, hi = np.quantile(draws, [0.05, 0.95], axis=0)
-        for j, (key, idx) in enumerate(groups.items()):
+        if scattered:
+            _pointwise_bands(ax, x_all, mean, lo, hi, np.asarray(y_validation))
+        for j, (key, idx) in enumerate([] if scattered else groups.items()):
             idx = np.asarray(idx)[np.argsort(x_all[idx], kind="stable")]
             # one band point per distinct x (replicated rows share their prediction)
             line = idx[np.unique(x_all[idx], return_index=True)[1]]
@@ -159,11 +176,20 @@ def plot_validation_predictions(
         ax.set_ylabel(output_name)
     for ax in axes.ravel()[len(labels) :]:
         ax.set_visible(False)
-    if others and len(groups) <= 12:
+    if (others and len(groups) <= 12) or scattered:
         axes.ravel()[0].legend(fontsize="x-small")
     fig.suptitle("posterior mean, 90 % band and validation data", fontsize="medium")
     fig.tight_layout()
     return fig
+
+
+def _pointwise_bands(ax, x, mean, lo, hi, y) -> None:
+    """A vertical 90 % interval and the mean at every validation point, the data on top."""
+    ax.errorbar(
+        x, mean, yerr=np.vstack([mean - lo, hi - mean]), fmt="_", color="C0", ecolor="C0",
+        alpha=0.6, lw=1.2, ms=8, label="90 % band, mean",
+    )  # fmt: skip
+    ax.plot(x, y, "o", ms=3.5, color="k", label="validation data")
 
 
 def plot_reliability(table: pd.DataFrame) -> plt.Figure:

@@ -18,24 +18,13 @@ input, 1 when no replicate could be fitted.
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from kohpymc.warning_filters import quiet_command_line
+
 __all__ = ["main"]
-
-
-def _quiet_libraries() -> None:
-    logging.getLogger("pymc").setLevel(logging.ERROR)
-    # Dask's own log lines (worker restarts, "task marked as failed because a worker
-    # died", slow shutdowns): kohpymc reports each task's fate itself
-    logging.getLogger("distributed").setLevel(logging.CRITICAL)
-    logging.getLogger("pytensor.tensor.blas").setLevel(logging.ERROR)
-    warnings.filterwarnings("ignore", message="PyTensor could not link to a BLAS")
-    warnings.filterwarnings("ignore", category=FutureWarning)
-    warnings.filterwarnings("ignore", message="The effective sample size per chain")
 
 
 def _load(args: argparse.Namespace):
@@ -44,9 +33,55 @@ def _load(args: argparse.Namespace):
 
     try:
         return load_study(args.study)
-    except (StudyConfigError, FileNotFoundError) as err:
+    except StudyConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return None
+
+
+def _bad_input(err: Exception) -> int:
+    """Print a bad-input error (it names the file and the key) and return exit status 2."""
+    print(f"error: {err}", file=sys.stderr)
+    return 2
+
+
+def _checked_options(
+    args: argparse.Namespace, spec, folders: Sequence[Path], files: Sequence[Path] = ()
+) -> None:
+    """The command line's numbers and output paths, checked before anything runs.
+
+    Raises :class:`~kohpymc.config.StudyConfigError` naming the option (``--draws``) or the
+    output path; the checks are :mod:`kohpymc.checks`'.
+    """
+    from kohpymc.checks import check_count, check_output_path
+    from kohpymc.config import StudyConfigError
+
+    try:
+        for key in ("draws", "tune", "chains", "replicates", "rank_draws"):
+            if getattr(args, key, None) is not None:
+                check_count(getattr(args, key), f"--{key.replace('_', '-')}")
+        if args.seed is not None:
+            check_count(args.seed, "--seed", minimum=0)
+        for path in folders:
+            check_output_path(path)
+        for path in files:
+            check_output_path(path, folder=False)
+    except ValueError as err:
+        raise StudyConfigError(f"{spec.source}: {err}") from err
+
+
+def _dry_run_summary(spec, what: str, outputs: Sequence[Path], detail: str = "") -> int:
+    """The ``--dry-run`` report: what was checked and what a real run would do."""
+    print(
+        f"dry run: {spec.source} is ready for `kohpymc {what}`: physics "
+        f"{spec.physics.name!r} ({', '.join(spec.physics.parameters)}) runs on "
+        f"{spec.calibration.n} calibration and {spec.validation.n} validation rows at the "
+        f"prior centre; formulations {', '.join(spec.formulations)}"
+    )
+    if detail:
+        print(detail)
+    where = ", ".join(str(p) for p in outputs) or "nowhere (no output asked for)"
+    print(f"would write to {where}; nothing sampled, nothing written")
+    return 0
 
 
 def _sampler_overrides(args: argparse.Namespace, sampling: dict) -> dict:
@@ -70,6 +105,8 @@ def _execution_overrides(args: argparse.Namespace, execution: dict) -> dict:
 
 
 def _study(args: argparse.Namespace) -> int:
+    from kohpymc.checks import check_execution
+    from kohpymc.config import StudyConfigError
     from kohpymc.progress import task_display
     from kohpymc.study import run_study
 
@@ -80,6 +117,16 @@ def _study(args: argparse.Namespace) -> int:
     kwargs.update(_sampler_overrides(args, spec.sampling))
     kwargs.update(_execution_overrides(args, spec.execution))
     out = Path(args.out) if args.out else spec.out_dir
+    try:
+        _checked_options(args, spec, [out])
+        try:
+            check_execution(kwargs.get("workers", 1), kwargs.get("scheduler"))
+        except ValueError as err:
+            raise StudyConfigError(f"{spec.source}: --workers/--scheduler: {err}") from err
+    except StudyConfigError as err:
+        return _bad_input(err)
+    if args.dry_run:
+        return _dry_run_summary(spec, "study", [out])
     print(
         f"study {spec.source}: physics {spec.physics.name!r} "
         f"({', '.join(spec.physics.parameters)}), {spec.calibration.n} calibration and "
@@ -119,6 +166,7 @@ def _discover(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from kohpymc.config import StudyConfigError
     from kohpymc.discovery import discover
     from kohpymc.physics import PhysicsModelError
     from kohpymc.plots import plot_residuals_before_after
@@ -128,6 +176,16 @@ def _discover(args: argparse.Namespace) -> int:
         return 2
     merged = _sampler_overrides(args, spec.sampling)
     sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
+    outputs = [Path(p) for p in (args.json, args.out) if p]
+    try:
+        _checked_options(
+            args, spec, [Path(args.out)] if args.out else [], [Path(args.json)] if args.json else []
+        )
+        _checked_discovery(spec)
+    except StudyConfigError as err:
+        return _bad_input(err)
+    if args.dry_run:
+        return _dry_run_summary(spec, "discover", outputs)
     try:
         report = discover(
             spec.physics,
@@ -181,11 +239,53 @@ def _discover(args: argparse.Namespace) -> int:
     return 0
 
 
+def _checked_discovery(spec) -> None:
+    """What :func:`kohpymc.discover` checks before sampling, run on the study file's inputs."""
+    from kohpymc.candidates import DEFAULT_EXPONENTS
+    from kohpymc.config import StudyConfigError
+    from kohpymc.discovery.workflow import _checked_inputs
+    from kohpymc.physics import PhysicsModelError
+
+    library = {"exponents": DEFAULT_EXPONENTS, "references": None, "extra": None}
+    try:
+        _checked_inputs(
+            spec.physics, spec.calibration, spec.validation, spec.tolerance, 0.01, None, library
+        )
+    except (ValueError, KeyError, NotImplementedError, PhysicsModelError) as err:
+        raise StudyConfigError(f"{spec.source}: {str(err).strip(chr(34) + chr(39))}") from err
+
+
 #: exit status of ``kohpymc check`` when the set-up does not recover the truth
 CHECK_FAILED = 3
 
 
+def _checked_check(args: argparse.Namespace, spec):
+    """The check's settings and where its replicates run, as the check will resolve them.
+
+    Command line over ``[check]`` over ``[sampling]`` (:func:`kohpymc.sbc.settings.resolve`).
+    """
+    from kohpymc.checks import check_execution
+    from kohpymc.config import StudyConfigError
+    from kohpymc.sbc.settings import resolve
+
+    overrides = {
+        "replicates": args.replicates, "formulation": args.formulation, "draws": args.draws,
+        "tune": args.tune, "chains": args.chains, "seed": args.seed,
+        "rank_draws": args.rank_draws,
+    }  # fmt: skip
+    try:
+        settings = resolve(spec, overrides)
+        check_execution(args.workers, args.scheduler)
+    except ValueError as err:
+        message = str(err)
+        if not message.startswith(str(spec.source)):
+            message = f"{spec.source}: {message}"
+        raise StudyConfigError(message) from err
+    return settings
+
+
 def _check(args: argparse.Namespace) -> int:
+    from kohpymc.config import StudyConfigError
     from kohpymc.sbc import check_calibration
 
     spec = _load(args)
@@ -193,6 +293,18 @@ def _check(args: argparse.Namespace) -> int:
         return 2
     label = args.formulation or spec.check.formulation or "M0"
     out = Path(args.out) if args.out else Path(f"{spec.out_dir}_check_{label}")
+    try:
+        _checked_options(args, spec, [out])
+        settings = _checked_check(args, spec)
+    except StudyConfigError as err:
+        return _bad_input(err)
+    if args.dry_run:
+        detail = (
+            f"check of {settings.formulation}: {settings.replicates} replicate(s) of "
+            f"{settings.chains} × {settings.draws} draws (tune {settings.tune}), "
+            f"seed {settings.seed}"
+        )
+        return _dry_run_summary(spec, "check", [out], detail)
     say = None if args.quiet else (lambda msg: print(msg, flush=True))
     try:
         result = check_calibration(
@@ -246,6 +358,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     for key in ("draws", "tune", "chains", "seed"):
         common.add_argument(f"--{key}", type=int, help=f"override [sampling] {key}")
     common.add_argument("--quiet", action="store_true", help="no progress lines")
+    common.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="check the study file, its data, physics, priors and formulations; "
+        "sample and write nothing",
+    )
     study = sub.add_parser(
         "study", parents=[common], help="calibrate, validate and weigh formulations"
     )
@@ -280,7 +398,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     check.add_argument("--fresh", action="store_true", help="recompute every replicate")
     check.set_defaults(run=_check)
     args = parser.parse_args(argv)
-    _quiet_libraries()
+    quiet_command_line()
     return args.run(args)
 
 

@@ -251,8 +251,11 @@ def _checked_discovery(spec) -> None:
         _checked_inputs(
             spec.physics, spec.calibration, spec.validation, spec.tolerance, 0.01, None, library
         )
-    except (ValueError, KeyError, NotImplementedError, PhysicsModelError) as err:
-        raise StudyConfigError(f"{spec.source}: {str(err).strip(chr(34) + chr(39))}") from err
+    except NotImplementedError as err:
+        raise StudyConfigError(f"{spec.source}: [physics.backend] {err}") from err
+    except (ValueError, KeyError, PhysicsModelError) as err:
+        message = str(err).strip("'\"")
+        raise StudyConfigError(f"{spec.source}: [data.calibration] {message}") from err
 
 
 #: exit status of ``kohpymc check`` when the set-up does not recover the truth
@@ -275,12 +278,13 @@ def _checked_check(args: argparse.Namespace, spec):
     }  # fmt: skip
     try:
         settings = resolve(spec, overrides)
+    except ValueError as err:
+        message = str(err).removeprefix(f"{spec.source}: ")
+        raise StudyConfigError(f"{spec.source}: [check] {message}") from err
+    try:
         check_execution(args.workers, args.scheduler)
     except ValueError as err:
-        message = str(err)
-        if not message.startswith(str(spec.source)):
-            message = f"{spec.source}: {message}"
-        raise StudyConfigError(message) from err
+        raise StudyConfigError(f"{spec.source}: --workers/--scheduler: {err}") from err
     return settings
 
 

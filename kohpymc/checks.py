@@ -19,6 +19,7 @@ from kohpymc.physics import PhysicsModel
 
 __all__ = [
     "COMPILE_MODES",
+    "JacobianError",
     "check_compile_mode",
     "check_execution",
     "check_scheduler",
@@ -38,6 +39,10 @@ __all__ = [
 
 #: PyTensor compile modes for the log density of PyMC's NUTS
 COMPILE_MODES = ("NUMBA", "FAST_RUN")
+
+
+class JacobianError(ValueError):
+    """The user's Jacobian of the physics model fails where the model itself runs."""
 
 
 def _where(data: CalibrationData) -> str:
@@ -63,7 +68,7 @@ def check_tolerance(tolerance: Any) -> float:
 
 
 def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) -> None:
-    """The data have the physics inputs and the model runs there at the prior mean.
+    """The data have the physics inputs; the model (and its Jacobian) run there at the prior mean.
 
     Examples
     --------
@@ -76,11 +81,21 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
             f"{what} data{_where(data)} lack input column(s) {missing} of the physics model "
             f"{physics.name!r}"
         )
+    inputs, centre = {k: data.inputs[k] for k in physics.inputs}, physics.prior_mean()
     try:
-        physics.evaluate({k: data.inputs[k] for k in physics.inputs}, physics.prior_mean())
+        physics.evaluate(inputs, centre)
     except Exception as err:
         raise ValueError(
             f"{what} data{_where(data)}: the physics model {physics.name!r} fails on the "
+            f"{what} inputs: {err}"
+        ) from err
+    if physics.jacobian is None:
+        return
+    try:
+        physics.jacobian_matrix(inputs, centre)
+    except Exception as err:
+        raise JacobianError(
+            f"{what} data{_where(data)}: the Jacobian of {physics.name!r} fails on the "
             f"{what} inputs: {err}"
         ) from err
 

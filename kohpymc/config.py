@@ -70,6 +70,7 @@ from pathlib import Path
 from typing import Any
 
 from kohpymc.checks import (
+    JacobianError,
     check_compile_mode,
     check_count,
     check_label,
@@ -484,6 +485,8 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         try:
             check_physics_runs(physics, data_set, key)
+        except JacobianError as err:
+            raise _err(path, "physics.jacobian", str(err)) from err
         except (KeyError, ValueError) as err:
             raise _err(path, f"data.{key}", str(err).strip("'\"")) from err
     return calibration, validation

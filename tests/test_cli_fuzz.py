@@ -36,6 +36,11 @@ import numpy as np
 
 def model(inputs, params):
     return params["A"] * np.exp(-params["k"] * np.asarray(inputs["t"]))
+
+def jac(inputs, params):
+    t = np.asarray(inputs["t"])
+    e = np.exp(-params["k"] * t)
+    return np.column_stack([e, -params["A"] * t * e])
 """
 
 #: the valid study every example starts from (a dict, written as TOML by _toml)
@@ -43,6 +48,7 @@ BASE: dict = {
     "study": {"name": "fuzz"},
     "physics": {
         "function": "physics.py:model",
+        "jacobian": "physics.py:jac",
         "inputs": ["t"],
         "output": "signal",
         "parameters": {
@@ -197,6 +203,12 @@ def _delete(doc, path):
     del doc[path[-1]]
 
 
+#: keys the fuzzer adds (unknown ones, and real ones absent from BASE)
+ADDED_KEYS = ["extra", "nosie_sd", "seed", "dir", "backend", "fd_scheme", "time", "replicates",
+              "target_accept", "sampler", "method", "cores", "mode", "reparameterize",
+              "sigma_obs", "weights", "scheduler", "rank_draws"]  # fmt: skip
+
+
 @st.composite
 def documents(draw):
     """The base study with 1-3 mutations of its keys and values."""
@@ -214,8 +226,7 @@ def documents(draw):
         elif kind == "add":
             tables = [p for p in paths if isinstance(_get(doc, p), dict)]
             where = draw(st.sampled_from(tables)) if tables else ()
-            _set(doc, (*where, draw(st.sampled_from(["extra", "nosie_sd", "seed", "dir"]))),
-                 draw(junk))  # fmt: skip
+            _set(doc, (*where, draw(st.sampled_from(ADDED_KEYS))), draw(junk))
         elif kind == "prior":
             params = doc.get("physics", {}).get("parameters") if isinstance(
                 doc.get("physics"), dict) else None  # fmt: skip
@@ -289,6 +300,8 @@ BROKEN_PHYSICS = {
     "nan": PHYSICS.replace("return params", "return float('nan') * params"),
     "length": PHYSICS.replace('np.asarray(inputs["t"])', 'np.asarray(inputs["t"])[:1]'),
     "text": "def model(inputs, params):\n    return 'a'\n",
+    "jacobian": PHYSICS.replace("return np.column_stack", "return 1 / 0 + np.column_stack"),
+    "jacobian_shape": PHYSICS.replace("[e, -params", "[e, e, -params"),
     "syntax": "def model(inputs, params)\n    return 1\n",
     "import": "import no_such_module_anywhere\n",
     "name": "def other(inputs, params):\n    return inputs['t']\n",
@@ -433,13 +446,13 @@ def _fuzz_once(capsys, command, doc, files, *, real: bool, extra=(), out_name="r
 
 
 FUZZ = settings(
-    max_examples=int(os.environ.get("KOHPYMC_FUZZ_EXAMPLES", "120")),
+    max_examples=int(os.environ.get("KOHPYMC_FUZZ_EXAMPLES", "1000")),
     derandomize=True,
     deadline=None,
     database=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 )
-FUZZ_SLOW = settings(FUZZ, max_examples=2000)
+FUZZ_SLOW = settings(FUZZ, max_examples=10_000)
 
 
 def _fuzz_commands(capsys, data):
@@ -471,3 +484,148 @@ def test_the_base_study_passes_every_dry_run(capsys):
     """The fuzzer's starting point is valid (else every example is trivially rejected)."""
     for command in COMMANDS:
         assert _fuzz_once(capsys, command, BASE, _base_files(), real=False) == (0, "")
+
+
+# ----------------------------------------------------------------- regression tests
+def _edited(edit) -> tuple[dict, dict]:
+    doc, files = json.loads(json.dumps(BASE)), _base_files()
+    edit(doc, files)
+    return doc, files
+
+
+def _tweak(path, value):
+    return lambda doc, files: _set(doc, path, value)
+
+
+def _file(name, content: bytes):
+    return lambda doc, files: files.__setitem__(name, content)
+
+
+def _calib_with(header: str, *rows: str) -> bytes:
+    return ("\n".join([header, *rows]) + "\n").encode()
+
+
+#: one case per bug class the fuzzer (or reading the code behind it) found:
+#: (edit, the key or file the error must name, words it must contain)
+REGRESSIONS = {
+    # a study file that is not UTF-8 raised UnicodeDecodeError (a traceback)
+    "toml not utf-8": (_file("study.toml", b"[physics]\nfunction = \"\xff\"\n"), r"study\.toml",
+                       "not UTF-8"),
+    # a repeated CSV column was silently renamed x.1 by pandas and the first one used
+    "repeated column": (_file("calib.csv", _calib_with("t,signal,t", "0,1,5", "1,2,6")),
+                        r"\[data\.calibration\].*calib\.csv", "['t'] appear more than once"),
+    # a CSV file that is not UTF-8, empty, or cut mid-row names the CSV file
+    "csv not utf-8": (_file("valid.csv", b"t,signal,w\n3.5,\xff0.1,1\n"),
+                      r"\[data\.validation\].*valid\.csv", "not UTF-8"),
+    "csv empty": (_file("calib.csv", b""), r"\[data\.calibration\].*calib\.csv", "empty"),
+    # formulation labels name files (<label>.nc): a path, an empty label or the mixture's
+    # own name were accepted and failed (or overwrote combined.nc) after sampling
+    "label a path": (_tweak(("formulations", "a/b"), "iid"), r"\[formulations\.a/b\]",
+                     "it names a file"),
+    "label empty": (_tweak(("formulations", ""), "iid"), r"\[formulations\.\]", "it names"),
+    "label combined": (_tweak(("formulations", "combined"), "iid"),
+                       r"\[formulations\.combined\]", "reserved"),
+    # formulation inputs that are not physics inputs (or a table of them) were accepted
+    # and failed when the model was built
+    "formulation input": (_tweak(("formulations", "M4"), {"type": "gp", "inputs": ["x"]}),
+                          r"\[formulations\.M4\]", "['x'] that are not physics inputs"),
+    "formulation input table": (
+        _tweak(("formulations", "M4"), {"type": "gp", "inputs": {"x": True}}),
+        r"\[formulations\.M4\]", "not physics inputs"),
+    # seeds, counts and target_accept of any type were accepted (failed in the sampler)
+    "seed list": (_tweak(("sampling", "seed"), [1, 2]), r"\[sampling\.seed\]", ">= 0"),
+    "seed negative": (_tweak(("sampling", "seed"), -1), r"\[sampling\.seed\]", ">= 0"),
+    "cores bool": (_tweak(("sampling", "cores"), True), r"\[sampling\.cores\]", "positive"),
+    "target_accept": (_tweak(("sampling", "target_accept"), 1.5),
+                      r"\[sampling\.target_accept\]", "(0, 1)"),
+    "method": (_tweak(("sampling", "method"), "hmc"), r"\[sampling\.method\]", "'hmc'"),
+    "sampler vs method": (
+        lambda doc, files: doc["sampling"].update(sampler="pymc", method="smc"),
+        r"\[sampling\]", "contradicts"),
+    # noise_sd: NaN was blamed on [data.calibration], true was read as 1.0
+    "noise_sd nan": (_tweak(("data", "noise_sd"), math.nan), r"\[data\.noise_sd\]", "nan"),
+    "noise_sd bool": (_tweak(("data", "noise_sd"), True), r"\[data\.noise_sd\]", "True"),
+    "noise_sd negative": (_tweak(("data", "noise_sd"), -0.1), r"\[data\.noise_sd\]", "-0.1"),
+    # validation weights: a list raised TypeError, text ValueError (tracebacks); negative or
+    # NaN weights were accepted
+    "weights list": (_tweak(("validation", "weights"), ["w"]), r"\[validation\.weights\]",
+                     "column name"),
+    "weights text": (_file("valid.csv", _calib_with("t,signal,w", "3.5,0.1,a", "4,0.1,1")),
+                     r"\[validation\.weights\]", "not numeric"),
+    "weights negative": (_file("valid.csv", _calib_with("t,signal,w", "3.5,0.1,-1", "4,0.1,1")),
+                         r"\[validation\.weights\].*valid\.csv", ">= 0"),
+    # the physics model was run on the validation rows only: calibration rows it fails on
+    # (here: a wrong-shape return) stopped every formulation after the study started
+    "physics on calibration": (
+        _file("physics.py", PHYSICS.replace('np.asarray(inputs["t"])', 'np.asarray(inputs["t"])'
+                                            '[:4]').encode()),
+        r"\[data\.calibration\]", "shape"),
+    # a Jacobian that fails was only found while sampling
+    "jacobian": (_file("physics.py", BROKEN_PHYSICS["jacobian"].encode()),
+                 r"\[physics\.jacobian\]", "division by zero"),
+    # a prior whose mean overflows raised OverflowError inside the physics check (wrong key)
+    "prior overflow": (_tweak(("physics", "parameters", "A"),
+                              {"prior": "lognormal", "mu": 1000.0, "sigma": 1.0}),
+                       r"\[physics\.parameters\.A\]", "overflows"),
+    "prior not a table": (_tweak(("physics", "parameters", "A"), 3.0),
+                          r"\[physics\.parameters\.A\]", "prior table"),
+    # inputs: empty or repeated lists were blamed on [physics.parameters]
+    "inputs empty": (_tweak(("physics", "inputs"), []), r"\[physics\.inputs\]", "at least one"),
+    "inputs repeated": (_tweak(("physics", "inputs"), ["t", "t"]), r"\[physics\.inputs\]",
+                        "more than once"),
+    "output is an input": (_tweak(("physics", "output"), "t"), r"\[physics\.output\]",
+                           "also one of the inputs"),
+    # [output] dir = 3 raised TypeError (a traceback)
+    "output dir": (_tweak(("output", "dir"), 3), r"\[output\.dir\]", "folder name"),
+    "study name": (_tweak(("study", "name"), 3), r"\[study\.name\]", "text"),
+    "replicates": (_tweak(("data", "replicates"), 2), r"\[data\.replicates\]", "column name"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(REGRESSIONS))
+def test_regression_names_the_key(capsys, case):
+    edit, where, words = REGRESSIONS[case]
+    doc, files = _edited(edit)
+    for command in COMMANDS:
+        code, err = _fuzz_once(capsys, command, doc, files, real=command == "study")
+        assert code == 2, (case, command)
+        assert re.search(where, err), (case, err)
+        assert words in err, (case, err)
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "words"),
+    [
+        ("study", ["--draws", "0"], "--draws must be an integer >= 1, got 0"),
+        ("study", ["--seed", "-1"], "--seed must be an integer >= 0"),
+        ("discover", ["--chains", "0"], "--chains must be"),
+        ("check", ["--replicates", "0"], "--replicates must be"),
+        ("check", ["--rank-draws", "500"], "[check] rank_draws = 500"),
+        ("check", ["--formulation", "M9"], "[check] formulation 'M9'"),
+        ("check", ["--workers", "0"], "--workers/--scheduler: workers must be"),
+    ],
+)
+def test_bad_command_line_options_stop_before_anything_runs(capsys, command, option, words):
+    """Options the file's checks never saw: checked with the same functions, exit 2."""
+    code, err = _fuzz_once(capsys, command, BASE, _base_files(), real=True, extra=option)
+    assert code == 2 and words in err, err
+
+
+@pytest.mark.parametrize("out_name", ["calib.csv", "calib.csv/results"])
+def test_output_folder_that_cannot_be_made_stops_before_sampling(capsys, out_name):
+    """An --out that is a file (or lies under one) failed with OSError after every
+    formulation had been sampled; now the real command stops before anything runs."""
+    for command in ("study", "check"):
+        code, err = _fuzz_once(capsys, command, BASE, _base_files(), real=True,
+                               out_name=out_name)  # fmt: skip
+        assert code == 2 and "is a file, not a folder" in err, err
+
+
+def test_dry_run_reports_what_it_checked(capsys):
+    with tempfile.TemporaryDirectory() as tmp:
+        path = _write(Path(tmp), BASE, _base_files())
+        code, out, _ = _run(capsys, ["check", str(path), "--dry-run"])
+    assert code == 0
+    assert "12 calibration and 4 validation rows" in out and "M0, M2, M4" in out
+    assert "check of M0: 2 replicate(s) of 1 × 100 draws" in out
+    assert "results_from_file_check_M0" in out and "nothing sampled, nothing written" in out

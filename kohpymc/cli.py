@@ -9,6 +9,11 @@ plain lines otherwise, nothing with ``--quiet``) and the validation table at the
 on the same file.  Exit status 0 on success, 2 for a bad study file or data, 1 when
 every formulation failed.
 
+``--dry-run`` (every command) reads and checks the study file, its data, the physics
+function at the prior centre, priors, formulations, options and output paths, prints a
+summary and exits 0 without sampling or writing.  Bad input of any kind exits 2 with one
+``error:`` line naming the file and the key, column or option, and writes nothing.
+
 ``check STUDY.toml --replicates N`` runs simulation-based calibration
 (:func:`kohpymc.sbc.check_calibration`) and prints the coverage table and the verdict.
 Exit status 0 on PASS, 3 on FAIL (the set-up does not recover the truth), 2 for bad

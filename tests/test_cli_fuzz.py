@@ -587,7 +587,7 @@ def test_regression_names_the_key(capsys, case):
     edit, where, words = REGRESSIONS[case]
     doc, files = _edited(edit)
     for command in COMMANDS:
-        code, err = _fuzz_once(capsys, command, doc, files, real=command == "study")
+        code, err = _fuzz_once(capsys, command, doc, files, real=True)
         assert code == 2, (case, command)
         assert re.search(where, err), (case, err)
         assert words in err, (case, err)
@@ -629,3 +629,22 @@ def test_dry_run_reports_what_it_checked(capsys):
     assert "12 calibration and 4 validation rows" in out and "M0, M2, M4" in out
     assert "check of M0: 2 replicate(s) of 1 × 100 draws" in out
     assert "results_from_file_check_M0" in out and "nothing sampled, nothing written" in out
+
+
+def test_bad_input_leaves_an_existing_output_folder_as_it_was(capsys):
+    """A rerun into a folder holding earlier results, with a broken data file: exit 2 and
+    not one file of the folder touched (nor one added)."""
+    doc, files = _edited(REGRESSIONS["repeated column"][0])
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        path = _write(folder, doc, files)
+        results = folder / "results"
+        (results / "replicates").mkdir(parents=True)
+        (results / "table.md").write_text("| earlier results |\n")
+        (results / "replicates" / "00000.json").write_text("{}\n")
+        before = _snapshot(folder)
+        for command in COMMANDS:
+            argv = [command, str(path), "--out", str(results), "--quiet"]
+            code, _, err = _run(capsys, argv)
+            assert code == 2 and "appear more than once" in err, err
+            assert _snapshot(folder) == before

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from kohpymc.physics import PhysicsModel
 
 __all__ = [
     "COMPILE_MODES",
+    "FormulationBuildError",
     "JacobianError",
     "check_compile_mode",
     "check_execution",
@@ -29,6 +31,7 @@ __all__ = [
     "check_physics_runs",
     "check_validation_data",
     "check_count",
+    "check_formulations_build",
     "check_label",
     "check_output_path",
     "check_positive_number",
@@ -43,6 +46,14 @@ COMPILE_MODES = ("NUMBA", "FAST_RUN")
 
 class JacobianError(ValueError):
     """The user's Jacobian of the physics model fails where the model itself runs."""
+
+
+class FormulationBuildError(ValueError):
+    """A formulation's model cannot be composed on the data; ``label`` names it."""
+
+    def __init__(self, label: str, message: str) -> None:
+        super().__init__(message)
+        self.label = label
 
 
 def _where(data: CalibrationData) -> str:
@@ -98,6 +109,33 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
             f"{what} data{_where(data)}: the Jacobian of {physics.name!r} fails on the "
             f"{what} inputs: {err}"
         ) from err
+
+
+def check_formulations_build(
+    physics: PhysicsModel, data: CalibrationData, formulations: Mapping[str, Any]
+) -> None:
+    """Each formulation's model composes on the calibration data (nothing compiled or sampled).
+
+    Raises :class:`FormulationBuildError` naming the first formulation that does not (a
+    grid GP on data that are not a grid, an input the data lack, ...).
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> check_formulations_build(beam.physics_model(), beam.generate_data(seed=1),
+    ...                          beam.formulations())
+    """
+    from kohpymc.model import compose_model
+
+    for label, formulation in formulations.items():
+        try:
+            compose_model(physics, data, formulation)
+        except Exception as err:  # noqa: BLE001 - any failure is this formulation's
+            raise FormulationBuildError(
+                label,
+                f"{label} cannot be built on the calibration data{_where(data)}: "
+                f"{type(err).__name__}: {err}",
+            ) from err
 
 
 def check_validation_data(

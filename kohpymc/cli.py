@@ -74,6 +74,17 @@ def _checked_options(
         raise StudyConfigError(f"{spec.source}: {err}") from err
 
 
+def _checked_build(spec, formulations) -> None:
+    """Every formulation's model composes on the calibration data (before any sampling)."""
+    from kohpymc.checks import FormulationBuildError, check_formulations_build
+    from kohpymc.config import StudyConfigError
+
+    try:
+        check_formulations_build(spec.physics, spec.calibration, formulations)
+    except FormulationBuildError as err:
+        raise StudyConfigError(f"{spec.source}: [formulations.{err.label}] {err}") from err
+
+
 def _dry_run_summary(spec, what: str, outputs: Sequence[Path], detail: str = "") -> int:
     """The ``--dry-run`` report: what was checked and what a real run would do."""
     print(
@@ -81,6 +92,7 @@ def _dry_run_summary(spec, what: str, outputs: Sequence[Path], detail: str = "")
         f"{spec.physics.name!r} ({', '.join(spec.physics.parameters)}) runs on "
         f"{spec.calibration.n} calibration and {spec.validation.n} validation rows at the "
         f"prior centre; formulations {', '.join(spec.formulations)}"
+        + (" (each builds on the calibration data)" if what != "discover" else "")
     )
     if detail:
         print(detail)
@@ -128,6 +140,7 @@ def _study(args: argparse.Namespace) -> int:
             check_execution(kwargs.get("workers", 1), kwargs.get("scheduler"))
         except ValueError as err:
             raise StudyConfigError(f"{spec.source}: --workers/--scheduler: {err}") from err
+        _checked_build(spec, spec.formulations)
     except StudyConfigError as err:
         return _bad_input(err)
     if args.dry_run:
@@ -305,6 +318,7 @@ def _check(args: argparse.Namespace) -> int:
     try:
         _checked_options(args, spec, [out])
         settings = _checked_check(args, spec)
+        _checked_build(spec, {settings.formulation: spec.formulations[settings.formulation]})
     except StudyConfigError as err:
         return _bad_input(err)
     if args.dry_run:

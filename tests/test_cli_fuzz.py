@@ -446,7 +446,7 @@ def _fuzz_once(capsys, command, doc, files, *, real: bool, extra=(), out_name="r
 
 
 FUZZ = settings(
-    max_examples=int(os.environ.get("KOHPYMC_FUZZ_EXAMPLES", "1000")),
+    max_examples=int(os.environ.get("KOHPYMC_FUZZ_EXAMPLES", "600")),
     derandomize=True,
     deadline=None,
     database=None,
@@ -648,3 +648,19 @@ def test_bad_input_leaves_an_existing_output_folder_as_it_was(capsys):
             code, _, err = _run(capsys, argv)
             assert code == 2 and "appear more than once" in err, err
             assert _snapshot(folder) == before
+
+
+def test_a_formulation_that_cannot_be_built_stops_the_study_before_sampling(capsys):
+    """A grid GP with the noise sd unknown was only found when its model was built, after
+    the study had started (and reported as that formulation's failure); the study and its
+    dry run now compose every formulation's model first."""
+
+    def edit(doc, files):
+        del doc["data"]["noise_sd"]
+        doc["formulations"]["Mg"] = {"type": "grid_gp"}
+
+    doc, files = _edited(edit)
+    code, err = _fuzz_once(capsys, "study", doc, files, real=True)
+    assert code == 2 and "[formulations.Mg]" in err and "GridGP needs a known noise sd" in err
+    # check composes only the formulation it checks (M0 here): that one builds
+    assert _fuzz_once(capsys, "check", doc, files, real=False) == (0, "")

@@ -7,6 +7,11 @@ calibration".  This namespace is the user API; the modules hold the rest.
 
 from importlib.metadata import PackageNotFoundError, version
 
+# before anything imports arviz: its once-a-day "undergoing a major refactor" FutureWarning
+# (and setuptools' deprecation notices) say nothing about the user's problem
+from kohpymc import warning_filters as _warning_filters  # noqa: F401 - filters on import
+
+# isort: split
 from kohpymc import discrepancy as _discrepancy
 from kohpymc.calibration import Calibration, calibrate, predict
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights

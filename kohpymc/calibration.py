@@ -26,7 +26,7 @@ import arviz as az
 import numpy as np
 import pymc as pm
 
-from kohpymc.checks import check_compile_mode
+from kohpymc.checks import check_compile_mode, resolve_sampler
 from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.discrepancy.base import Discrepancy
@@ -172,14 +172,7 @@ def _identifiability(plain: CalibrationModel, physics: PhysicsModel):
 
 def _sampler_name(sampler, method, nuts_sampler) -> str | None:
     """``sampler`` from it or its older spellings ``method`` / ``nuts_sampler``."""
-    if method not in (None, "nuts", "smc"):
-        raise ValueError(f"method must be 'nuts' or 'smc', got {method!r}")
-    if nuts_sampler not in (None, "pymc", "nutpie"):
-        raise ValueError(f"nuts_sampler must be 'pymc' or 'nutpie', got {nuts_sampler!r}")
-    older = "smc" if method == "smc" else nuts_sampler
-    if sampler is not None and older is not None and older != sampler:
-        raise ValueError(f"sampler={sampler!r} contradicts method/nuts_sampler={older!r}")
-    return sampler or older
+    return resolve_sampler(sampler, method, nuts_sampler)
 
 
 def _default_mode(model, data: CalibrationData) -> str | None:

@@ -7,14 +7,21 @@ before any sampling.  The study-file reader adds the file and key on top.
 from __future__ import annotations
 
 import math
+import os
 import re
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from kohpymc.data import CalibrationData
 from kohpymc.physics import PhysicsModel
 
 __all__ = [
     "COMPILE_MODES",
+    "FormulationBuildError",
+    "JacobianError",
     "check_compile_mode",
     "check_execution",
     "check_scheduler",
@@ -24,10 +31,29 @@ __all__ = [
     "check_physics_runs",
     "check_validation_data",
     "check_count",
+    "check_formulations_build",
+    "check_label",
+    "check_output_path",
+    "check_positive_number",
+    "check_target_accept",
+    "check_validation_weights",
+    "resolve_sampler",
 ]
 
 #: PyTensor compile modes for the log density of PyMC's NUTS
 COMPILE_MODES = ("NUMBA", "FAST_RUN")
+
+
+class JacobianError(ValueError):
+    """The user's Jacobian of the physics model fails where the model itself runs."""
+
+
+class FormulationBuildError(ValueError):
+    """A formulation's model cannot be composed on the data; ``label`` names it."""
+
+    def __init__(self, label: str, message: str) -> None:
+        super().__init__(message)
+        self.label = label
 
 
 def _where(data: CalibrationData) -> str:
@@ -53,7 +79,7 @@ def check_tolerance(tolerance: Any) -> float:
 
 
 def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) -> None:
-    """The data have the physics inputs and the model runs there at the prior mean.
+    """The data have the physics inputs; the model (and its Jacobian) run there at the prior mean.
 
     Examples
     --------
@@ -66,13 +92,50 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
             f"{what} data{_where(data)} lack input column(s) {missing} of the physics model "
             f"{physics.name!r}"
         )
+    inputs, centre = {k: data.inputs[k] for k in physics.inputs}, physics.prior_mean()
     try:
-        physics.evaluate({k: data.inputs[k] for k in physics.inputs}, physics.prior_mean())
+        physics.evaluate(inputs, centre)
     except Exception as err:
         raise ValueError(
             f"{what} data{_where(data)}: the physics model {physics.name!r} fails on the "
             f"{what} inputs: {err}"
         ) from err
+    if physics.jacobian is None:
+        return
+    try:
+        physics.jacobian_matrix(inputs, centre)
+    except Exception as err:
+        raise JacobianError(
+            f"{what} data{_where(data)}: the Jacobian of {physics.name!r} fails on the "
+            f"{what} inputs: {err}"
+        ) from err
+
+
+def check_formulations_build(
+    physics: PhysicsModel, data: CalibrationData, formulations: Mapping[str, Any]
+) -> None:
+    """Each formulation's model composes on the calibration data (nothing compiled or sampled).
+
+    Raises :class:`FormulationBuildError` naming the first formulation that does not (a
+    grid GP on data that are not a grid, an input the data lack, ...).
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> check_formulations_build(beam.physics_model(), beam.generate_data(seed=1),
+    ...                          beam.formulations())
+    """
+    from kohpymc.model import compose_model
+
+    for label, formulation in formulations.items():
+        try:
+            compose_model(physics, data, formulation)
+        except Exception as err:  # noqa: BLE001 - any failure is this formulation's
+            raise FormulationBuildError(
+                label,
+                f"{label} cannot be built on the calibration data{_where(data)}: "
+                f"{type(err).__name__}: {err}",
+            ) from err
 
 
 def check_validation_data(
@@ -93,19 +156,123 @@ def check_validation_data(
     return eps
 
 
-#: the samplers :func:`kohpymc.calibrate` accepts
+#: the samplers :func:`kohpymc.calibrate` accepts, and the older ``method`` spellings
 SAMPLERS = ("nutpie", "pymc", "smc")
+METHODS = ("nuts", "smc")
 
 
-def check_sampler(sampler: Any) -> None:
+def check_sampler(sampler: Any, key: str = "sampler") -> None:
     """Raise ``ValueError`` unless ``sampler`` is None or one of :data:`SAMPLERS`.
+
+    With ``key="method"``, the older spelling: one of :data:`METHODS`.
 
     Examples
     --------
     >>> check_sampler("nutpie")
+    >>> check_sampler("hmc", "method")
+    Traceback (most recent call last):
+    ...
+    ValueError: method must be one of ['nuts', 'smc'], got 'hmc'
     """
-    if sampler is not None and sampler not in SAMPLERS:
-        raise ValueError(f"sampler must be one of {list(SAMPLERS)}, got {sampler!r}")
+    allowed = METHODS if key == "method" else SAMPLERS
+    if sampler is not None and sampler not in allowed:
+        raise ValueError(f"{key} must be one of {list(allowed)}, got {sampler!r}")
+
+
+def resolve_sampler(sampler: Any, method: Any = None, nuts_sampler: Any = None) -> str | None:
+    """The sampler from ``sampler`` or its older spellings ``method`` / ``nuts_sampler``.
+
+    Raises ``ValueError`` for an unknown name or spellings that contradict each other.
+
+    Examples
+    --------
+    >>> resolve_sampler(None, method="smc")
+    'smc'
+    >>> resolve_sampler("pymc", method="smc")
+    Traceback (most recent call last):
+    ...
+    ValueError: sampler='pymc' contradicts method/nuts_sampler='smc'
+    """
+    check_sampler(sampler)
+    check_sampler(method, "method")
+    if nuts_sampler not in (None, "pymc", "nutpie"):
+        raise ValueError(f"nuts_sampler must be 'pymc' or 'nutpie', got {nuts_sampler!r}")
+    older = "smc" if method == "smc" else nuts_sampler
+    if sampler is not None and older is not None and older != sampler:
+        raise ValueError(f"sampler={sampler!r} contradicts method/nuts_sampler={older!r}")
+    return sampler or older
+
+
+def check_target_accept(value: Any) -> float:
+    """NUTS's target acceptance rate, a number strictly between 0 and 1.
+
+    Examples
+    --------
+    >>> check_target_accept(0.9)
+    0.9
+    >>> check_target_accept(1)
+    Traceback (most recent call last):
+    ...
+    ValueError: target_accept must be a number in (0, 1), got 1
+    """
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if not ok or not 0 < value < 1:
+        raise ValueError(f"target_accept must be a number in (0, 1), got {value!r}")
+    return float(value)
+
+
+#: a formulation label: it names files (``<label>.nc``) and table rows
+_LABEL = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}$")
+#: labels the output folder uses for itself
+RESERVED_LABELS = ("combined",)
+
+
+def check_label(label: Any) -> str:
+    """A formulation label: letters, digits, ``_.+-``, not one kohpymc uses itself.
+
+    Examples
+    --------
+    >>> check_label("M3b")
+    'M3b'
+    >>> check_label("../M3")
+    Traceback (most recent call last):
+    ...
+    ValueError: label '../M3': use 1-64 letters, digits and _.+- (it names a file)
+    """
+    if not isinstance(label, str) or not _LABEL.match(label):
+        raise ValueError(f"label {label!r}: use 1-64 letters, digits and _.+- (it names a file)")
+    if label.lower() in RESERVED_LABELS:
+        raise ValueError(f"label {label!r} is reserved for the weighted mixture")
+    return label
+
+
+def check_validation_weights(weights: Any, n: int) -> np.ndarray:
+    """Weights of the validation points in μ_r (Eq. 22): ``n`` finite values ``>= 0``, not all 0.
+
+    Examples
+    --------
+    >>> check_validation_weights([1, 2], 2)
+    array([1., 2.])
+    >>> check_validation_weights([1, -2], 2)
+    Traceback (most recent call last):
+    ...
+    ValueError: validation weights must be finite and >= 0 (row 1 is -2.0)
+    """
+    try:
+        values = np.asarray(weights, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"validation weights are not numeric: {err}") from err
+    if values.size != n:
+        raise ValueError(f"{values.size} validation weights for {n} validation rows")
+    bad = np.flatnonzero(~np.isfinite(values) | (values < 0))
+    if bad.size:
+        first = int(bad[0])
+        raise ValueError(
+            f"validation weights must be finite and >= 0 (row {first} is {float(values[first])!r})"
+        )
+    if not values.sum() > 0:
+        raise ValueError("validation weights are all 0")
+    return values
 
 
 def check_compile_mode(mode: Any) -> None:
@@ -193,3 +360,52 @@ def check_count(value: Any, name: str, *, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return value
+
+
+def check_positive_number(value: Any, name: str) -> float:
+    """``value`` as a finite float ``> 0`` (not a bool), or ``ValueError`` naming it.
+
+    Examples
+    --------
+    >>> check_positive_number(0.3, "noise_sd")
+    0.3
+    >>> check_positive_number(float("nan"), "noise_sd")
+    Traceback (most recent call last):
+    ...
+    ValueError: noise_sd must be a positive finite number, got nan
+    """
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if not ok or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return float(value)
+
+
+def check_output_path(path: str | os.PathLike[str], *, folder: bool = True) -> None:
+    """An output folder (``folder=True``) or file that can be written: checked, not created.
+
+    Raises ``ValueError`` when a folder on the way (or the output folder itself) is an
+    existing file, or when the nearest existing folder is not writable.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> base = pathlib.Path(tempfile.mkdtemp())
+    >>> check_output_path(base / "results")
+    >>> (base / "taken").write_text("a file")
+    6
+    >>> check_output_path(base / "taken" / "results")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    ValueError: output path .../taken/results: .../taken is a file, not a folder
+    """
+    text = os.fspath(path)
+    if not text or "\x00" in text:
+        raise ValueError(f"output path {text!r} is not a usable path")
+    target = Path(text)
+    for above in (target, *target.parents) if folder else target.parents:
+        if above.is_dir():
+            if not os.access(above, os.W_OK | os.X_OK):
+                raise ValueError(f"output path {target}: folder {above} is not writable")
+            return
+        if above.exists():
+            raise ValueError(f"output path {target}: {above} is a file, not a folder")

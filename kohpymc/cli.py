@@ -11,6 +11,11 @@ whose inputs are unchanged ("M0: reused"), ``--fresh`` recomputes all.
 on the same file.  Exit status 0 on success, 2 for a bad study file or data, 1 when
 every formulation failed.
 
+``--dry-run`` (every command) reads and checks the study file, its data, the physics
+function at the prior centre, priors, formulations, options and output paths, prints a
+summary and exits 0 without sampling or writing.  Bad input of any kind exits 2 with one
+``error:`` line naming the file and the key, column or option, and writes nothing.
+
 ``check STUDY.toml --replicates N`` runs simulation-based calibration
 (:func:`kohpymc.sbc.check_calibration`) and prints the coverage table and the verdict.
 Exit status 0 on PASS, 3 on FAIL (the set-up does not recover the truth), 2 for bad
@@ -20,24 +25,13 @@ input, 1 when no replicate could be fitted.
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from kohpymc.warning_filters import quiet_command_line
+
 __all__ = ["main"]
-
-
-def _quiet_libraries() -> None:
-    logging.getLogger("pymc").setLevel(logging.ERROR)
-    # Dask's own log lines (worker restarts, "task marked as failed because a worker
-    # died", slow shutdowns): kohpymc reports each task's fate itself
-    logging.getLogger("distributed").setLevel(logging.CRITICAL)
-    logging.getLogger("pytensor.tensor.blas").setLevel(logging.ERROR)
-    warnings.filterwarnings("ignore", message="PyTensor could not link to a BLAS")
-    warnings.filterwarnings("ignore", category=FutureWarning)
-    warnings.filterwarnings("ignore", message="The effective sample size per chain")
 
 
 def _load(args: argparse.Namespace):
@@ -46,9 +40,67 @@ def _load(args: argparse.Namespace):
 
     try:
         return load_study(args.study)
-    except (StudyConfigError, FileNotFoundError) as err:
+    except StudyConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return None
+
+
+def _bad_input(err: Exception) -> int:
+    """Print a bad-input error (it names the file and the key) and return exit status 2."""
+    print(f"error: {err}", file=sys.stderr)
+    return 2
+
+
+def _checked_options(
+    args: argparse.Namespace, spec, folders: Sequence[Path], files: Sequence[Path] = ()
+) -> None:
+    """The command line's numbers and output paths, checked before anything runs.
+
+    Raises :class:`~kohpymc.config.StudyConfigError` naming the option (``--draws``) or the
+    output path; the checks are :mod:`kohpymc.checks`'.
+    """
+    from kohpymc.checks import check_count, check_output_path
+    from kohpymc.config import StudyConfigError
+
+    try:
+        for key in ("draws", "tune", "chains", "replicates", "rank_draws"):
+            if getattr(args, key, None) is not None:
+                check_count(getattr(args, key), f"--{key.replace('_', '-')}")
+        if args.seed is not None:
+            check_count(args.seed, "--seed", minimum=0)
+        for path in folders:
+            check_output_path(path)
+        for path in files:
+            check_output_path(path, folder=False)
+    except ValueError as err:
+        raise StudyConfigError(f"{spec.source}: {err}") from err
+
+
+def _checked_build(spec, formulations) -> None:
+    """Every formulation's model composes on the calibration data (before any sampling)."""
+    from kohpymc.checks import FormulationBuildError, check_formulations_build
+    from kohpymc.config import StudyConfigError
+
+    try:
+        check_formulations_build(spec.physics, spec.calibration, formulations)
+    except FormulationBuildError as err:
+        raise StudyConfigError(f"{spec.source}: [formulations.{err.label}] {err}") from err
+
+
+def _dry_run_summary(spec, what: str, outputs: Sequence[Path], detail: str = "") -> int:
+    """The ``--dry-run`` report: what was checked and what a real run would do."""
+    print(
+        f"dry run: {spec.source} is ready for `kohpymc {what}`: physics "
+        f"{spec.physics.name!r} ({', '.join(spec.physics.parameters)}) runs on "
+        f"{spec.calibration.n} calibration and {spec.validation.n} validation rows at the "
+        f"prior centre; formulations {', '.join(spec.formulations)}"
+        + (" (each builds on the calibration data)" if what != "discover" else "")
+    )
+    if detail:
+        print(detail)
+    where = ", ".join(str(p) for p in outputs) or "nowhere (no output asked for)"
+    print(f"would write to {where}; nothing sampled, nothing written")
+    return 0
 
 
 def _sampler_overrides(args: argparse.Namespace, sampling: dict) -> dict:
@@ -72,6 +124,8 @@ def _execution_overrides(args: argparse.Namespace, execution: dict) -> dict:
 
 
 def _study(args: argparse.Namespace) -> int:
+    from kohpymc.checks import check_execution
+    from kohpymc.config import StudyConfigError
     from kohpymc.progress import task_display
     from kohpymc.study import StudyStepError, run_study
 
@@ -82,6 +136,17 @@ def _study(args: argparse.Namespace) -> int:
     kwargs.update(_sampler_overrides(args, spec.sampling))
     kwargs.update(_execution_overrides(args, spec.execution))
     out = Path(args.out) if args.out else spec.out_dir
+    try:
+        _checked_options(args, spec, [out])
+        try:
+            check_execution(kwargs.get("workers", 1), kwargs.get("scheduler"))
+        except ValueError as err:
+            raise StudyConfigError(f"{spec.source}: --workers/--scheduler: {err}") from err
+        _checked_build(spec, spec.formulations)
+    except StudyConfigError as err:
+        return _bad_input(err)
+    if args.dry_run:
+        return _dry_run_summary(spec, "study", [out])
     print(
         f"study {spec.source}: physics {spec.physics.name!r} "
         f"({', '.join(spec.physics.parameters)}), {spec.calibration.n} calibration and "
@@ -127,6 +192,7 @@ def _discover(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from kohpymc.config import StudyConfigError
     from kohpymc.discovery import discover
     from kohpymc.physics import PhysicsModelError
     from kohpymc.plots import plot_residuals_before_after
@@ -136,6 +202,16 @@ def _discover(args: argparse.Namespace) -> int:
         return 2
     merged = _sampler_overrides(args, spec.sampling)
     sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
+    outputs = [Path(p) for p in (args.json, args.out) if p]
+    try:
+        _checked_options(
+            args, spec, [Path(args.out)] if args.out else [], [Path(args.json)] if args.json else []
+        )
+        _checked_discovery(spec)
+    except StudyConfigError as err:
+        return _bad_input(err)
+    if args.dry_run:
+        return _dry_run_summary(spec, "discover", outputs)
     try:
         report = discover(
             spec.physics,
@@ -189,11 +265,57 @@ def _discover(args: argparse.Namespace) -> int:
     return 0
 
 
+def _checked_discovery(spec) -> None:
+    """What :func:`kohpymc.discover` checks before sampling, run on the study file's inputs."""
+    from kohpymc.candidates import DEFAULT_EXPONENTS
+    from kohpymc.config import StudyConfigError
+    from kohpymc.discovery.workflow import _checked_inputs
+    from kohpymc.physics import PhysicsModelError
+
+    library = {"exponents": DEFAULT_EXPONENTS, "references": None, "extra": None}
+    try:
+        _checked_inputs(
+            spec.physics, spec.calibration, spec.validation, spec.tolerance, 0.01, None, library
+        )
+    except NotImplementedError as err:
+        raise StudyConfigError(f"{spec.source}: [physics.backend] {err}") from err
+    except (ValueError, KeyError, PhysicsModelError) as err:
+        message = str(err).strip("'\"")
+        raise StudyConfigError(f"{spec.source}: [data.calibration] {message}") from err
+
+
 #: exit status of ``kohpymc check`` when the set-up does not recover the truth
 CHECK_FAILED = 3
 
 
+def _checked_check(args: argparse.Namespace, spec):
+    """The check's settings and where its replicates run, as the check will resolve them.
+
+    Command line over ``[check]`` over ``[sampling]`` (:func:`kohpymc.sbc.settings.resolve`).
+    """
+    from kohpymc.checks import check_execution
+    from kohpymc.config import StudyConfigError
+    from kohpymc.sbc.settings import resolve
+
+    overrides = {
+        "replicates": args.replicates, "formulation": args.formulation, "draws": args.draws,
+        "tune": args.tune, "chains": args.chains, "seed": args.seed,
+        "rank_draws": args.rank_draws,
+    }  # fmt: skip
+    try:
+        settings = resolve(spec, overrides)
+    except ValueError as err:
+        message = str(err).removeprefix(f"{spec.source}: ")
+        raise StudyConfigError(f"{spec.source}: [check] {message}") from err
+    try:
+        check_execution(args.workers, args.scheduler)
+    except ValueError as err:
+        raise StudyConfigError(f"{spec.source}: --workers/--scheduler: {err}") from err
+    return settings
+
+
 def _check(args: argparse.Namespace) -> int:
+    from kohpymc.config import StudyConfigError
     from kohpymc.sbc import check_calibration
 
     spec = _load(args)
@@ -201,6 +323,19 @@ def _check(args: argparse.Namespace) -> int:
         return 2
     label = args.formulation or spec.check.formulation or "M0"
     out = Path(args.out) if args.out else Path(f"{spec.out_dir}_check_{label}")
+    try:
+        _checked_options(args, spec, [out])
+        settings = _checked_check(args, spec)
+        _checked_build(spec, {settings.formulation: spec.formulations[settings.formulation]})
+    except StudyConfigError as err:
+        return _bad_input(err)
+    if args.dry_run:
+        detail = (
+            f"check of {settings.formulation}: {settings.replicates} replicate(s) of "
+            f"{settings.chains} × {settings.draws} draws (tune {settings.tune}), "
+            f"seed {settings.seed}"
+        )
+        return _dry_run_summary(spec, "check", [out], detail)
     say = None if args.quiet else (lambda msg: print(msg, flush=True))
     try:
         result = check_calibration(
@@ -254,6 +389,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     for key in ("draws", "tune", "chains", "seed"):
         common.add_argument(f"--{key}", type=int, help=f"override [sampling] {key}")
     common.add_argument("--quiet", action="store_true", help="no progress lines")
+    common.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="check the study file, its data, physics, priors and formulations; "
+        "sample and write nothing",
+    )
     study = sub.add_parser(
         "study", parents=[common], help="calibrate, validate and weigh formulations"
     )
@@ -291,7 +432,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     check.add_argument("--fresh", action="store_true", help="recompute every replicate")
     check.set_defaults(run=_check)
     args = parser.parse_args(argv)
-    _quiet_libraries()
+    quiet_command_line()
     return args.run(args)
 
 

@@ -69,18 +69,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
-
 from kohpymc.checks import (
+    JacobianError,
     check_compile_mode,
     check_count,
+    check_label,
     check_physics_runs,
+    check_positive_number,
     check_sampler,
     check_scheduler,
+    check_target_accept,
     check_tolerance,
+    check_validation_weights,
     check_workers,
+    resolve_sampler,
 )
-from kohpymc.data import CalibrationData
+from kohpymc.data import CalibrationData, read_csv_table
 from kohpymc.discrepancy import Discrepancy, FormulationSpecError, from_dict
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.execution import ship_by_value
@@ -281,8 +285,11 @@ def _data(
 def _names(path: Path, key: str, value: Any) -> list[str]:
     if isinstance(value, str):
         value = [value]
-    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
         raise _err(path, key, f"must be a list of input names, got {value!r}")
+    repeated = sorted({v for v in value if value.count(v) > 1})
+    if repeated:
+        raise _err(path, key, f"names {repeated} more than once")
     return list(value)
 
 
@@ -296,9 +303,20 @@ def _formulation(
             if name_key in value and not isinstance(value[name_key], dict):
                 _names(path, f"{key}.{name_key}", value[name_key])
     try:
-        return from_dict(value, inputs=inputs, time=time)
+        label = check_label(label)
+    except ValueError as err:
+        raise _err(path, key, str(err)) from err
+    try:
+        formulation = from_dict(value, inputs=inputs, time=time)
     except FormulationSpecError as err:
         raise _err(path, f"{key}.{err.key}" if err.key else key, str(err)) from err
+    absent = [name for name in formulation.inputs if name not in inputs]
+    if absent:
+        raise _err(
+            path, key, f"uses input(s) {absent} that are not physics inputs {inputs} (the data "
+            "files are read for the physics inputs and the output only)",
+        )  # fmt: skip
+    return formulation
 
 
 def load_study(path: str | Path) -> StudySpec:
@@ -340,6 +358,8 @@ def load_study(path: str | Path) -> StudySpec:
     execution = _execution_section(path, doc, sampling_doc.pop("workers", None))
     check = _check_section(path, doc.get("check", {}), physics, formulations)
     out = doc.get("output", {}).get("dir")
+    if out is not None and (not isinstance(out, str) or not out or "\x00" in out):
+        raise _err(path, "output.dir", f"must be a folder name, got {out!r}")
     out_dir = (base / out) if out else base / f"{path.stem}_results"
     return StudySpec(
         source=path,
@@ -361,7 +381,15 @@ def _read_document(path: Path) -> dict:
     if not path.is_file():
         raise StudyConfigError(f"study file {path} not found")
     try:
-        doc = tomllib.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise StudyConfigError(
+            f"{path}: not UTF-8 text (byte {err.object[err.start]:#04x} at offset {err.start})"
+        ) from err
+    except OSError as err:
+        raise StudyConfigError(f"{path}: cannot be read: {err.strerror or err}") from err
+    try:
+        doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise StudyConfigError(f"{path}: not valid TOML: {err}") from err
     _check_keys(path, "top level", doc, set(_SECTIONS))
@@ -374,6 +402,9 @@ def _read_document(path: Path) -> dict:
     for section in ("physics", "data", "validation"):
         if section not in doc:
             raise _err(path, section, "section is required but missing")
+    name = doc.get("study", {}).get("name")
+    if name is not None and not isinstance(name, str):
+        raise _err(path, "study.name", f"must be text, got {name!r}")
     return doc
 
 
@@ -383,34 +414,64 @@ def _physics_section(path: Path, base: Path, phys: dict):
         _require(path, phys, "physics", "function"), base, path, "physics.function"
     )
     inputs = _names(path, "physics.inputs", _require(path, phys, "physics", "inputs"))
+    if not inputs:
+        raise _err(path, "physics.inputs", "must name at least one input column")
     output = _require(path, phys, "physics", "output")
-    if not isinstance(output, str):
+    if not isinstance(output, str) or not output:
         raise _err(path, "physics.output", f"must be a column name, got {output!r}")
-    params = _require(path, phys, "physics", "parameters")
-    if not isinstance(params, dict) or not params:
-        raise _err(path, "physics.parameters", "must be a table of parameter priors")
+    if output in inputs:
+        raise _err(path, "physics.output", f"{output!r} is also one of the inputs {inputs}")
+    priors = _priors(path, _require(path, phys, "physics", "parameters"), inputs)
     jacobian = (
         _load_callable(phys["jacobian"], base, path, "physics.jacobian")
         if "jacobian" in phys
         else None
     )
     time = phys.get("time")
-    if time is not None and time not in inputs:
+    if time is not None and (not isinstance(time, str) or time not in inputs):
         raise _err(path, "physics.time", f"{time!r} is not one of the inputs {inputs}")
+    if not isinstance(phys.get("name", ""), str):
+        raise _err(path, "physics.name", f"must be text, got {phys['name']!r}")
     kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
     try:
-        physics = PhysicsModel(function, params, inputs, jacobian=jacobian, **kwargs)
+        physics = PhysicsModel(function, priors, inputs, jacobian=jacobian, **kwargs)
     except (TypeError, ValueError, KeyError) as err:
-        raise _err(path, "physics.parameters", f"{type(err).__name__}: {err}") from err
+        where = next((f"physics.{k}" for k in ("backend", "fd_scheme") if k in str(err)), None)
+        raise _err(path, where or "physics", str(err)) from err
     return physics, inputs, output, time
+
+
+def _priors(path: Path, params: Any, inputs: list[str]) -> dict[str, Any]:
+    """``[physics.parameters]``: one prior per parameter (each checked, its key named)."""
+    if not isinstance(params, dict) or not params:
+        raise _err(path, "physics.parameters", "must be a table of parameter priors")
+    priors = {}
+    for name, value in params.items():
+        key = f"physics.parameters.{name}"
+        if name in inputs:
+            raise _err(path, key, f"{name!r} is also one of the inputs {inputs}")
+        if not isinstance(value, dict):
+            raise _err(path, key, f"must be a prior table like {{ prior = ... }}, got {value!r}")
+        try:
+            priors[name] = as_prior(value, name=name)
+        except (TypeError, ValueError) as err:
+            raise _err(path, key, str(err)) from err
+    return priors
 
 
 def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
     """``[data]``: the calibration and validation data (the model must run on the latter)."""
     noise_sd = data.get("noise_sd")
-    if noise_sd is not None and (not isinstance(noise_sd, int | float) or noise_sd <= 0):
-        raise _err(path, "data.noise_sd", f"must be a positive number, got {noise_sd!r}")
+    if noise_sd is not None:
+        try:
+            noise_sd = check_positive_number(noise_sd, "noise_sd")
+        except ValueError as err:
+            raise _err(path, "data.noise_sd", str(err).removeprefix("noise_sd ")) from err
     replicates = data.get("replicates")
+    if replicates is not None and (not isinstance(replicates, str) or not replicates):
+        raise _err(
+            path, "data.replicates", f'must be "inputs" or a column name, got {replicates!r}'
+        )
     calibration = _data(
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
         inputs, output, noise_sd, replicates,
@@ -421,10 +482,13 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
     )  # fmt: skip
     if validation.n == 0:
         raise _err(path, "data.validation", f"{validation.source} has no rows")
-    try:
-        check_physics_runs(physics, validation, "validation")
-    except (KeyError, ValueError) as err:
-        raise _err(path, "data.validation", str(err).strip("'\"")) from err
+    for key, data_set in (("calibration", calibration), ("validation", validation)):
+        try:
+            check_physics_runs(physics, data_set, key)
+        except JacobianError as err:
+            raise _err(path, "physics.jacobian", str(err)) from err
+        except (KeyError, ValueError) as err:
+            raise _err(path, f"data.{key}", str(err).strip("'\"")) from err
     return calibration, validation
 
 
@@ -436,13 +500,16 @@ def _validation_section(path: Path, val: dict, validation):
         raise _err(path, "validation.tolerance", str(err)) from err
     weights = None
     if "weights" in val:
-        frame = pd.read_csv(validation.source)
-        if val["weights"] not in frame:
-            raise _err(
-                path, "validation.weights",
-                f"column {val['weights']!r} not in {validation.source}",
-            )  # fmt: skip
-        weights = frame[val["weights"]].to_numpy(dtype=float)
+        column = val["weights"]
+        try:
+            if not isinstance(column, str):
+                raise ValueError(f"must be a column name, got {column!r}")
+            frame = read_csv_table(validation.source)
+            if column not in frame:
+                raise ValueError(f"column {column!r} not in {validation.source}")
+            weights = check_validation_weights(frame[column].to_numpy(), validation.n)
+        except ValueError as err:
+            raise _err(path, "validation.weights", f"{err} ({validation.source})") from err
     return tolerance, weights
 
 
@@ -462,21 +529,34 @@ def _sampling_section(path: Path, doc: dict) -> dict:
     if "seed" in sampling_doc:
         sampling_doc["random_seed"] = sampling_doc.pop("seed")
     for key in ("draws", "tune", "chains", "cores"):
-        if key in sampling_doc and (
-            not isinstance(sampling_doc[key], int) or sampling_doc[key] < 1
-        ):
-            raise _err(
-                path, f"sampling.{key}", f"must be a positive integer, got {sampling_doc[key]!r}"
-            )
+        if key in sampling_doc:
+            value = sampling_doc[key]
+            try:
+                check_count(value, key)
+            except ValueError as err:
+                message = f"must be a positive integer, got {value!r}"
+                raise _err(path, f"sampling.{key}", message) from err
+    if "random_seed" in sampling_doc:
+        _count(path, "sampling.seed", sampling_doc["random_seed"], minimum=0)
+    if "target_accept" in sampling_doc:
+        try:
+            check_target_accept(sampling_doc["target_accept"])
+        except ValueError as err:
+            raise _err(path, "sampling.target_accept", str(err)) from err
     try:
         check_compile_mode(sampling_doc.get("mode"))
     except ValueError as err:
         raise _err(path, "sampling.mode", str(err)) from err
-    if "sampler" in sampling_doc:
-        try:
-            check_sampler(sampling_doc["sampler"])
-        except ValueError as err:
-            raise _err(path, "sampling.sampler", str(err)) from err
+    for key in ("sampler", "method"):
+        if key in sampling_doc:
+            try:
+                check_sampler(sampling_doc[key], key)
+            except ValueError as err:
+                raise _err(path, f"sampling.{key}", str(err)) from err
+    try:
+        resolve_sampler(sampling_doc.get("sampler"), sampling_doc.get("method"))
+    except ValueError as err:
+        raise _err(path, "sampling", str(err)) from err
     if not isinstance(sampling_doc.get("reparameterize", True), bool):
         raise _err(path, "sampling.reparameterize", "must be true or false")
     return sampling_doc

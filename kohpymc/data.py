@@ -14,6 +14,7 @@ becomes ``Σ_g (n_g - 1)``, which reduces to ``n_1 (n_2 - 1)`` for a balanced de
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Mapping, Sequence
 from os import PathLike
 from typing import Any
@@ -21,7 +22,50 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-__all__ = ["CalibrationData", "pooled_replicate_sd"]
+__all__ = ["CalibrationData", "pooled_replicate_sd", "read_csv_table"]
+
+
+def _header(path: str | PathLike[str]) -> list[str]:
+    """The first row of a CSV file as written (pandas renames repeated names ``x.1``)."""
+    with open(path, newline="", encoding="utf-8-sig") as handle:
+        return next(csv.reader(handle), [])
+
+
+def read_csv_table(path: str | PathLike[str]) -> pd.DataFrame:
+    r"""A CSV data file as a DataFrame; every problem is a ``ValueError`` naming the file.
+
+    Not UTF-8 text, empty, not parseable as CSV, or a column name given twice (which
+    pandas would silently rename).  A missing file raises ``FileNotFoundError``.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> path = os.path.join(tempfile.mkdtemp(), "d.csv")
+    >>> _ = open(path, "w").write("x,y,x\n1,2,3\n")
+    >>> read_csv_table(path)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    ValueError: .../d.csv: column name(s) ['x'] appear more than once in the header
+    """
+    source = str(path)
+    try:
+        header = _header(path)
+        frame = pd.read_csv(path, encoding="utf-8")
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"data file not found: {source}") from err
+    except UnicodeDecodeError as err:
+        raise ValueError(
+            f"{source}: not UTF-8 text (byte {err.object[err.start]:#04x} at offset {err.start})"
+        ) from err
+    except pd.errors.EmptyDataError as err:
+        raise ValueError(f"{source}: the file is empty (no header row)") from err
+    except (pd.errors.ParserError, csv.Error, OSError) as err:
+        raise ValueError(f"{source}: cannot be read as CSV: {err}") from err
+    names = [name.strip() for name in header]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ValueError(f"{source}: column name(s) {repeated} appear more than once in the header")
+    return frame
 
 
 def pooled_replicate_sd(values: Sequence[float], groups: Sequence[Any]) -> float:
@@ -195,12 +239,8 @@ class CalibrationData:
         2
         """
         source = str(path)
-        try:
-            frame = pd.read_csv(path)
-        except FileNotFoundError as err:
-            raise FileNotFoundError(f"data file not found: {source}") from err
         return cls.from_dataframe(
-            frame,
+            read_csv_table(path),
             inputs=inputs,
             output=output,
             noise_sd=noise_sd,

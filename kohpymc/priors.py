@@ -143,6 +143,19 @@ def _finite(name: str, **values: float) -> dict[str, float]:
     return out
 
 
+def _representable(prior: Prior) -> Prior:
+    """``prior`` when its mean, sd and scale are finite floats, else ``ValueError``."""
+    try:
+        moments: tuple[float, ...] = (prior.mean(), prior.sd(), prior.scale())
+    except OverflowError:
+        moments = (math.inf,)
+    if not all(math.isfinite(m) for m in moments):
+        raise ValueError(
+            f"{prior.kind} prior {prior!r}: its mean or spread overflows a float (values too large)"
+        )
+    return prior
+
+
 def Uniform(lower: float, upper: float) -> Prior:  # noqa: N802 - reads like a distribution
     """Uniform prior on ``[lower, upper]``.
 
@@ -154,7 +167,7 @@ def Uniform(lower: float, upper: float) -> Prior:  # noqa: N802 - reads like a d
     args = _finite("uniform", lower=lower, upper=upper)
     if not args["lower"] < args["upper"]:
         raise ValueError(f"uniform prior: lower={lower!r} must be < upper={upper!r}")
-    return Prior("uniform", args)
+    return _representable(Prior("uniform", args))
 
 
 def Normal(mu: float, sigma: float) -> Prior:  # noqa: N802
@@ -168,7 +181,7 @@ def Normal(mu: float, sigma: float) -> Prior:  # noqa: N802
     args = _finite("normal", mu=mu, sigma=sigma)
     if args["sigma"] <= 0:
         raise ValueError(f"normal prior: sigma={sigma!r} must be > 0")
-    return Prior("normal", args)
+    return _representable(Prior("normal", args))
 
 
 def LogNormal(mu: float, sigma: float) -> Prior:  # noqa: N802
@@ -182,7 +195,7 @@ def LogNormal(mu: float, sigma: float) -> Prior:  # noqa: N802
     args = _finite("lognormal", mu=mu, sigma=sigma)
     if args["sigma"] <= 0:
         raise ValueError(f"lognormal prior: sigma={sigma!r} must be > 0")
-    return Prior("lognormal", args)
+    return _representable(Prior("lognormal", args))
 
 
 def HalfNormal(sigma: float) -> Prior:  # noqa: N802
@@ -196,7 +209,7 @@ def HalfNormal(sigma: float) -> Prior:  # noqa: N802
     args = _finite("halfnormal", sigma=sigma)
     if args["sigma"] <= 0:
         raise ValueError(f"halfnormal prior: sigma={sigma!r} must be > 0")
-    return Prior("halfnormal", args)
+    return _representable(Prior("halfnormal", args))
 
 
 def Custom(factory: Callable[..., Any], *, mean: float = 0.0, scale: float = 1.0) -> Prior:  # noqa: N802

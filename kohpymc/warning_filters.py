@@ -1,0 +1,88 @@
+"""Third-party warnings that say nothing about the user's problem, filtered narrowly.
+
+Each filter names the warning's message (a regular expression matched at its start), its
+category and, where the warning is attributed to the library itself, the module; nothing
+is ignored wholesale, so kohpymc's own warnings (:class:`kohpymc.SamplerTroubleWarning`,
+:class:`kohpymc.IdentifiabilityWarning`, ...) and every other warning always show.
+
+:data:`IMPORT_NOISE` is ignored as soon as ``kohpymc`` is imported (importing this module
+does it, before anything imports ArviZ); the command line also quiets the libraries'
+routine log lines (:func:`quiet_command_line`).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from typing import NamedTuple
+
+__all__ = ["IMPORT_NOISE", "NoiseFilter", "ignore_noise", "quiet_command_line"]
+
+
+class NoiseFilter(NamedTuple):
+    """One warning to ignore: the start of its message, its category, its module (or "")."""
+
+    message: str
+    category: type[Warning]
+    module: str = ""
+
+
+#: ignored on ``import kohpymc``: printed once a day by ``import arviz``, by PyTensor when
+#: it finds no BLAS to link (kohpymc's log densities run through numba), by setuptools
+IMPORT_NOISE: tuple[NoiseFilter, ...] = (
+    NoiseFilter(r"\s*ArviZ is undergoing a major refactor", FutureWarning, r"arviz(\.|$)"),
+    NoiseFilter(r"PyTensor could not link to a BLAS", UserWarning, r"pytensor(\.|$)"),
+    NoiseFilter(r"Setuptools is replacing distutils", UserWarning),
+    NoiseFilter(r"pkg_resources is deprecated as an API", UserWarning),
+    NoiseFilter(r"pkg_resources is deprecated as an API", DeprecationWarning),
+    NoiseFilter(r"Deprecated call to `pkg_resources\.declare_namespace", DeprecationWarning),
+)
+
+#: loggers whose routine lines the command line hides: kohpymc reports each task's fate, and
+#: r-hat and ESS per formulation and per replicate itself (PyMC logs its advice on them)
+_QUIET_LOGGERS = {
+    "pymc": logging.ERROR,
+    "pymc.stats.convergence": logging.CRITICAL,
+    "distributed": logging.CRITICAL,  # worker restarts, slow shutdowns
+    "pytensor.tensor.blas": logging.ERROR,
+}
+
+
+def ignore_noise(filters: tuple[NoiseFilter, ...] = IMPORT_NOISE) -> None:
+    """Ignore exactly these warnings (inserted before any filter already in place).
+
+    Examples
+    --------
+    >>> import warnings
+    >>> with warnings.catch_warnings(record=True) as seen:
+    ...     warnings.simplefilter("always")
+    ...     ignore_noise((NoiseFilter("some library chatter", UserWarning),))
+    ...     warnings.warn("some library chatter: ignored", UserWarning)
+    ...     warnings.warn("a real problem", UserWarning)
+    >>> [str(w.message) for w in seen]
+    ['a real problem']
+    """
+    for item in filters:
+        warnings.filterwarnings(
+            "ignore", message=item.message, category=item.category, module=item.module
+        )
+
+
+def quiet_command_line() -> None:
+    """What the ``kohpymc`` command hides: :data:`IMPORT_NOISE` and routine library log lines.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> with warnings.catch_warnings():
+    ...     quiet_command_line()
+    ...     any(f[2] is FutureWarning for f in warnings.filters if f[0] == "ignore"
+    ...         and f[1] is None)  # no blanket ignore of a whole category
+    False
+    """
+    ignore_noise(IMPORT_NOISE)
+    for name, level in _QUIET_LOGGERS.items():
+        logging.getLogger(name).setLevel(level)
+
+
+ignore_noise()  # on import: kohpymc/__init__.py imports this module before anything else

@@ -1,0 +1,120 @@
+"""Third-party noise stays out of the user's way; kohpymc's own warnings always show."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+import kohpymc
+from kohpymc.warning_filters import IMPORT_NOISE, quiet_command_line
+
+ROOT = Path(__file__).resolve().parents[1]
+DECAY = ROOT / "kohpymc" / "examples" / "decay_study.toml"
+
+#: every warning class kohpymc defines and exports
+OWN_WARNINGS = [
+    obj
+    for name in kohpymc.__all__
+    if isinstance(obj := getattr(kohpymc, name), type) and issubclass(obj, Warning)
+]
+
+
+def _python(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    """A fresh interpreter showing every warning once (``-W default``), with an empty user
+    cache so ArviZ's once-a-day FutureWarning fires."""
+    cache = tmp_path / f"cache{len(list(tmp_path.iterdir()))}"
+    cache.mkdir()
+    env = {
+        **os.environ,
+        "XDG_CACHE_HOME": str(cache),
+        "PYTHONPATH": str(ROOT),
+        "OPENBLAS_NUM_THREADS": "1",
+    }
+    env.pop("PYTHONWARNINGS", None)
+    return subprocess.run(
+        [sys.executable, "-W", "default", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=300,
+    )
+
+
+def test_import_kohpymc_hides_the_arviz_refactor_warning(tmp_path):
+    bare = _python(tmp_path, "-c", "import arviz")
+    assert "FutureWarning" in bare.stderr and "major refactor" in bare.stderr  # it does fire
+    ours = _python(tmp_path, "-c", "import kohpymc")
+    assert ours.returncode == 0, ours.stderr
+    assert "FutureWarning" not in ours.stderr and "refactor" not in ours.stderr, ours.stderr
+
+
+def test_cli_dry_run_shows_no_third_party_warnings(tmp_path):
+    run = _python(tmp_path, "-m", "kohpymc", "study", str(DECAY), "--dry-run")
+    assert run.returncode == 0, run.stderr
+    assert "dry run:" in run.stdout
+    for text in ("FutureWarning", "DeprecationWarning", "BLAS", "pkg_resources", "Warning"):
+        assert text not in run.stderr, run.stderr
+
+
+PHYSICS = """
+import warnings
+
+import numpy as np
+
+from kohpymc import IdentifiabilityWarning
+
+
+def model(inputs, params):
+    warnings.warn("k and A trade off at these times", IdentifiabilityWarning, stacklevel=1)
+    return params["A"] * np.exp(-params["k"] * np.asarray(inputs["t"]))
+"""
+
+
+def test_a_kohpymc_warning_reaches_the_cli_user(tmp_path):
+    """A kohpymc warning raised while the command runs (here by the physics function, run
+    at the prior centre by the dry run) is printed despite the command's filters."""
+    text = DECAY.read_text()
+    text = text.replace('"kohpymc.examples.decay:exponential_decay"', '"physics.py:model"')
+    text = text.replace("data/", str(DECAY.parent / "data") + "/")
+    (tmp_path / "physics.py").write_text(PHYSICS)
+    (tmp_path / "study.toml").write_text(text)
+    run = _python(tmp_path, "-m", "kohpymc", "study", "study.toml", "--dry-run")
+    assert run.returncode == 0, run.stderr
+    assert "IdentifiabilityWarning: k and A trade off at these times" in run.stderr
+
+
+@pytest.mark.parametrize("category", OWN_WARNINGS, ids=lambda c: c.__name__)
+def test_command_line_filters_let_every_kohpymc_warning_through(category):
+    assert len(OWN_WARNINGS) >= 2  # SamplerTroubleWarning, IdentifiabilityWarning, ...
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")
+        quiet_command_line()
+        warnings.warn("the sampler diverged 12 times", category, stacklevel=1)
+    assert [w.category for w in seen] == [category]
+
+
+def test_command_line_filters_are_narrow():
+    """Every filter kohpymc adds names a message: no category or module is silenced whole."""
+    with warnings.catch_warnings():
+        warnings.resetwarnings()
+        quiet_command_line()
+        added = [f for f in warnings.filters if f[0] == "ignore"]
+    assert len(added) == len(IMPORT_NOISE)
+    assert all(f[1] is not None and f[1].pattern for f in added)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.resetwarnings()
+        warnings.simplefilter("default")
+        quiet_command_line()
+        warnings.warn("\nArviZ is undergoing a major refactor to ...", FutureWarning, stacklevel=1)
+        warnings.warn("a FutureWarning of another kind", FutureWarning, stacklevel=1)
+    # the ArviZ filter names the arviz module, so the same text from here still shows
+    assert [str(w.message) for w in seen] == [
+        "\nArviZ is undergoing a major refactor to ...",
+        "a FutureWarning of another kind",
+    ]

@@ -334,8 +334,11 @@ def load_study(path: str | Path) -> StudySpec:
     Raises
     ------
     StudyConfigError
-        Naming the file and the key: unknown keys, missing required keys, missing files,
-        a function that does not import, bad data columns, a non-positive tolerance.
+        Naming the file and the key: a file that is not UTF-8 or not TOML, unknown keys,
+        missing required keys, values of the wrong type or range, missing or unreadable
+        data files (empty, repeated or missing columns, NaN/inf), a function or Jacobian
+        that does not import or fails on the data at the prior centre, bad priors and
+        formulations (kinds, options, labels, inputs the data lack).  Nothing else.
 
     Examples
     --------

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from kohpymc.data import CalibrationData
+from kohpymc.data import MAX_ABS_VALUE, CalibrationData
 from kohpymc.physics import PhysicsModel
 
 __all__ = [
@@ -94,12 +94,18 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
         )
     inputs, centre = {k: data.inputs[k] for k in physics.inputs}, physics.prior_mean()
     try:
-        physics.evaluate(inputs, centre)
+        output = np.asarray(physics.evaluate(inputs, centre), dtype=float)
     except Exception as err:
         raise ValueError(
             f"{what} data{_where(data)}: the physics model {physics.name!r} fails on the "
             f"{what} inputs: {err}"
         ) from err
+    if output.size and np.max(np.abs(output)) > MAX_ABS_VALUE:
+        raise ValueError(
+            f"{what} data{_where(data)}: the physics model {physics.name!r} returns "
+            f"{np.max(np.abs(output)):.3g} at the prior centre; values beyond "
+            f"±{MAX_ABS_VALUE:.0e} overflow when squared (check the units and the priors)"
+        )
     if physics.jacobian is None:
         return
     try:

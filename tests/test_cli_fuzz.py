@@ -21,6 +21,7 @@ import math
 import os
 import re
 import tempfile
+import warnings
 from pathlib import Path
 
 import pytest
@@ -255,7 +256,8 @@ def csv_files(draw, rows):
     header = ["t", "signal", "w"]
     body = [[repr(t), repr(y), str(1 + i % 2)] for i, (t, y) in enumerate(rows)]
     kind = draw(st.sampled_from(["ok"] * 4 + ["empty", "header", "cell", "dup", "rename", "drop",
-                                 "extra", "bytes", "truncate", "ragged", "one_row"]))  # fmt: skip
+                                 "extra", "bytes", "truncate", "ragged", "one_row",
+                                 "scale"]))  # fmt: skip
     if kind == "empty":
         return b""
     if kind == "header":
@@ -280,6 +282,9 @@ def csv_files(draw, rows):
         body[draw(st.integers(0, len(body) - 1))].append("9")
     elif kind == "one_row":
         body = body[:1]
+    elif kind == "scale":  # a whole column in absurd units
+        j, factor = draw(st.integers(0, 1)), draw(st.sampled_from([1e300, -1e200, 1e160, 1e-300]))
+        body = [row[:j] + [repr(float(row[j]) * factor)] + row[j + 1 :] for row in body]
     text = "\n".join(",".join(row) for row in [header, *body]) + "\n"
     data = text.encode("utf-8", errors="surrogatepass")
     if kind == "bytes":
@@ -308,6 +313,7 @@ BROKEN_PHYSICS = {
     "signature": "def model():\n    return 1.0\n",
     "scalar": "def model(inputs, params):\n    return 1.0\n",
     "inf": PHYSICS.replace("return params", "return 1e308 * 1e10 * params"),
+    "huge": PHYSICS.replace("return params", "return 1e200 * params"),
 }
 
 
@@ -335,9 +341,17 @@ def studies(draw):
 
 # -------------------------------------------------------------------------------- oracle
 def _run(capsys, argv):
+    """Exit status, stdout and stderr of the command; a warning raised inside a third-party
+    library (as the user would see it: default filters, then the command's own) fails."""
     capsys.readouterr()
-    code = main(argv)  # any exception escaping here fails the test with its traceback
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.resetwarnings()
+        warnings.simplefilter("default")
+        code = main(argv)  # any exception escaping here fails the test with its traceback
     out, err = capsys.readouterr()
+    noise = [f"{w.filename}:{w.lineno}: {w.category.__name__}: {w.message}" for w in seen
+             if "site-packages" in w.filename]  # fmt: skip
+    assert not noise, f"{argv}: third-party warnings reach the user: {noise}"
     return code, out, err
 
 
@@ -579,6 +593,13 @@ REGRESSIONS = {
     "output dir": (_tweak(("output", "dir"), 3), r"\[output\.dir\]", "folder name"),
     "study name": (_tweak(("study", "name"), 3), r"\[study\.name\]", "text"),
     "replicates": (_tweak(("data", "replicates"), 2), r"\[data\.replicates\]", "column name"),
+    # a column in absurd units (1e300) passed every check, then overflowed (numpy and PyTensor
+    # RuntimeWarnings, an infinite prior scale) when the model was built or sampled
+    "huge column": (_file("calib.csv", _calib_with("t,signal,w", *(f"{i}e300,1,1" for i in
+                                                                    range(5)))),
+                    r"\[data\.calibration\].*calib\.csv", "overflow when squared"),
+    "huge physics": (_file("physics.py", BROKEN_PHYSICS["huge"].encode()),
+                     r"\[data\.calibration\]", "returns 1.65e+200 at the prior centre"),
 }  # fmt: skip
 
 

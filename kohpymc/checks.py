@@ -390,7 +390,8 @@ def check_output_path(path: str | os.PathLike[str], *, folder: bool = True) -> N
     """An output folder (``folder=True``) or file that can be written: checked, not created.
 
     Raises ``ValueError`` when a folder on the way (or the output folder itself) is an
-    existing file, or when the nearest existing folder is not writable.
+    existing file, an output file is an existing folder, or the nearest existing folder is
+    not writable.
 
     Examples
     --------
@@ -408,6 +409,8 @@ def check_output_path(path: str | os.PathLike[str], *, folder: bool = True) -> N
     if not text or "\x00" in text:
         raise ValueError(f"output path {text!r} is not a usable path")
     target = Path(text)
+    if not folder and target.is_dir():
+        raise ValueError(f"output file {target} is a folder")
     for above in (target, *target.parents) if folder else target.parents:
         if above.is_dir():
             if not os.access(above, os.W_OK | os.X_OK):

@@ -420,7 +420,8 @@ OPTIONS = {
     "check": {"--draws": _NUMBERS, "--replicates": _NUMBERS, "--rank-draws": _NUMBERS,
               "--seed": _NUMBERS, "--workers": _NUMBERS,
               "--formulation": st.sampled_from(["M0", "M9", "", "../x"])},
-    "discover": {"--draws": _NUMBERS, "--chains": _NUMBERS, "--seed": _NUMBERS},
+    "discover": {"--draws": _NUMBERS, "--chains": _NUMBERS, "--seed": _NUMBERS,
+                 "--json": st.sampled_from(["{tmp}/r.json", "{tmp}", "{tmp}/calib.csv/r.json"])},
 }  # fmt: skip
 
 
@@ -443,6 +444,7 @@ def _fuzz_once(capsys, command, doc, files, *, real: bool, extra=(), out_name="r
         path = _write(folder, doc, files)
         out_dir = folder / out_name
         before = _snapshot(folder)
+        extra = [a.replace("{tmp}", str(folder)) for a in extra]
         argv = [command, str(path), "--dry-run", "--quiet", *extra]
         argv += ["--out", str(out_dir)] if command != "discover" else []
         code, out, err = _run(capsys, argv)
@@ -640,6 +642,15 @@ def test_output_folder_that_cannot_be_made_stops_before_sampling(capsys, out_nam
         code, err = _fuzz_once(capsys, command, BASE, _base_files(), real=True,
                                out_name=out_name)  # fmt: skip
         assert code == 2 and "is a file, not a folder" in err, err
+
+
+def test_discover_json_that_is_a_folder_stops_before_sampling(capsys):
+    with tempfile.TemporaryDirectory() as tmp:
+        path = _write(Path(tmp), BASE, _base_files())
+        (Path(tmp) / "report").mkdir()
+        argv = ["discover", str(path), "--json", str(Path(tmp) / "report"), "--quiet"]
+        code, _, err = _run(capsys, argv)
+    assert code == 2 and "report is a folder" in err, err
 
 
 def test_dry_run_reports_what_it_checked(capsys):

@@ -95,7 +95,7 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
     inputs, centre = {k: data.inputs[k] for k in physics.inputs}, physics.prior_mean()
     try:
         output = np.asarray(physics.evaluate(inputs, centre), dtype=float)
-    except Exception as err:
+    except (Exception, SystemExit) as err:  # SystemExit: a function calling sys.exit()
         raise ValueError(
             f"{what} data{_where(data)}: the physics model {physics.name!r} fails on the "
             f"{what} inputs: {err}"
@@ -110,7 +110,7 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
         return
     try:
         physics.jacobian_matrix(inputs, centre)
-    except Exception as err:
+    except (Exception, SystemExit) as err:
         raise JacobianError(
             f"{what} data{_where(data)}: the Jacobian of {physics.name!r} fails on the "
             f"{what} inputs: {err}"

@@ -251,14 +251,14 @@ def _load_callable(spec: Any, base: Path, path: Path, key: str) -> Callable[...,
         sys.modules[name] = module
         try:
             module_spec.loader.exec_module(module)
-        except Exception as err:
+        except (Exception, SystemExit) as err:  # a script exiting at import is an error too
             sys.modules.pop(name, None)
             raise _err(path, key, f"importing {file} failed: {type(err).__name__}: {err}") from err
         ship_by_value(module)  # Dask workers cannot import it: its functions travel by value
     else:
         try:
             module = importlib.import_module(target)
-        except Exception as err:
+        except (Exception, SystemExit) as err:
             raise _err(path, key, f"cannot import module {target!r}: {err}") from err
     func = getattr(module, attr, None)
     if not callable(func):

@@ -314,6 +314,10 @@ BROKEN_PHYSICS = {
     "scalar": "def model(inputs, params):\n    return 1.0\n",
     "inf": PHYSICS.replace("return params", "return 1e308 * 1e10 * params"),
     "huge": PHYSICS.replace("return params", "return 1e200 * params"),
+    # a script whose module level parses the command line or exits (no __main__ guard)
+    "exits": "import sys\nsys.exit(3)\n",
+    "argparse": "import argparse\nargparse.ArgumentParser().parse_args(['--nope'])\n",
+    "exits_when_run": PHYSICS.replace("    return params", "    raise SystemExit(1)\n    return p"),
 }
 
 
@@ -363,9 +367,10 @@ def _assert_clean_outcome(code, out, err, folder, before, argv):
         assert "dry run:" in out and "nothing written" in out
         assert err.strip() == "", err
         return
+    # one line, last (a physics script may print before it fails, e.g. argparse's usage)
     lines = err.strip().splitlines()
-    assert lines and lines[0].startswith("error: "), err
-    assert len(lines) <= 3, err  # one line-ish (a TOML decode error may quote the line)
+    assert lines and lines[-1].startswith("error: "), err
+    assert sum(line.startswith("error: ") for line in lines) == 1, err
     named = re.search(r"study\.toml|calib\.csv|valid\.csv|physics\.py", err)
     assert named, f"the error names no file: {err}"
 
@@ -591,6 +596,12 @@ REGRESSIONS = {
                         "more than once"),
     "output is an input": (_tweak(("physics", "output"), "t"), r"\[physics\.output\]",
                            "also one of the inputs"),
+    # a physics script that exits at import (argparse at module level, sys.exit) or whose
+    # function calls sys.exit ended the command with SystemExit and no error line
+    "physics exits": (_file("physics.py", BROKEN_PHYSICS["exits"].encode()),
+                      r"\[physics\.function\].*physics\.py", "SystemExit: 3"),
+    "physics exits when run": (_file("physics.py", BROKEN_PHYSICS["exits_when_run"].encode()),
+                               r"\[data\.calibration\]", "fails on the calibration inputs"),
     # [output] dir = 3 raised TypeError (a traceback)
     "output dir": (_tweak(("output", "dir"), 3), r"\[output\.dir\]", "folder name"),
     "study name": (_tweak(("study", "name"), 3), r"\[study\.name\]", "text"),

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from kohpymc.data import CalibrationData
+from kohpymc.data import MAX_ABS_VALUE, CalibrationData
 from kohpymc.physics import PhysicsModel
 
 __all__ = [
@@ -94,17 +94,23 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
         )
     inputs, centre = {k: data.inputs[k] for k in physics.inputs}, physics.prior_mean()
     try:
-        physics.evaluate(inputs, centre)
-    except Exception as err:
+        output = np.asarray(physics.evaluate(inputs, centre), dtype=float)
+    except (Exception, SystemExit) as err:  # SystemExit: a function calling sys.exit()
         raise ValueError(
             f"{what} data{_where(data)}: the physics model {physics.name!r} fails on the "
             f"{what} inputs: {err}"
         ) from err
+    if output.size and np.max(np.abs(output)) > MAX_ABS_VALUE:
+        raise ValueError(
+            f"{what} data{_where(data)}: the physics model {physics.name!r} returns "
+            f"{np.max(np.abs(output)):.3g} at the prior centre; values beyond "
+            f"±{MAX_ABS_VALUE:.0e} overflow when squared (check the units and the priors)"
+        )
     if physics.jacobian is None:
         return
     try:
         physics.jacobian_matrix(inputs, centre)
-    except Exception as err:
+    except (Exception, SystemExit) as err:
         raise JacobianError(
             f"{what} data{_where(data)}: the Jacobian of {physics.name!r} fails on the "
             f"{what} inputs: {err}"
@@ -384,7 +390,8 @@ def check_output_path(path: str | os.PathLike[str], *, folder: bool = True) -> N
     """An output folder (``folder=True``) or file that can be written: checked, not created.
 
     Raises ``ValueError`` when a folder on the way (or the output folder itself) is an
-    existing file, or when the nearest existing folder is not writable.
+    existing file, an output file is an existing folder, or the nearest existing folder is
+    not writable.
 
     Examples
     --------
@@ -402,6 +409,8 @@ def check_output_path(path: str | os.PathLike[str], *, folder: bool = True) -> N
     if not text or "\x00" in text:
         raise ValueError(f"output path {text!r} is not a usable path")
     target = Path(text)
+    if not folder and target.is_dir():
+        raise ValueError(f"output file {target} is a folder")
     for above in (target, *target.parents) if folder else target.parents:
         if above.is_dir():
             if not os.access(above, os.W_OK | os.X_OK):

@@ -41,7 +41,7 @@ def _load(args: argparse.Namespace):
     try:
         return load_study(args.study)
     except StudyConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
+        _bad_input(err)
         return None
 
 
@@ -354,7 +354,10 @@ def _check(args: argparse.Namespace) -> int:
             progress=say,
         )
     except (ValueError, KeyError, NotImplementedError) as err:
-        print(f"error: {err}", file=sys.stderr)
+        message = str(err).strip("'\"")
+        if str(spec.source) not in message:
+            message = f"{spec.source}: {message}"
+        print(f"error: {message}", file=sys.stderr)
         return 2
     except RuntimeError as err:
         print(f"error: {err}", file=sys.stderr)

@@ -251,14 +251,14 @@ def _load_callable(spec: Any, base: Path, path: Path, key: str) -> Callable[...,
         sys.modules[name] = module
         try:
             module_spec.loader.exec_module(module)
-        except Exception as err:
+        except (Exception, SystemExit) as err:  # a script exiting at import is an error too
             sys.modules.pop(name, None)
             raise _err(path, key, f"importing {file} failed: {type(err).__name__}: {err}") from err
         ship_by_value(module)  # Dask workers cannot import it: its functions travel by value
     else:
         try:
             module = importlib.import_module(target)
-        except Exception as err:
+        except (Exception, SystemExit) as err:
             raise _err(path, key, f"cannot import module {target!r}: {err}") from err
     func = getattr(module, attr, None)
     if not callable(func):
@@ -334,8 +334,11 @@ def load_study(path: str | Path) -> StudySpec:
     Raises
     ------
     StudyConfigError
-        Naming the file and the key: unknown keys, missing required keys, missing files,
-        a function that does not import, bad data columns, a non-positive tolerance.
+        Naming the file and the key: a file that is not UTF-8 or not TOML, unknown keys,
+        missing required keys, values of the wrong type or range, missing or unreadable
+        data files (empty, repeated or missing columns, NaN/inf), a function or Jacobian
+        that does not import or fails on the data at the prior centre, bad priors and
+        formulations (kinds, options, labels, inputs the data lack).  Nothing else.
 
     Examples
     --------

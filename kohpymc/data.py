@@ -24,6 +24,10 @@ import pandas as pd
 
 __all__ = ["CalibrationData", "pooled_replicate_sd", "read_csv_table"]
 
+#: the largest magnitude a data value may have: its square (variances, distances) and sums
+#: of squares over millions of rows stay finite floats
+MAX_ABS_VALUE = 1e150
+
 
 def _header(path: str | PathLike[str]) -> list[str]:
     """The first row of a CSV file as written (pandas renames repeated names ``x.1``)."""
@@ -212,6 +216,12 @@ class CalibrationData:
             rows = np.flatnonzero(bad)[:5].tolist()
             raise ValueError(
                 f"column {name!r}{where} has {int(bad.sum())} NaN/inf value(s) (rows {rows})"
+            )
+        if arr.size and np.max(np.abs(arr)) > MAX_ABS_VALUE:
+            row = int(np.argmax(np.abs(arr)))
+            raise ValueError(
+                f"column {name!r}{where} has a value of {arr[row]:.3g} (row {row}): values "
+                f"beyond ±{MAX_ABS_VALUE:.0e} overflow when squared; change the column's units"
             )
         return arr
 

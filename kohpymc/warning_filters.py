@@ -28,10 +28,17 @@ class NoiseFilter(NamedTuple):
 
 
 #: ignored on ``import kohpymc``: printed once a day by ``import arviz``, by PyTensor when
-#: it finds no BLAS to link (kohpymc's log densities run through numba), by setuptools
+#: it finds no BLAS to link (kohpymc's log densities run through numba), by ArviZ's plots
+#: (a matplotlib deprecation) and by setuptools
 IMPORT_NOISE: tuple[NoiseFilter, ...] = (
     NoiseFilter(r"\s*ArviZ is undergoing a major refactor", FutureWarning, r"arviz(\.|$)"),
     NoiseFilter(r"PyTensor could not link to a BLAS", UserWarning, r"pytensor(\.|$)"),
+    # ArviZ's plotting calls a matplotlib function deprecated in 3.11 (every study's figures)
+    NoiseFilter(
+        r"Passing a dict or None as alias_mapping to normalize_kwargs",
+        DeprecationWarning,
+        r"arviz(\.|$)",
+    ),
     NoiseFilter(r"Setuptools is replacing distutils", UserWarning),
     NoiseFilter(r"pkg_resources is deprecated as an API", UserWarning),
     NoiseFilter(r"pkg_resources is deprecated as an API", DeprecationWarning),

@@ -21,6 +21,7 @@ import math
 import os
 import re
 import tempfile
+import warnings
 from pathlib import Path
 
 import pytest
@@ -255,7 +256,8 @@ def csv_files(draw, rows):
     header = ["t", "signal", "w"]
     body = [[repr(t), repr(y), str(1 + i % 2)] for i, (t, y) in enumerate(rows)]
     kind = draw(st.sampled_from(["ok"] * 4 + ["empty", "header", "cell", "dup", "rename", "drop",
-                                 "extra", "bytes", "truncate", "ragged", "one_row"]))  # fmt: skip
+                                 "extra", "bytes", "truncate", "ragged", "one_row",
+                                 "scale"]))  # fmt: skip
     if kind == "empty":
         return b""
     if kind == "header":
@@ -280,6 +282,9 @@ def csv_files(draw, rows):
         body[draw(st.integers(0, len(body) - 1))].append("9")
     elif kind == "one_row":
         body = body[:1]
+    elif kind == "scale":  # a whole column in absurd units
+        j, factor = draw(st.integers(0, 1)), draw(st.sampled_from([1e300, -1e200, 1e160, 1e-300]))
+        body = [row[:j] + [repr(float(row[j]) * factor)] + row[j + 1 :] for row in body]
     text = "\n".join(",".join(row) for row in [header, *body]) + "\n"
     data = text.encode("utf-8", errors="surrogatepass")
     if kind == "bytes":
@@ -308,6 +313,11 @@ BROKEN_PHYSICS = {
     "signature": "def model():\n    return 1.0\n",
     "scalar": "def model(inputs, params):\n    return 1.0\n",
     "inf": PHYSICS.replace("return params", "return 1e308 * 1e10 * params"),
+    "huge": PHYSICS.replace("return params", "return 1e200 * params"),
+    # a script whose module level parses the command line or exits (no __main__ guard)
+    "exits": "import sys\nsys.exit(3)\n",
+    "argparse": "import argparse\nargparse.ArgumentParser().parse_args(['--nope'])\n",
+    "exits_when_run": PHYSICS.replace("    return params", "    raise SystemExit(1)\n    return p"),
 }
 
 
@@ -335,9 +345,17 @@ def studies(draw):
 
 # -------------------------------------------------------------------------------- oracle
 def _run(capsys, argv):
+    """Exit status, stdout and stderr of the command; a warning raised inside a third-party
+    library (as the user would see it: default filters, then the command's own) fails."""
     capsys.readouterr()
-    code = main(argv)  # any exception escaping here fails the test with its traceback
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.resetwarnings()
+        warnings.simplefilter("default")
+        code = main(argv)  # any exception escaping here fails the test with its traceback
     out, err = capsys.readouterr()
+    noise = [f"{w.filename}:{w.lineno}: {w.category.__name__}: {w.message}" for w in seen
+             if "site-packages" in w.filename]  # fmt: skip
+    assert not noise, f"{argv}: third-party warnings reach the user: {noise}"
     return code, out, err
 
 
@@ -349,9 +367,10 @@ def _assert_clean_outcome(code, out, err, folder, before, argv):
         assert "dry run:" in out and "nothing written" in out
         assert err.strip() == "", err
         return
+    # one line, last (a physics script may print before it fails, e.g. argparse's usage)
     lines = err.strip().splitlines()
-    assert lines and lines[0].startswith("error: "), err
-    assert len(lines) <= 3, err  # one line-ish (a TOML decode error may quote the line)
+    assert lines and lines[-1].startswith("error: "), err
+    assert sum(line.startswith("error: ") for line in lines) == 1, err
     named = re.search(r"study\.toml|calib\.csv|valid\.csv|physics\.py", err)
     assert named, f"the error names no file: {err}"
 
@@ -406,7 +425,8 @@ OPTIONS = {
     "check": {"--draws": _NUMBERS, "--replicates": _NUMBERS, "--rank-draws": _NUMBERS,
               "--seed": _NUMBERS, "--workers": _NUMBERS,
               "--formulation": st.sampled_from(["M0", "M9", "", "../x"])},
-    "discover": {"--draws": _NUMBERS, "--chains": _NUMBERS, "--seed": _NUMBERS},
+    "discover": {"--draws": _NUMBERS, "--chains": _NUMBERS, "--seed": _NUMBERS,
+                 "--json": st.sampled_from(["{tmp}/r.json", "{tmp}", "{tmp}/calib.csv/r.json"])},
 }  # fmt: skip
 
 
@@ -429,6 +449,7 @@ def _fuzz_once(capsys, command, doc, files, *, real: bool, extra=(), out_name="r
         path = _write(folder, doc, files)
         out_dir = folder / out_name
         before = _snapshot(folder)
+        extra = [a.replace("{tmp}", str(folder)) for a in extra]
         argv = [command, str(path), "--dry-run", "--quiet", *extra]
         argv += ["--out", str(out_dir)] if command != "discover" else []
         code, out, err = _run(capsys, argv)
@@ -575,10 +596,23 @@ REGRESSIONS = {
                         "more than once"),
     "output is an input": (_tweak(("physics", "output"), "t"), r"\[physics\.output\]",
                            "also one of the inputs"),
+    # a physics script that exits at import (argparse at module level, sys.exit) or whose
+    # function calls sys.exit ended the command with SystemExit and no error line
+    "physics exits": (_file("physics.py", BROKEN_PHYSICS["exits"].encode()),
+                      r"\[physics\.function\].*physics\.py", "SystemExit: 3"),
+    "physics exits when run": (_file("physics.py", BROKEN_PHYSICS["exits_when_run"].encode()),
+                               r"\[data\.calibration\]", "fails on the calibration inputs"),
     # [output] dir = 3 raised TypeError (a traceback)
     "output dir": (_tweak(("output", "dir"), 3), r"\[output\.dir\]", "folder name"),
     "study name": (_tweak(("study", "name"), 3), r"\[study\.name\]", "text"),
     "replicates": (_tweak(("data", "replicates"), 2), r"\[data\.replicates\]", "column name"),
+    # a column in absurd units (1e300) passed every check, then overflowed (numpy and PyTensor
+    # RuntimeWarnings, an infinite prior scale) when the model was built or sampled
+    "huge column": (_file("calib.csv", _calib_with("t,signal,w", *(f"{i}e300,1,1" for i in
+                                                                    range(5)))),
+                    r"\[data\.calibration\].*calib\.csv", "overflow when squared"),
+    "huge physics": (_file("physics.py", BROKEN_PHYSICS["huge"].encode()),
+                     r"\[data\.calibration\]", "returns 1.65e+200 at the prior centre"),
 }  # fmt: skip
 
 
@@ -619,6 +653,15 @@ def test_output_folder_that_cannot_be_made_stops_before_sampling(capsys, out_nam
         code, err = _fuzz_once(capsys, command, BASE, _base_files(), real=True,
                                out_name=out_name)  # fmt: skip
         assert code == 2 and "is a file, not a folder" in err, err
+
+
+def test_discover_json_that_is_a_folder_stops_before_sampling(capsys):
+    with tempfile.TemporaryDirectory() as tmp:
+        path = _write(Path(tmp), BASE, _base_files())
+        (Path(tmp) / "report").mkdir()
+        argv = ["discover", str(path), "--json", str(Path(tmp) / "report"), "--quiet"]
+        code, _, err = _run(capsys, argv)
+    assert code == 2 and "report is a folder" in err, err
 
 
 def test_dry_run_reports_what_it_checked(capsys):

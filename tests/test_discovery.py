@@ -410,3 +410,140 @@ def test_discover_on_data_from_the_model_itself_changes_nothing():
             assert report.parameters["after"] == report.parameters["before"]
             assert report.physics.name == PROBLEMS[problem][0]().name
     assert len(alarms) <= 1, alarms
+
+
+# ------------------------------------------- no closed form: the GP fallback (ARD inputs)
+# Hooke's law with two recorded inputs it ignores (time t, humidity H); the truth adds an
+# effect of t that no candidate term has: a damped bump or a logistic step.
+
+
+def _hooke_with_time():
+    return PhysicsModel(
+        lambda x, p: x["F"] / p["k"],
+        {"k": Uniform(20.0, 500.0)},
+        ["F", "t", "H"],
+        jacobian=lambda x, p: np.c_[-x["F"] / p["k"] ** 2],
+        name="Hooke",
+    )
+
+
+def _no_closed_form_data(seed: int, kind: str, sd: float = 0.01):
+    """0.3 sin(3t) exp(-t) ("bump") or 0.2 / (1 + exp(-(t - 2.5)/0.15)) ("step"), t in 0-5 s.
+
+    56 times; every fourth is a validation row (inside the calibration range: a GP does
+    not extrapolate), σ unknown.
+    """
+    rng = np.random.default_rng(seed)
+
+    def make(t):
+        F = rng.uniform(1.0, 10.0, t.size)
+        H = rng.uniform(30.0, 70.0, t.size)
+        if kind == "bump":
+            effect = 0.3 * np.sin(3 * t) * np.exp(-t)
+        elif kind == "step":
+            effect = 0.2 / (1 + np.exp(-(t - 2.5) / 0.15))
+        else:
+            effect = 0.0
+        y = F / 100.0 + effect + rng.normal(0.0, sd, t.size)
+        return CalibrationData({"F": F, "t": t, "H": H}, y)
+
+    t = np.linspace(0.0, 5.0, 56)
+    val = np.arange(t.size) % 4 == 2
+    return make(t[~val]), make(t[val])
+
+
+def _ls_theta(physics, data) -> dict[str, float]:
+    """The one physics parameter by least squares (positive, below 1000)."""
+    (name,) = physics.parameters
+    fit = least_squares(
+        lambda v: physics.evaluate(data.inputs, {name: v[0]}) - data.y,
+        [physics.parameters[name].mean()],
+        bounds=(0.1, 1e3),
+    )
+    return {name: float(fit.x[0])}
+
+
+def _closed_form_check(physics, data):
+    """check_closed_form on the least-squares residual and the most probable explanation."""
+    from kohpymc.discovery.fallback import check_closed_form
+
+    sel, _ = _least_squares_selection(physics, data, null_draws=0)
+    theta = _ls_theta(physics, data)
+    r = data.y - physics.evaluate(data.inputs, theta)
+    best = next(s for s, _ in sel.subsets if s)
+    cols = [sel.terms[n](data.inputs) for n in best if n != "1"]
+    phi = np.column_stack(cols) if cols else np.zeros((data.n, 0))
+    return check_closed_form(
+        data.inputs, r, physics.jacobian_matrix(data.inputs, theta), phi,
+        dict(sel.subsets)[best], noise_sd=data.noise_sd,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(("kind", "seed"), [("bump", 0), ("bump", 1), ("step", 0), ("step", 2)])
+def test_no_closed_form_falls_back_to_a_gp_over_exactly_the_right_input(kind, seed):
+    """The closed form is rejected by K-fold CV inside the calibration data; ARD names t."""
+    check = _closed_form_check(_hooke_with_time(), _no_closed_form_data(seed, kind)[0])
+    assert check.rejected, check.to_dict()
+    assert check.relevance.relevant == ["t"]  # F (in the physics) and H are irrelevant
+    assert check.cv_rmse["gp"] < check.cv_rmse["closed_form"] < check.cv_rmse["physics"]
+
+
+@pytest.mark.parametrize("problem", sorted(PROBLEMS))
+def test_a_case_the_library_explains_does_not_fall_back(problem):
+    """Spring F³, sensor transient, resistor I·T, drag t³/m: the closed form is kept."""
+    make_physics, make_data, truth, _ = PROBLEMS[problem]
+    for seed in (3, 7):
+        check = _closed_form_check(make_physics(), make_data(seed)[0])
+        assert not check.rejected, (seed, check.to_dict())
+        assert set(check.relevance.relevant) == truth  # ARD agrees with the closed form
+        assert check.cv_rmse["closed_form"] < 0.5 * check.cv_rmse["physics"]
+
+
+def test_ard_relevance_is_quiet_on_data_from_the_model_itself():
+    """The GP route's own false alarms (level 0.001, its default at threshold 0.01): 0/24."""
+    from kohpymc.discovery.fallback import ard_relevance
+
+    alarms = []
+    for problem in sorted(PROBLEMS):
+        make_physics, make_data, _, _ = PROBLEMS[problem]
+        physics = make_physics()
+        for seed in range(6):
+            data = make_data(seed, False)[0]
+            theta = _ls_theta(physics, data)
+            rel = ard_relevance(
+                data.inputs, data.y - physics.evaluate(data.inputs, theta),
+                physics.jacobian_matrix(data.inputs, theta), level=0.001,
+            )  # fmt: skip
+            if rel.relevant:
+                alarms.append((problem, seed, rel.relevant))
+    assert not alarms, alarms
+
+
+def test_kfold_check_uses_held_out_calibration_rows():
+    """A term fitted to noise lowers the in-sample residual but not the held-out one."""
+    from kohpymc.discovery.fallback import kfold_rmse
+
+    rng = np.random.default_rng(5)
+    x = np.linspace(0.0, 1.0, 30)
+    r = rng.normal(0.0, 0.1, 30)
+    wiggle = np.c_[np.ones(30), np.cos(40 * x), np.sin(40 * x), x**7]
+    in_sample = np.sqrt(np.mean((r - wiggle @ np.linalg.lstsq(wiggle, r, rcond=None)[0]) ** 2))
+    assert in_sample < np.std(r)
+    assert kfold_rmse(r, wiggle) > kfold_rmse(r, np.c_[np.ones(30)])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["bump", "step"])
+def test_discover_without_a_closed_form_calibrates_a_gp_over_the_right_input(kind):
+    """Full workflow: "depends on t; no closed form found", validation RMSE at least halved."""
+    cal, val = _no_closed_form_data(0, kind)
+    report = discover(_hooke_with_time(), cal, val, tolerance=0.03, draws=300, tune=300,
+                      chains=2, random_seed=0)  # fmt: skip
+    assert report.significant and report.inputs == ["t"]
+    assert report.effect == "depends on t; no closed form found"
+    assert report.fallback is not None and report.fallback["formulation"] == "gp"
+    out = report.to_dict()
+    assert out["closed_form_found"] is False and out["fallback"]["inputs"] == ["t"]
+    before, after = report.validation["before"], report.validation["after"]
+    assert after["rmse"] <= 0.5 * before["rmse"]
+    assert after["mu_r"] > before["mu_r"]

@@ -47,6 +47,16 @@ class DiscoveryReport:
     residuals : dict
         ``{"before": array, "after": array}``: calibration residuals from the
         posterior-mean model.
+    closed_form_check : dict or None
+        The cross-validated check of the most probable closed form
+        (:meth:`kohpymc.discovery.fallback.ClosedFormCheck.to_dict`; None when nothing
+        closed-form was significant).
+    fallback : dict or None
+        When no closed form was found: ``{"formulation": "gp", "inputs", "reason",
+        "log_ml_drop", "range_over_length_scale", "length_scale_over_range"}``; ``effect``
+        then reads ``"depends on t and m; no closed form found"``.
+    formulation : Discrepancy or None
+        The discrepancy of the "after" calibration (the GP of the fallback), else None.
     """
 
     significant: bool
@@ -64,6 +74,9 @@ class DiscoveryReport:
     after: Any
     key_input: str
     residuals: dict
+    closed_form_check: dict | None = None
+    fallback: dict | None = None
+    formulation: Any = None
 
     def to_dict(self) -> dict:
         """The JSON report.
@@ -92,6 +105,9 @@ class DiscoveryReport:
                 "threshold": self.threshold,
             },
             "explanations": explanations(sel),
+            "closed_form_found": self.significant and self.fallback is None,
+            "closed_form_check": self.closed_form_check,
+            "fallback": self.fallback,
             "input_probability": self.input_probability,
             "rejected_candidates": sel.rejected,
             "merged_candidates": len(sel.merged),

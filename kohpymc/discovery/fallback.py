@@ -310,6 +310,7 @@ class ClosedFormCheck:
             "reason": self.reason,
             "cv_folds": self.folds,
             "cv_rmse": self.cv_rmse,
+            "cv_improves": self.cv_rmse["closed_form"] < self.cv_rmse["physics"],
             "relevant_inputs": list(rel.relevant),
             "log_ml_drop": rel.log_ml_drop,
             "range_over_length_scale": rel.inverse_length,
@@ -384,11 +385,9 @@ def check_closed_form(
     H = _basis(jacobian, n)
     Phi = np.asarray(closed_form, dtype=float).reshape(n, -1)
     rel = ard_relevance(inputs, r, jacobian, names, noise_sd=noise_sd, level=level, seed=seed)
-    cv = {
-        "physics": kfold_rmse(r, H, folds=folds, seed=seed),
-        "closed_form": kfold_rmse(r, np.column_stack([H, Phi]), folds=folds, seed=seed),
-        "gp": None,
-    }
+    cv_physics = kfold_rmse(r, H, folds=folds, seed=seed)
+    cv_closed = kfold_rmse(r, np.column_stack([H, Phi]), folds=folds, seed=seed)
+    cv: dict[str, float | None] = {"physics": cv_physics, "closed_form": cv_closed, "gp": None}
     if rel.relevant:
         X = _scaled(inputs, rel.relevant)
         err = np.empty(n)
@@ -399,9 +398,15 @@ def check_closed_form(
             )
         cv["gp"] = float(np.sqrt(np.mean(err**2)))
     reason = _reason(cv, probability, min_probability, ratio, rel)
-    return ClosedFormCheck(reason is not None and bool(rel.relevant),
-                           reason or "the closed form predicts held-out calibration rows "
-                           "as well as a GP", cv, folds, rel)  # fmt: skip
+    if reason is not None:
+        return ClosedFormCheck(True, reason, cv, folds, rel)
+    if cv_closed >= cv_physics:
+        kept = "the closed form does not lower the held-out calibration residual, nor does a GP"
+    elif cv["gp"] is None:
+        kept = "the closed form lowers the held-out calibration residual; no input left for a GP"
+    else:
+        kept = "the closed form predicts held-out calibration rows about as well as a GP"
+    return ClosedFormCheck(False, kept, cv, folds, rel)
 
 
 def _reason(cv, probability, min_probability, ratio, rel) -> str | None:

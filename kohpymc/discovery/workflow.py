@@ -121,7 +121,9 @@ def discover(
        residual depends on an input at level ``gp_level`` (likelihood ratio, default
        ``threshold / 10``), the model is calibrated with a GP discrepancy
        (:class:`~kohpymc.discrepancy.GaussianProcess`, M4) over just those inputs and
-       the report says ``"depends on t and m; no closed form found"``.
+       the report says ``"depends on t and m; no closed form found"``.  A closed form
+       that does not lower the held-out calibration residual, with no input left for a
+       GP, is not reported: "nothing missing" (the check can only remove alarms).
     5. *Add*: otherwise the terms of the most probable explanation (and the constant
        offset that comes with every explanation) with coefficients ``c_k`` (normal
        priors scaled to the residual) are added (:func:`augmented_physics`) and
@@ -250,6 +252,9 @@ def discover(
         fb = {"reason": check.reason, "relevance": check.relevance, "check": check,
               "region_level": region_level}  # fmt: skip
         return _gp_fallback(physics, calibration, validation, fb, fit, run, say, common)
+    if check.cv_rmse["closed_form"] >= check.cv_rmse["physics"] and not check.relevance.relevant:
+        say(f"nothing missing: {check.reason} (K-fold inside the calibration data)")
+        return _nothing_missing_report(physics, calibration, fit, common)
     named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
     where = _where_it_fails(calibration, validation, named_inputs, fit, region_level)
     return _augment_and_refit(

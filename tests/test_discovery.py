@@ -565,3 +565,68 @@ def test_the_validation_data_never_choose_the_explanation():
         assert a[key] == b[key], key
     assert a["closed_form_check"]["cv_improves"]  # the chosen term lowers held-out residuals
     assert a["validation"]["before"]["rmse"] != b["validation"]["before"]["rmse"]
+
+
+# ----------------------------------------------------------------------------- units
+
+
+def _reynolds_data(seed: int):
+    """y = a v (inputs v, D, ρ, μ); the truth adds 2e-4 Re, Re = ρ v D / μ (four inputs)."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    x = {
+        "v": rng.uniform(0.5, 3.0, n),  # m/s
+        "D": rng.uniform(0.01, 0.05, n),  # m
+        "rho": rng.uniform(800.0, 1200.0, n),  # kg/m^3
+        "mu": rng.uniform(1e-3, 5e-3, n),  # Pa s
+    }
+    re = x["rho"] * x["v"] * x["D"] / x["mu"]
+    y = 1.5 * x["v"] + 2e-4 * re + rng.normal(0.0, 0.01, n)
+    return x, y
+
+
+def test_units_offer_a_dimensionless_group_of_four_inputs():
+    """Re = ρvD/μ is no monomial of at most three inputs; with units it is a π group."""
+    from kohpymc.discovery.dimensions import coefficient_unit, pi_terms, read_units
+
+    x, y = _reynolds_data(0)
+    J = np.c_[x["v"]]
+    units = read_units({"v": "m/s", "D": "m", "rho": "kg/m^3", "mu": "Pa*s", "output": "N"},
+                       list(x))  # fmt: skip
+    lib = candidate_library(x, exponents=(-1, 1, 2))
+    pis, groups = pi_terms(x, units, (-1, 1, 2), taken={t.name for t in lib})
+    assert groups == [{"v": 1, "D": 1, "rho": 1, "mu": -1}]
+    assert [t.name for t in pis] == ["mu/(v*D*rho)", "v*D*rho/mu", "v^2*D^2*rho^2/mu^2"]
+    r = y - 1.5 * x["v"]
+    with_units = select_terms(r, J, lib + pis, inputs=x, noise_sd=None, null_draws=0)
+    assert with_units.best == ("v*D*rho/mu",)
+    term = with_units.terms["v*D*rho/mu"]
+    assert term.meaning == "the dimensionless group v*D*rho/mu"
+    assert coefficient_unit(term, units) == "kg*m/s^2"  # output / 1: newtons
+    without = select_terms(r, J, lib, inputs=x, noise_sd=None, null_draws=0)
+    assert without.best != ("v*D*rho/mu",) and without.subsets[0][1] < with_units.subsets[0][1]
+
+
+def test_coefficient_units_in_the_report():
+    """Drag named as t³/m: c_1 in kg·m/s³ (m / (s³/kg)), the offset c_0 in m."""
+    cal, val = _drag_data(3)
+    report = discover(
+        _drag_physics(), cal, val, tolerance=0.1, units={"t": "s", "m": "kg", "output": "m"},
+        draws=150, tune=150, chains=1, random_seed=3,
+    )  # fmt: skip
+    out = report.to_dict()
+    assert report.effect == "c * t^3/m + c_0"
+    assert out["units"]["fitted"] == {"c_1": "kg*m/s^3", "c_0": "m"}
+    assert out["explanations"][0]["coefficient_units"] == ["kg*m/s^3", "m"]
+    drifts = {}
+    for e in out["explanations"][1:]:
+        named = [t for t in e["terms"] if t != "1"]
+        drifts.update({n: u for n, u in zip(named, e.get("coefficient_units", []), strict=False)
+                       if "~" in n})  # fmt: skip
+    assert drifts, "no drift term among the explanations"
+    for name, unit in drifts.items():  # g's unit is not declared: [g] per unit of g(x)
+        assert unit.startswith("[g]"), (name, unit)
+    if "g~t" in drifts:
+        assert drifts["g~t"] == "[g]/s"
+    with pytest.raises(ValueError, match=r"units\.m: unknown unit 'kilogram'"):
+        discover(_drag_physics(), cal, val, tolerance=0.1, units={"m": "kilogram"})

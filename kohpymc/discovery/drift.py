@@ -132,6 +132,7 @@ def physics_terms(
                     lambda d, j=j, g=g: base(d)[1][:, j] * g(d),  # type: ignore[misc]
                     kind="drift", parameter=par, modulation=g,
                     meaning=f"{par} depends on {k}, {_words(k, p)}", complexity=2,
+                    powers={} if p == "log" else {k: float(p)},
                 )
             )  # fmt: skip
     if output:
@@ -142,7 +143,7 @@ def physics_terms(
                     f"G*{label}", tuple(dict.fromkeys([k, *uses["G"]])),
                     lambda d, g=g: base(d)[0] * g(d), kind="output",  # type: ignore[misc]
                     modulation=g, meaning=f"the output scales with {k}, {_words(k, p)}",
-                    complexity=2,
+                    complexity=2, powers={} if p == "log" else {k: float(p)},
                 )
             )  # fmt: skip
     return terms

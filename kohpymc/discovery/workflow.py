@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -11,6 +11,7 @@ import numpy as np
 from kohpymc.candidates import DEFAULT_EXPONENTS
 from kohpymc.checks import check_physics_runs, check_validation_data
 from kohpymc.discovery.augment import augmented_physics
+from kohpymc.discovery.dimensions import coefficient_unit, pi_terms, read_units
 from kohpymc.discovery.drift import physics_terms
 from kohpymc.discovery.fallback import ard_relevance, check_closed_form
 from kohpymc.discovery.regions import _main_effect_share, disagreement_regions
@@ -85,6 +86,7 @@ def discover(
     threshold: float = 0.01,
     null_draws: int = 299,
     gp_level: float | None = None,
+    units: Mapping[str, str] | None = None,
     region_level: float = 0.01,
     draws: int = 1000,
     tune: int = 1000,
@@ -154,6 +156,11 @@ def discover(
         Largest number of terms in one explanation.
     threshold : float
         False-alarm rate of the closed-form decision (calibrated by simulation).
+    units : mapping, optional
+        Units of inputs and of the output (key ``"output"``), e.g. ``{"t": "s", "m":
+        "kg", "output": "m"}`` (syntax: :mod:`kohpymc.units`): dimensionless groups of
+        the inputs join the candidates (Buckingham π) and the report states the unit of
+        each coefficient (:mod:`kohpymc.discovery.dimensions`).
     gp_level : float, optional
         Level of the GP route when no closed form is significant (default
         ``threshold / 10``); the false-alarm rate of ``discover`` is at most
@@ -183,9 +190,15 @@ def discover(
     say = progress or (lambda _m: None)
     library = {"exponents": exponents, "references": references, "extra": extra_terms}
     generated = candidates is None
-    candidates = _checked_inputs(
+    pool: list[Any] = _checked_inputs(
         physics, calibration, validation, tolerance, threshold, candidates, library
     )
+    parsed = None if units is None else read_units(units, list(calibration.inputs))
+    groups: list[dict[str, int]] = []
+    if parsed is not None and generated:
+        extra, groups = pi_terms(calibration.inputs, parsed, exponents,
+                                 taken={t.name for t in pool})  # fmt: skip
+        pool += extra
     sampler = {"draws": draws, "tune": tune, "chains": chains}
     gp_level = threshold / 10 if gp_level is None else gp_level
     if not 0 < gp_level < 1:
@@ -203,14 +216,14 @@ def discover(
     say("calibrating the model as given ...")
     fit = _locate_residuals(physics, calibration, run)
     if generated:
-        candidates += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
-    say(f"comparing {len(candidates)} candidate terms ...")
+        pool += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
+    say(f"comparing {len(pool)} candidate terms ...")
     jacobian = physics.jacobian_matrix(calibration.inputs, fit.theta)
     seed = 0 if random_seed is None else int(random_seed)
     selection = select_terms(
         fit.resid,
         jacobian,
-        candidates,
+        pool,
         inputs=calibration.inputs,
         noise_sd=calibration.noise_sd,
         max_terms=max_terms,
@@ -223,6 +236,7 @@ def discover(
         "input_probability": _input_probability(selection, calibration.inputs),
         "threshold": threshold,
         "before": fit.idata,
+        "units": None if parsed is None else _units_summary(parsed, groups, selection),
     }
     if not selection.significant:
         relevance = ard_relevance(
@@ -260,6 +274,17 @@ def discover(
     return _augment_and_refit(
         physics, calibration, validation, chosen, named_inputs, where, fit, run, say, common
     )
+
+
+def _units_summary(parsed, groups, selection) -> dict:
+    """Units of the data, the π groups offered and the coefficient unit of each term."""
+    return {
+        "given": {k: str(u) for k, u in parsed.items()},
+        "pi_groups": groups,
+        "coefficients": {name: coefficient_unit(term, parsed)
+                         for name, term in selection.terms.items() if term is not None},
+        "offset": str(parsed["output"]) if "output" in parsed else None,
+    }  # fmt: skip
 
 
 def _and(names: Sequence[str]) -> str:

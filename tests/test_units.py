@@ -104,3 +104,17 @@ def test_a_bad_unit_in_a_study_file_names_the_key(tmp_path: Path):
     (tmp_path / "key.toml").write_text(good.replace('P = "kN"', 'Q = "kN"'))
     with pytest.raises(StudyConfigError, match=r"\[data.units.Q\] not an input"):
         load_study(tmp_path / "key.toml")
+
+
+def test_discover_command_with_a_bad_unit_exits_2_naming_the_key(tmp_path, capsys, write_study):
+    from kohpymc.cli import main
+
+    path = write_study(tmp_path)
+    text = path.read_text().replace("[validation]", '[data.units]\nx = "mm"\nP = "kN/"\n\n'
+                                    "[validation]")  # fmt: skip
+    path.write_text(text)
+    out, report = tmp_path / "found", tmp_path / "report.json"
+    assert main(["discover", str(path), "--json", str(report), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and "[data.units.P]" in err and "'kN/'" in err
+    assert not out.exists() and not report.exists()

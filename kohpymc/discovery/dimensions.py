@@ -7,11 +7,12 @@ When the units of the inputs and the output are known (``units={"t": "s", "m": "
   (Buckingham π, :func:`kohpymc.units.pi_groups`) and their powers from the exponent set —
   a group of four inputs, or with exponents outside the set, is not among the ordinary
   monomials;
-* the report states the **unit of each coefficient**: for an additive term ``c · φ(x)``
-  it is ``unit(output) / unit(φ)``; for "the output scales with x", ``G · (1 + c g(x))``,
-  it is ``1 / unit(g)``; for "θ_j varies with x", ``θ_j + c g(x)``, it is
-  ``[θ_j] / unit(g)`` (parameters carry no units in a study file); for a user term it
-  is unknown (None).
+* the report states the **unit of each coefficient**, written in the units given
+  (``m*kg/s^3``, ``um/(mm*kN)``): for an additive term ``c · φ(x)`` it is
+  ``unit(output) / unit(φ)`` (the output's unit for a dimensionless group); for "the
+  output scales with x", ``G · (1 + c g(x))``, it is ``1 / unit(g)``; for "θ_j varies
+  with x", ``θ_j + c g(x)``, it is ``[θ_j] / unit(g)`` (parameters carry no units in a
+  study file); for a user term or an input without a unit it is unknown (None).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from fractions import Fraction
 import numpy as np
 
 from kohpymc.candidates import CandidateTerm, monomial_name
-from kohpymc.units import Unit, UnitError, format_dimension, parse_unit, pi_groups
+from kohpymc.units import Unit, UnitError, parse_unit, pi_groups
 
 __all__ = ["OUTPUT", "read_units", "term_unit", "coefficient_unit", "pi_terms"]
 
@@ -59,7 +60,7 @@ def read_units(units: Mapping[str, str], inputs: Sequence[str], where: str = "un
     return out
 
 
-def _power_unit(powers: Mapping[str, float], units: Mapping[str, Unit]) -> Unit | None:
+def _power_unit(powers: Mapping[str, float | Fraction], units: Mapping[str, Unit]) -> Unit | None:
     unit = parse_unit("1")
     for k, p in powers.items():
         if k not in units:
@@ -85,41 +86,65 @@ def term_unit(term: CandidateTerm, units: Mapping[str, Unit]) -> Unit | None:
     return _power_unit(term.powers, units)
 
 
-def _text(unit: Unit) -> str:
-    return format_dimension(unit.dims)
+def _factor(text: str, p: Fraction) -> str:
+    """``s``, ``s^3``, ``(m/s)^2``, ``kg^(1/2)``: one factor of a unit written as given."""
+    text = text.strip()
+    if any(ch in text for ch in "*/^· ()"):
+        text = f"({text})"
+    if p == 1:
+        return text
+    return f"{text}^{p}" if p.denominator == 1 else f"{text}^({p})"
 
 
-def coefficient_unit(term: CandidateTerm, units: Mapping[str, Unit]) -> str | None:
-    """Unit of the coefficient ``c`` of a term, as text (see the module docstring).
+def _quotient(num: list[tuple[str, Fraction]], den: list[tuple[str, Fraction]]) -> str:
+    top = [_factor(t, p) for t, p in num if t.strip() != "1"]
+    bottom = [_factor(t, p) for t, p in den if t.strip() != "1"]
+    text = "*".join(top) if top else "1"
+    if bottom:
+        text += "/" + (bottom[0] if len(bottom) == 1 else "(" + "*".join(bottom) + ")")
+    return text
+
+
+def coefficient_unit(term: CandidateTerm, units: Mapping[str, str]) -> str | None:
+    """Unit of the coefficient ``c`` of a term, written in the units given for the data.
+
+    See the module docstring for the rule per kind of term; None when the term's unit is
+    unknown (a user term, or an input without a unit).
 
     Examples
     --------
     >>> from kohpymc.candidates import CandidateTerm
-    >>> u = read_units({"t": "s", "m": "kg", "output": "m"}, ["t", "m"])
+    >>> units = {"t": "s", "m": "kg", "output": "m"}
     >>> t3m = CandidateTerm("t^3/m", ("t", "m"), lambda d: d["t"] ** 3 / d["m"],
     ...                     kind="monomial", powers={"t": 3, "m": -1})
-    >>> coefficient_unit(t3m, u)
-    'kg*m/s^3'
+    >>> coefficient_unit(t3m, units)                      # m / (s^3/kg)
+    'm*kg/s^3'
     >>> g_t = CandidateTerm("g~t", ("t",), lambda d: d["t"], kind="drift", parameter="g",
     ...                     powers={"t": 1})
-    >>> coefficient_unit(g_t, u)                          # g -> g + c t
+    >>> coefficient_unit(g_t, units)                      # g -> g + c t
     '[g]/s'
+    >>> coefficient_unit(t3m, {"t": "ms", "m": "g", "output": "mm"})
+    'mm*g/ms^3'
     """
-    g = term_unit(term, units)
-    if g is None:
+    if term.powers is None or any(k not in units for k in term.powers):
         return None
+    pw = {k: Fraction(p).limit_denominator(1000) for k, p in term.powers.items() if p != 0}
+    up = [(units[k], p) for k, p in pw.items() if p > 0]  # factors of the term's unit
+    down = [(units[k], -p) for k, p in pw.items() if p < 0]
+    si = _power_unit(pw, {k: parse_unit(units[k]) for k in pw})
+    if si is not None and si.dimensionless and abs(si.factor - 1.0) < 1e-12:
+        up, down = [], []  # a dimensionless group: c carries the output's unit
     if term.kind == "drift":
-        inverse = _text(g**-1)
-        if inverse == "1":
-            return f"[{term.parameter}]"
-        if inverse.startswith("1/"):
-            return f"[{term.parameter}]/{inverse[2:]}"
-        return f"[{term.parameter}]*{inverse}"
+        text = _quotient(down, up)
+        head = f"[{term.parameter}]"
+        if text == "1":
+            return head
+        return head + (text[1:] if text.startswith("1/") else "*" + text)
     if term.kind == "output":
-        return _text(g**-1)
+        return _quotient(down, up)
     if OUTPUT not in units:
         return None
-    return _text(units[OUTPUT] / g)
+    return _quotient([(units[OUTPUT], Fraction(1)), *down], up)
 
 
 def pi_terms(

@@ -236,7 +236,7 @@ def discover(
         "input_probability": _input_probability(selection, calibration.inputs),
         "threshold": threshold,
         "before": fit.idata,
-        "units": None if parsed is None else _units_summary(parsed, groups, selection),
+        "units": None if parsed is None else _units_summary(units, parsed, groups, selection),
     }
     if not selection.significant:
         relevance = ard_relevance(
@@ -276,14 +276,15 @@ def discover(
     )
 
 
-def _units_summary(parsed, groups, selection) -> dict:
+def _units_summary(given, parsed, groups, selection) -> dict:
     """Units of the data, the π groups offered and the coefficient unit of each term."""
     return {
-        "given": {k: str(u) for k, u in parsed.items()},
+        "given": dict(given),
+        "si": {k: str(u) for k, u in parsed.items()},
         "pi_groups": groups,
-        "coefficients": {name: coefficient_unit(term, parsed)
+        "coefficients": {name: coefficient_unit(term, given)
                          for name, term in selection.terms.items() if term is not None},
-        "offset": str(parsed["output"]) if "output" in parsed else None,
+        "offset": given.get("output"),
     }  # fmt: skip
 
 

@@ -18,13 +18,14 @@ the report also gives ``range / length scale`` per input.
 
 **Cross-validated check.**  K-fold cross-validation inside the calibration data compares
 the held-out residual RMSE of three predictors, each re-fitted on the training folds: the
-physics parameters alone (``[1, J]`` by least squares), the closed-form explanation
-(``[1, J, Φ_S]``) and the GP over the relevant inputs (universal kriging with ``[1, J]``
+physics parameters alone (``J`` by least squares), the closed-form explanation
+(``[J, 1, Φ_S]``: every explanation comes with the constant, so "a constant offset" alone
+is ``[J, 1]``) and the GP over the relevant inputs (universal kriging with ``[1, J]``
 as the mean, hyperparameters from the full-data fit).  The closed form is *rejected* when
-its posterior probability is below ``min_probability``, when it does not lower the
-held-out RMSE of the physics alone, or when the GP's held-out RMSE is smaller by more
-than the factor ``ratio`` — each only when the GP over the relevant inputs predicts
-better (with no relevant input there is nothing to fall back to).  A closed form that
+it does not lower the held-out RMSE of the physics alone (and the GP does), when the
+GP's held-out RMSE is smaller by more than the factor ``ratio``, or when its posterior
+probability is below ``min_probability`` and the GP's held-out RMSE is smaller by 10 %
+(with no relevant input there is nothing to fall back to).  A closed form that
 is right leaves noise only, which a GP cannot predict better; one that is wrong leaves
 structure that the GP predicts.  The check is deliberately lenient: a GP does not
 extrapolate, so an approximate closed form (drag as ``t³/m`` to leading order) is kept.
@@ -43,6 +44,9 @@ from scipy.stats import chi2
 __all__ = ["Relevance", "ClosedFormCheck", "ard_relevance", "check_closed_form", "kfold_rmse"]
 
 _LOG_2PI = float(np.log(2 * np.pi))
+#: an improbable closed form is rejected only when the GP's held-out RMSE is this much smaller
+#: (on the benchmark, T⁴ at 5 % noise: P ≈ 0.09 and the GP 0.2-1.6 % better — noise, not a sign)
+_MARGIN = 1.1
 
 
 @dataclass
@@ -357,7 +361,8 @@ def check_closed_form(
     folds : int
         K of the K-fold cross-validation.
     min_probability : float
-        A closed form less probable than this is rejected.
+        A closed form less probable than this is rejected when a GP predicts held-out
+        rows 10 % better.
     ratio : float
         The closed form is rejected when its held-out RMSE exceeds the GP's by this
         factor.
@@ -385,7 +390,8 @@ def check_closed_form(
     H = _basis(jacobian, n)
     Phi = np.asarray(closed_form, dtype=float).reshape(n, -1)
     rel = ard_relevance(inputs, r, jacobian, names, noise_sd=noise_sd, level=level, seed=seed)
-    cv_physics = kfold_rmse(r, H, folds=folds, seed=seed)
+    # the physics parameters alone: J without the constant (which every explanation adds)
+    cv_physics = kfold_rmse(r, H[:, 1:], folds=folds, seed=seed)
     cv_closed = kfold_rmse(r, np.column_stack([H, Phi]), folds=folds, seed=seed)
     cv: dict[str, float | None] = {"physics": cv_physics, "closed_form": cv_closed, "gp": None}
     if rel.relevant:
@@ -420,9 +426,10 @@ def _reason(cv, probability, min_probability, ratio, rel) -> str | None:
             f"a GP over {', '.join(rel.relevant)} predicts held-out calibration rows better "
             f"(RMSE {gp:.3g} vs {cv['closed_form']:.3g} for the closed form)"
         )
-    if probability < min_probability and gp < cv["closed_form"]:
+    if probability < min_probability and cv["closed_form"] > _MARGIN * gp:
         return (
             f"the most probable closed form has posterior probability {probability:.2g} "
-            "and a GP predicts held-out calibration rows better"
+            f"and a GP predicts held-out calibration rows better (RMSE {gp:.3g} vs "
+            f"{cv['closed_form']:.3g})"
         )
     return None

@@ -244,18 +244,18 @@ def discover(
             level=gp_level, seed=seed,
         )  # fmt: skip
         if relevance.relevant:
-            reason = (f"no closed form is significant (p = {selection.p_value:.3g}), but the "
+            reason = (f"no closed form is significant ({_p(selection)}), but the "
                       f"residual depends on {_and(relevance.relevant)} (ARD likelihood ratio "
                       f"at level {gp_level:.2g})")  # fmt: skip
             fb = {"reason": reason, "relevance": relevance, "check": None,
                   "region_level": region_level}  # fmt: skip
             return _gp_fallback(physics, calibration, validation, fb, fit, run, say, common)
-        say(f"nothing missing (p = {selection.p_value:.3g} under the model as given)")
+        say(f"nothing missing ({_p(selection)} under the model as given)")
         return _nothing_missing_report(physics, calibration, fit, common)
     best = next(subset for subset, _ in selection.subsets if subset)
     chosen = [selection.terms[n] for n in best if n != "1"]
     say(f"most probable closed form: {_effect_text(chosen, selection.constant)} "
-        f"(P = {dict(selection.subsets)[best]:.2g}; p = {selection.p_value:.3g})")  # fmt: skip
+        f"(P = {dict(selection.subsets)[best]:.2g}; {_p(selection)})")  # fmt: skip
     closed = (np.column_stack([t(calibration.inputs) for t in chosen]) if chosen
               else np.zeros((calibration.n, 0)))  # fmt: skip
     check = check_closed_form(calibration.inputs, fit.resid, jacobian, closed,
@@ -274,6 +274,12 @@ def discover(
     return _augment_and_refit(
         physics, calibration, validation, chosen, named_inputs, where, fit, run, say, common
     )
+
+
+def _p(selection) -> str:
+    """``"p = 0.0033"``, or ``"not calibrated"`` with ``null_draws=0``."""
+    p = selection.p_value
+    return "not calibrated" if p is None else f"p = {p:.3g}"
 
 
 def _units_summary(given, parsed, groups, selection) -> dict:

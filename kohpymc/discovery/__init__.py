@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from kohpymc.discovery.augment import augmented_physics
 from kohpymc.discovery.evidence import TermSelection, log_bayes_factor
+from kohpymc.discovery.fallback import ard_relevance, check_closed_form
 from kohpymc.discovery.regions import disagreement_regions
 from kohpymc.discovery.report import DiscoveryReport
 from kohpymc.discovery.selection import null_probabilities, select_terms
@@ -40,4 +41,6 @@ __all__ = [
     "augmented_physics",
     "disagreement_regions",
     "discover",
+    "ard_relevance",
+    "check_closed_form",
 ]

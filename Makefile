@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test test-slow bench bench-discovery lint format typecheck clean
+.PHONY: demo test test-slow bench bench-discovery bench-discovery-mcmc lint format typecheck clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -41,6 +41,10 @@ bench: $(BENCH_STAMP)
 # tables in benchmarks/results/discovery.md
 bench-discovery: $(STAMP)
 	$(PY) -m benchmarks.discovery --seeds 2 --null-seeds 8
+
+# the full discover (two MCMC runs each) on six kinds of missing effect and two null models
+bench-discovery-mcmc: $(STAMP)
+	$(PY) -m benchmarks.discovery --mcmc --draws 500 --chains 2
 
 LINT_PATHS := kohpymc tests benchmarks notebooks tools
 

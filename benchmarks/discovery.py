@@ -27,7 +27,9 @@ The baseline is PySINDy-style sequentially thresholded least squares (STLSQ; rid
 α = 0.05, threshold 0.1 on standardised columns and residual, 10 iterations) on the
 residual over the same library (shaped terms at their initial scale), written here; it
 has no notion of the noise sd.  ``--mcmc`` runs the full :func:`discover` (two MCMC
-calibrations) on the first seed of the given cases instead and reports μ_r too.
+calibrations, σ unknown, ε = 2 × the noise sd) on seed 0 at the 5 % noise level of the
+cases picked by ``--cases`` (default: six kinds and two null models) instead, and reports
+μ_r and the validation RMSE before and after (``results/discovery_mcmc.{json,md}``).
 """
 
 from __future__ import annotations
@@ -44,7 +46,8 @@ from scipy.optimize import least_squares
 
 from benchmarks.discovery_cases import CASES, NULLS, Case
 from kohpymc.candidates import candidate_library, design_matrix
-from kohpymc.discovery import augmented_physics, select_terms
+from kohpymc.data import CalibrationData
+from kohpymc.discovery import augmented_physics, discover, select_terms
 from kohpymc.discovery.drift import physics_terms
 from kohpymc.physics import PhysicsModelError
 from kohpymc.study_files import write_atomic
@@ -206,6 +209,85 @@ def run_one(case: Case, seed: int, level: float) -> list[dict]:
     return rows
 
 
+#: the ``--mcmc`` subset: six kinds of missing effect and two null models
+MCMC_CASES = (
+    "falling body", "pipe", "three-input", "threshold", "resistance", "pendulum",
+    "null: free fall", "null: Ohm",
+)  # fmt: skip
+
+
+def run_mcmc(case: Case, seed: int, level: float, draws: int, chains: int) -> dict:
+    """The full :func:`discover` (σ unknown) on one data set: named inputs, RMSE and μ_r."""
+    xc, yc, xv, yv, sd = _data(case, seed, level)
+    start = time.perf_counter()
+    report = discover(
+        case.physics(), CalibrationData(xc, yc), CalibrationData(xv, yv), tolerance=2 * sd,
+        draws=draws, tune=draws, chains=chains, random_seed=seed,
+    )  # fmt: skip
+    before, after = report.validation["before"], report.validation["after"]
+    row = {
+        "case": case.name, "form": case.form, "seed": seed, "level": level,
+        "truth": sorted(case.depends_on), "significant": report.significant,
+        "effect": report.effect, "named": sorted(report.inputs),
+        "fallback": report.fallback is not None,
+        "rmse_before": before["rmse"], "rmse_after": after["rmse"],
+        "mu_r_before": before["mu_r"], "mu_r_after": after["mu_r"],
+        "seconds": time.perf_counter() - start,
+    }  # fmt: skip
+    row["recovered"] = bool(
+        case.depends_on
+        and report.significant
+        and set(report.inputs) == set(case.depends_on)
+        and after["rmse"] <= 0.5 * before["rmse"]
+    )
+    return row
+
+
+def summarise_mcmc(rows: list[dict]) -> str:
+    """One line per data set of the ``--mcmc`` run."""
+    lines = [
+        "| case | named (truth) | effect | validation RMSE | μ_r | recovered | s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        truth = ", ".join(r["truth"]) or "nothing"
+        named = ", ".join(r["named"]) or "nothing"
+        lines.append(
+            f"| {r['case']} | {named} ({truth}) | {r['effect'] or 'nothing missing'} | "
+            f"{r['rmse_before']:.3g} → {r['rmse_after']:.3g} | "
+            f"{r['mu_r_before']:.2f} → {r['mu_r_after']:.2f} | "
+            f"{'yes' if r['recovered'] else ('-' if not r['truth'] else 'no')} | "
+            f"{r['seconds']:.0f} |"
+        )
+    hidden = [r for r in rows if r["truth"]]
+    null = [r for r in rows if not r["truth"]]
+    lines += ["", f"recovered {sum(r['recovered'] for r in hidden)}/{len(hidden)}; "
+              f"false alarms {sum(r['significant'] for r in null)}/{len(null)}"]  # fmt: skip
+    return "\n".join(lines)
+
+
+def _main_mcmc(args, prefixes) -> None:
+    picked = [c for c in CASES + NULLS if any(c.name.startswith(p) for p in prefixes)]
+    rows: list[dict] = []
+    out = Path(args.out + "_mcmc")
+    for k, case in enumerate(picked):
+        rows.append(run_mcmc(case, 0, LEVELS[0], args.draws, args.chains))
+        text = json.dumps(rows, indent=1, default=str) + "\n"
+        write_atomic(out.with_suffix(".json"), lambda p, text=text: p.write_text(text))
+        r = rows[-1]
+        print(f"[{k + 1}/{len(picked)}] {case.name}: {r['effect']} rmse {r['rmse_before']:.3g}"
+              f" -> {r['rmse_after']:.3g} mu_r {r['mu_r_before']:.2f} -> {r['mu_r_after']:.2f}"
+              f" {r['seconds']:.0f}s", flush=True)  # fmt: skip
+    table = summarise_mcmc(rows)
+    report = (
+        "# Discovery: full `discover` (MCMC) on a subset of the benchmark\n\n"
+        f"`python -m benchmarks.discovery --mcmc --draws {args.draws} --chains {args.chains}`"
+        " (seed 0, noise sd 5 % of the effect's sd, σ unknown, ε = 2 noise sds)\n\n" + table + "\n"
+    )
+    write_atomic(out.with_suffix(".md"), lambda p: p.write_text(report))
+    print(table)
+
+
 def _rate(rows, key) -> str:
     vals = [bool(r[key]) for r in rows if key in r]
     return f"{np.mean(vals):.2f} ({sum(vals)}/{len(vals)})" if vals else "-"
@@ -246,9 +328,15 @@ def main(argv=None) -> None:
     ap.add_argument("--null-seeds", type=int, default=8, help="seeds per null case and level")
     ap.add_argument("--cases", default="", help="comma-separated case-name prefixes (default all)")
     ap.add_argument("--out", default=str(RESULTS / "discovery"))
+    ap.add_argument("--mcmc", action="store_true", help="full discover on a subset (see above)")
+    ap.add_argument("--draws", type=int, default=500, help="--mcmc: draws (= tune) per chain")
+    ap.add_argument("--chains", type=int, default=2, help="--mcmc: chains")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
     prefixes = [p for p in args.cases.split(",") if p]
+    if args.mcmc:
+        _main_mcmc(args, prefixes or list(MCMC_CASES))
+        return
     picked = [c for c in CASES if not prefixes or any(c.name.startswith(p) for p in prefixes)]
     jobs = [(c, s, lv) for c in picked for lv in LEVELS for s in range(args.seeds)]
     jobs += [(c, 100 + s, lv) for c in NULLS for lv in LEVELS for s in range(args.null_seeds)]

@@ -75,6 +75,11 @@ class CandidateTerm:
         A rough count of symbols (1 per input factor, +1 per non-integer or negative
         exponent, +1 per fitted scale); breaks ties between terms that are equal on the
         data.
+    powers : mapping input -> float, optional
+        The exponents that give the term's physical unit: ``∏ unit(x_i)^{p_i}`` (a
+        monomial's powers; ``{x: p}`` for ``(x - x_ref)^p``, ``{x: 1}`` for saturation and
+        threshold, ``{}`` for a logarithm or a decay; for drift and output terms those
+        of ``g(x)``).  None when unknown (user terms).
 
     Examples
     --------
@@ -97,6 +102,7 @@ class CandidateTerm:
     modulation: TermFunction | None = None
     meaning: str | None = None
     complexity: int = 1
+    powers: Mapping[str, float] | None = None
 
     @property
     def expression(self) -> str:
@@ -203,6 +209,7 @@ def _monomials(arrays, varying, exponents, max_inputs) -> list[CandidateTerm]:
                         ),
                         kind="monomial",
                         complexity=size + odd,
+                        powers=pw,
                     )
                 )
     return terms
@@ -227,7 +234,7 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
             terms.append(
                 CandidateTerm(
                     name, (k,), lambda d, k=k, r=ref, p=p: (np.asarray(d[k]) - r) ** p,  # type: ignore[misc]
-                    kind="shifted", complexity=2,
+                    kind="shifted", complexity=2, powers={k: float(p)},
                 )
             )  # fmt: skip
     lo, hi = float(np.min(col)), float(np.max(col))
@@ -238,7 +245,7 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
             CandidateTerm(
                 _shaped_name("saturation", k, None, ""), (k,),
                 lambda d, k=k, c=span: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),  # type: ignore[misc]
-                kind="saturation",
+                kind="saturation", powers={k: 1.0},
                 shape=lambda d, c, k=k: np.asarray(d[k]) / (1 + np.asarray(d[k]) / c),  # type: ignore[misc]
                 scale_bounds=(0.02 * span, 10 * max(span, hi)), complexity=3,
             )
@@ -248,7 +255,7 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
             CandidateTerm(
                 _shaped_name("threshold", k, None, ""), (k,),
                 lambda d, k=k, c=0.5 * (lo + hi): np.maximum(0.0, np.asarray(d[k]) - c),  # type: ignore[misc]
-                kind="threshold",
+                kind="threshold", powers={k: 1.0},
                 shape=lambda d, c, k=k: np.maximum(0.0, np.asarray(d[k]) - c),  # type: ignore[misc]
                 scale_bounds=(lo + 0.05 * span, hi - 0.15 * span), complexity=3,
             )
@@ -260,7 +267,7 @@ def _single_input_shapes(k, col, shapes, references) -> list[CandidateTerm]:
             CandidateTerm(
                 head + "c)", (k,),
                 lambda d, k=k, o=origin, c=0.3 * span: np.exp(-(np.asarray(d[k]) - o) / c),  # type: ignore[misc]
-                kind="decay",
+                kind="decay", powers={},
                 shape=lambda d, c, k=k, o=origin: np.exp(-(np.asarray(d[k]) - o) / c),  # type: ignore[misc]
                 scale_bounds=(0.02 * span, 5 * span), complexity=3,
             )
@@ -336,7 +343,8 @@ def candidate_library(
     terms = _monomials(arrays, varying, sorted(set(exponents)), max_inputs)
     for k in varying:
         if logarithms and np.min(arrays[k]) > 0:
-            terms.append(CandidateTerm(f"log({k})", (k,), lambda d, k=k: np.log(d[k]), kind="log"))  # type: ignore[misc]
+            log_k = lambda d, k=k: np.log(d[k])  # type: ignore[misc]  # noqa: E731
+            terms.append(CandidateTerm(f"log({k})", (k,), log_k, kind="log", powers={}))
         terms += _single_input_shapes(k, arrays[k], shapes, dict(references or {}))
     for name, (term_inputs, function) in (extra or {}).items():
         if not callable(function):

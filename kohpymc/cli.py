@@ -218,6 +218,7 @@ def _discover(args: argparse.Namespace) -> int:
             spec.calibration,
             spec.validation,
             tolerance=spec.tolerance,
+            units=spec.units,
             random_seed=merged.get("random_seed"),
             progress=None if args.quiet else lambda msg: print(msg, flush=True),
             **sampling,

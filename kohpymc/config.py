@@ -18,6 +18,7 @@ formulations and sampler settings::
     validation = "valid.csv"
     noise_sd = 0.316                  # optional; else from replicates, else calibrated
     # replicates = "inputs"           # optional: rows with equal inputs are replicates
+    # [data.units]                    # optional (discover): x = "mm", P = "kN", output = "um"
 
     [validation]
     tolerance = 0.75
@@ -104,7 +105,7 @@ _SECTIONS: dict[str, set[str] | None] = {
         "function", "inputs", "output", "parameters", "jacobian", "backend", "fd_scheme",
         "time", "name",
     },
-    "data": {"calibration", "validation", "noise_sd", "replicates"},
+    "data": {"calibration", "validation", "noise_sd", "replicates", "units"},
     "validation": {"tolerance", "weights"},
     "formulations": None,  # free labels
     "sampling": {
@@ -188,6 +189,9 @@ class StudySpec:
         ``<file stem>_results`` beside it).
     check : CheckSpec
         The ``[check]`` table (``kohpymc check``).
+    units : dict or None
+        ``[data.units]``: unit strings of inputs and of the output (key ``"output"``),
+        read by ``kohpymc discover``.
     """
 
     source: Path
@@ -201,6 +205,7 @@ class StudySpec:
     out_dir: Path = Path("study_results")
     execution: dict[str, Any] = field(default_factory=dict)
     check: CheckSpec = field(default_factory=CheckSpec)
+    units: dict[str, str] | None = None
 
     def run_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :func:`kohpymc.run_study` for this study."""
@@ -376,6 +381,7 @@ def load_study(path: str | Path) -> StudySpec:
         out_dir=out_dir,
         execution=execution,
         check=check,
+        units=_units_table(path, doc["data"].get("units"), inputs, output),
     )
 
 
@@ -493,6 +499,27 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
         except (KeyError, ValueError) as err:
             raise _err(path, f"data.{key}", str(err).strip("'\"")) from err
     return calibration, validation
+
+
+def _units_table(path: Path, table: Any, inputs, output) -> dict[str, str] | None:
+    """``[data.units]``: input (and output) name -> unit string, each one parsed."""
+    from kohpymc.units import UnitError, parse_unit
+
+    if table is None:
+        return None
+    if not isinstance(table, dict):
+        raise _err(path, "data.units", 'must be a table, e.g. [data.units] t = "s"')
+    out: dict[str, str] = {}
+    for key, text in table.items():
+        name = "output" if key in ("output", output) else key
+        if name != "output" and key not in inputs:
+            raise _err(path, f"data.units.{key}", f"not an input {list(inputs)} nor the output")
+        try:
+            parse_unit(text)
+        except UnitError as err:
+            raise _err(path, f"data.units.{key}", str(err)) from err
+        out[name] = text
+    return out
 
 
 def _validation_section(path: Path, val: dict, validation):

@@ -1,30 +1,32 @@
 """Discovery: which candidate term explains the disagreement between model and data.
 
-This package holds the selection step of the discovery workflow (issue 5, in progress):
-Bayesian model comparison of small sets of candidate terms (:mod:`kohpymc.candidates`)
-on the residuals of a calibrated model, *linearised in the physics parameters*, so a
-term that the physics parameters can mimic earns no credit.
+One module per step of :func:`discover`:
 
-Around the calibrated point θ̂ the residual ``r = y - G(x; θ̂)`` is modelled as::
+* :mod:`~kohpymc.discovery.search` and :mod:`~kohpymc.discovery.evidence`: closed-form
+  evidence of small sets of candidate terms (:mod:`kohpymc.candidates`) on the residual
+  of the calibrated model, *linearised in the physics parameters* (so a term they can
+  mimic earns nothing), σ known or integrated out; :mod:`~kohpymc.discovery.selection`:
+  the posterior over explanations and the false-alarm rate calibrated by simulation;
+* :mod:`~kohpymc.discovery.drift`: "a parameter varies with an input" and "the output
+  scales with an input" terms from the model's own sensitivities;
+  :mod:`~kohpymc.discovery.dimensions`: with units, dimensionless (π) groups as
+  candidates and the unit of each coefficient;
+* :mod:`~kohpymc.discovery.fallback`: which inputs matter (ARD, type-II ML), the K-fold
+  check of the closed form inside the calibration data, and the decision to fall back to
+  a GP discrepancy ("depends on t; no closed form found");
+* :mod:`~kohpymc.discovery.augment`, :mod:`~kohpymc.discovery.regions`,
+  :mod:`~kohpymc.discovery.report` and :mod:`~kohpymc.discovery.workflow`: the augmented
+  model, the failing ranges, the report and :func:`discover` itself.
 
-    r = J Δθ + Φ_S c + ε,   Δθ ~ N(0, diag(s_θ²)),  c ~ N(0, s_c² I),  ε ~ N(0, σ² I)
-
-with ``J = ∂G/∂θ`` at θ̂ and ``Φ_S`` the (unit-sd) columns of a candidate subset S.  The
-evidence ``p(r | S)`` is a zero-mean normal with covariance
-``σ² I + J diag(s_θ²) Jᵀ + s_c² Φ_S Φ_Sᵀ``, exact for this linear model.  Subsets up to
-``max_terms`` are enumerated; the prior gives half its mass to "nothing missing" and
-splits the other half equally over the subset sizes and then over the subsets of each
-size, which pays for the number of candidates tried (multiplicity control).  A candidate
-whose column lies in the span of ``J`` (rank check as in
-:func:`kohpymc.identifiability.analyse_matrix`) is rejected with the reason before the
-comparison.  With σ unknown it is set per subset to the value that maximises the
-evidence (type-II maximum likelihood).
+The calibration data choose everything (terms, scales, the GP's inputs, the fallback);
+the validation data only measure the gap before and after.
 """
 
 from __future__ import annotations
 
 from kohpymc.discovery.augment import augmented_physics
 from kohpymc.discovery.evidence import TermSelection, log_bayes_factor
+from kohpymc.discovery.fallback import ard_relevance, check_closed_form
 from kohpymc.discovery.regions import disagreement_regions
 from kohpymc.discovery.report import DiscoveryReport
 from kohpymc.discovery.selection import null_probabilities, select_terms
@@ -39,4 +41,6 @@ __all__ = [
     "augmented_physics",
     "disagreement_regions",
     "discover",
+    "ard_relevance",
+    "check_closed_form",
 ]

@@ -47,14 +47,18 @@ def _modulations(inputs, names, exponents):
 def _dependence(physics, theta, inputs, G0, J0) -> dict[str, list[str]]:
     """Which of the model's inputs ``G`` and each ``∂G/∂θ_j`` vary with on these rows.
 
-    An input counts when nudging it by 0.1 % of its spread changes the column.
+    An input counts when nudging it by 0.1 % of its spread (towards the middle of the
+    data) changes the column.
     """
     uses: dict[str, list[str]] = {k: [] for k in ["G", *physics.parameters]}
     for k in physics.inputs:
         col = np.asarray(inputs[k], dtype=float)
         if np.ptp(col) == 0:
             continue
-        nudged = {**inputs, k: col + 1e-3 * np.ptp(col)}
+        # nudged towards the middle of the data, never beyond its range (the physics
+        # function may refuse inputs outside it, e.g. a position beyond a beam's end)
+        step = 1e-3 * np.ptp(col) * np.where(col > np.median(col), -1.0, 1.0)
+        nudged = {**inputs, k: col + step}
         G1, J1 = physics.evaluate(nudged, theta), physics.jacobian_matrix(nudged, theta)
         if not np.allclose(G1, G0, rtol=1e-9, atol=0):
             uses["G"].append(k)
@@ -132,6 +136,7 @@ def physics_terms(
                     lambda d, j=j, g=g: base(d)[1][:, j] * g(d),  # type: ignore[misc]
                     kind="drift", parameter=par, modulation=g,
                     meaning=f"{par} depends on {k}, {_words(k, p)}", complexity=2,
+                    powers={} if p == "log" else {k: float(p)},
                 )
             )  # fmt: skip
     if output:
@@ -142,7 +147,7 @@ def physics_terms(
                     f"G*{label}", tuple(dict.fromkeys([k, *uses["G"]])),
                     lambda d, g=g: base(d)[0] * g(d), kind="output",  # type: ignore[misc]
                     modulation=g, meaning=f"the output scales with {k}, {_words(k, p)}",
-                    complexity=2,
+                    complexity=2, powers={} if p == "log" else {k: float(p)},
                 )
             )  # fmt: skip
     return terms

@@ -47,6 +47,19 @@ class DiscoveryReport:
     residuals : dict
         ``{"before": array, "after": array}``: calibration residuals from the
         posterior-mean model.
+    closed_form_check : dict or None
+        The cross-validated check of the most probable closed form
+        (:meth:`kohpymc.discovery.fallback.ClosedFormCheck.to_dict`; None when nothing
+        closed-form was significant).
+    fallback : dict or None
+        When no closed form was found: ``{"formulation": "gp", "inputs", "reason",
+        "log_ml_drop", "range_over_length_scale", "length_scale_over_range"}``; ``effect``
+        then reads ``"depends on t and m; no closed form found"``.
+    formulation : Discrepancy or None
+        The discrepancy of the "after" calibration (the GP of the fallback), else None.
+    units : dict or None
+        With units given: ``{"given": {name: SI text}, "pi_groups": [...],
+        "coefficients": {term name: unit of its coefficient}, "offset": unit of c_0}``.
     """
 
     significant: bool
@@ -64,6 +77,10 @@ class DiscoveryReport:
     after: Any
     key_input: str
     residuals: dict
+    closed_form_check: dict | None = None
+    fallback: dict | None = None
+    formulation: Any = None
+    units: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON report.
@@ -91,12 +108,31 @@ class DiscoveryReport:
                 "false_alarm_rate": self.threshold,
                 "threshold": self.threshold,
             },
-            "explanations": explanations(sel),
+            "explanations": explanations(sel, units=self.units),
+            "closed_form_found": self.significant and self.fallback is None,
+            "closed_form_check": self.closed_form_check,
+            "fallback": self.fallback,
+            "units": self._units(),
             "input_probability": self.input_probability,
             "rejected_candidates": sel.rejected,
             "merged_candidates": len(sel.merged),
             "top_subsets": [{"terms": list(s), "probability": p} for s, p in sel.subsets[:5]],
         }
+
+    def _units(self) -> dict | None:
+        """The units summary with ``c_k`` of the added terms (and ``c_0``) spelled out."""
+        if self.units is None:
+            return None
+        out = dict(self.units)
+        if self.significant and self.fallback is None and self.physics is not None:
+            names = [n for n in self.physics.parameters if n.startswith("c_")]
+            best = next((s for s, _ in self.selection.subsets if s), ())
+            terms = [n for n in best if n != "1"]
+            coef = {f"c_{k + 1}": out["coefficients"].get(n) for k, n in enumerate(terms)}
+            if "c_0" in names:
+                coef["c_0"] = out.get("offset")
+            out["fitted"] = {k: v for k, v in coef.items() if k in names}
+        return out
 
 
 def _describe(sel: TermSelection, subset: tuple[str, ...]) -> dict:
@@ -118,8 +154,11 @@ def _describe(sel: TermSelection, subset: tuple[str, ...]) -> dict:
     }
 
 
-def explanations(sel: TermSelection, top: int = 10) -> list[dict]:
+def explanations(sel: TermSelection, top: int = 10, units: dict | None = None) -> list[dict]:
     """The ``top`` explanations with their posterior probabilities (and "nothing missing").
+
+    With ``units`` (:attr:`DiscoveryReport.units`) each explanation also lists the unit
+    of each coefficient (``"coefficient_units"``, the constant's last).
 
     Examples
     --------
@@ -135,5 +174,10 @@ def explanations(sel: TermSelection, top: int = 10) -> list[dict]:
         entry = _describe(sel, subset)
         entry["probability"] = float(p)
         entry["log_bayes_factor"] = sel.log_bayes_factors.get(subset)
+        if units is not None and subset:
+            coef = units["coefficients"]
+            entry["coefficient_units"] = [coef.get(n) for n in subset if n != "1"]
+            if sel.constant:
+                entry["coefficient_units"].append(units.get("offset"))
         out.append(entry)
     return out

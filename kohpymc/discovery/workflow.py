@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -11,7 +11,9 @@ import numpy as np
 from kohpymc.candidates import DEFAULT_EXPONENTS
 from kohpymc.checks import check_physics_runs, check_validation_data
 from kohpymc.discovery.augment import augmented_physics
+from kohpymc.discovery.dimensions import coefficient_unit, pi_terms, read_units
 from kohpymc.discovery.drift import physics_terms
+from kohpymc.discovery.fallback import ard_relevance, check_closed_form
 from kohpymc.discovery.regions import _main_effect_share, disagreement_regions
 from kohpymc.discovery.report import DiscoveryReport
 from kohpymc.discovery.selection import select_terms
@@ -83,6 +85,8 @@ def discover(
     max_terms: int = 3,
     threshold: float = 0.01,
     null_draws: int = 299,
+    gp_level: float | None = None,
+    units: Mapping[str, str] | None = None,
     region_level: float = 0.01,
     draws: int = 1000,
     tune: int = 1000,
@@ -109,11 +113,25 @@ def discover(
        equal count; a calibration bin fails when ``Σ z²`` exceeds its χ² quantile at
        ``region_level / 8`` (Bonferroni over the bins), a validation bin when its mean
        reliability is below 0.5.  Adjacent failing bins are merged.
-    4. *Add*: the terms of the most probable explanation (and the constant offset that
-       comes with every explanation) with coefficients ``c_k`` (normal priors scaled to
-       the residual) are added (:func:`augmented_physics`) and calibrated jointly with θ.
-    5. *Gap*: μ_r, RMSE and 90 % coverage on the validation data (never used to select
-       the terms) before and after.
+    4. *Closed form or GP* (:mod:`kohpymc.discovery.fallback`, calibration data only):
+       a GP with ARD length scales fitted to the residual (type-II ML, physics
+       parameters re-fitted) says which inputs matter; K-fold cross-validation inside
+       the calibration data compares the held-out residual of the physics alone, the
+       closed form and that GP.  When the closed form is rejected (it does not lower the
+       held-out residual, or the GP predicts held-out rows ``ratio`` times better, or it
+       is improbable and the GP better), or when no closed form is significant but the
+       residual depends on an input at level ``gp_level`` (likelihood ratio, default
+       ``threshold / 10``), the model is calibrated with a GP discrepancy
+       (:class:`~kohpymc.discrepancy.GaussianProcess`, M4) over just those inputs and
+       the report says ``"depends on t and m; no closed form found"``.  A closed form
+       that does not lower the held-out calibration residual, with no input left for a
+       GP, is not reported: "nothing missing" (the check can only remove alarms).
+    5. *Add*: otherwise the terms of the most probable explanation (and the constant
+       offset that comes with every explanation) with coefficients ``c_k`` (normal
+       priors scaled to the residual) are added (:func:`augmented_physics`) and
+       calibrated jointly with θ.
+    6. *Gap*: μ_r, RMSE and 90 % coverage on the validation data (never used to select
+       the terms or the inputs of the GP) before and after.
 
     All inputs are checked before any sampling; the augmented model is evaluated once
     before it is recalibrated.  Two MCMC calibrations in all; the search is analytic.
@@ -137,7 +155,16 @@ def discover(
     max_terms : int
         Largest number of terms in one explanation.
     threshold : float
-        False-alarm rate of the decision (calibrated by simulation).
+        False-alarm rate of the closed-form decision (calibrated by simulation).
+    units : mapping, optional
+        Units of inputs and of the output (key ``"output"``), e.g. ``{"t": "s", "m":
+        "kg", "output": "m"}`` (syntax: :mod:`kohpymc.units`): dimensionless groups of
+        the inputs join the candidates (Buckingham π) and the report states the unit of
+        each coefficient (:mod:`kohpymc.discovery.dimensions`).
+    gp_level : float, optional
+        Level of the GP route when no closed form is significant (default
+        ``threshold / 10``); the false-alarm rate of ``discover`` is at most
+        ``threshold + gp_level``.
     null_draws : int
         Simulated null residuals of the calibration.
     region_level : float
@@ -163,51 +190,160 @@ def discover(
     say = progress or (lambda _m: None)
     library = {"exponents": exponents, "references": references, "extra": extra_terms}
     generated = candidates is None
-    candidates = _checked_inputs(
+    pool: list[Any] = _checked_inputs(
         physics, calibration, validation, tolerance, threshold, candidates, library
     )
+    parsed = None if units is None else read_units(units, list(calibration.inputs))
+    groups: list[dict[str, int]] = []
+    if parsed is not None and generated:
+        extra, groups = pi_terms(calibration.inputs, parsed, exponents,
+                                 taken={t.name for t in pool})  # fmt: skip
+        pool += extra
     sampler = {"draws": draws, "tune": tune, "chains": chains}
+    gp_level = threshold / 10 if gp_level is None else gp_level
+    if not 0 < gp_level < 1:
+        raise ValueError(f"gp_level must be in (0, 1), got {gp_level!r}")
 
-    def run(model, label):
+    def run(model, label, formulation=None, scored_out=None):
         scored = fit_and_score(
-            model, calibration, validation, None, tolerance=tolerance,
+            model, calibration, validation, formulation, tolerance=tolerance,
             random_seed=random_seed, label=label, warn=False, **sampler,
         )  # fmt: skip
+        if scored_out is not None:
+            scored_out.append(scored)
         return scored.combined_idata(), scored.scores, scored.constant
 
     say("calibrating the model as given ...")
     fit = _locate_residuals(physics, calibration, run)
     if generated:
-        candidates += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
-    say(f"comparing {len(candidates)} candidate terms ...")
+        pool += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
+    say(f"comparing {len(pool)} candidate terms ...")
+    jacobian = physics.jacobian_matrix(calibration.inputs, fit.theta)
+    seed = 0 if random_seed is None else int(random_seed)
     selection = select_terms(
         fit.resid,
-        physics.jacobian_matrix(calibration.inputs, fit.theta),
-        candidates,
+        jacobian,
+        pool,
         inputs=calibration.inputs,
         noise_sd=calibration.noise_sd,
         max_terms=max_terms,
         false_alarm=threshold,
         null_draws=null_draws,
-        random_seed=0 if random_seed is None else int(random_seed),
+        random_seed=seed,
     )
     common = {
         "selection": selection,
         "input_probability": _input_probability(selection, calibration.inputs),
         "threshold": threshold,
         "before": fit.idata,
+        "units": None if parsed is None else _units_summary(units, parsed, groups, selection),
     }
     if not selection.significant:
-        say(f"nothing missing (p = {selection.p_value:.3g} under the model as given)")
+        relevance = ard_relevance(
+            calibration.inputs, fit.resid, jacobian, noise_sd=calibration.noise_sd,
+            level=gp_level, seed=seed,
+        )  # fmt: skip
+        if relevance.relevant:
+            reason = (f"no closed form is significant ({_p(selection)}), but the "
+                      f"residual depends on {_and(relevance.relevant)} (ARD likelihood ratio "
+                      f"at level {gp_level:.2g})")  # fmt: skip
+            fb = {"reason": reason, "relevance": relevance, "check": None,
+                  "region_level": region_level}  # fmt: skip
+            return _gp_fallback(physics, calibration, validation, fb, fit, run, say, common)
+        say(f"nothing missing ({_p(selection)} under the model as given)")
         return _nothing_missing_report(physics, calibration, fit, common)
     best = next(subset for subset, _ in selection.subsets if subset)
     chosen = [selection.terms[n] for n in best if n != "1"]
+    say(f"most probable closed form: {_effect_text(chosen, selection.constant)} "
+        f"(P = {dict(selection.subsets)[best]:.2g}; {_p(selection)})")  # fmt: skip
+    closed = (np.column_stack([t(calibration.inputs) for t in chosen]) if chosen
+              else np.zeros((calibration.n, 0)))  # fmt: skip
+    check = check_closed_form(calibration.inputs, fit.resid, jacobian, closed,
+                              dict(selection.subsets)[best], noise_sd=calibration.noise_sd,
+                              level=threshold, seed=seed)  # fmt: skip
+    common["closed_form_check"] = check.to_dict()
+    if check.rejected:
+        fb = {"reason": check.reason, "relevance": check.relevance, "check": check,
+              "region_level": region_level}  # fmt: skip
+        return _gp_fallback(physics, calibration, validation, fb, fit, run, say, common)
+    if check.cv_rmse["closed_form"] >= check.cv_rmse["physics"] and not check.relevance.relevant:
+        say(f"nothing missing: {check.reason} (K-fold inside the calibration data)")
+        return _nothing_missing_report(physics, calibration, fit, common)
     named_inputs = list(dict.fromkeys(i for t in chosen for i in t.inputs))
-    say(f"missing effect: {_effect_text(chosen, selection.constant)} "
-        f"(P = {dict(selection.subsets)[best]:.2g}; p = {selection.p_value:.3g})")  # fmt: skip
     where = _where_it_fails(calibration, validation, named_inputs, fit, region_level)
     return _augment_and_refit(
         physics, calibration, validation, chosen, named_inputs, where, fit, run, say, common
+    )
+
+
+def _p(selection) -> str:
+    """``"p = 0.0033"``, or ``"not calibrated"`` with ``null_draws=0``."""
+    p = selection.p_value
+    return "not calibrated" if p is None else f"p = {p:.3g}"
+
+
+def _units_summary(given, parsed, groups, selection) -> dict:
+    """Units of the data, the π groups offered and the coefficient unit of each term."""
+    return {
+        "given": dict(given),
+        "si": {k: str(u) for k, u in parsed.items()},
+        "pi_groups": groups,
+        "coefficients": {name: coefficient_unit(term, given)
+                         for name, term in selection.terms.items() if term is not None},
+        "offset": given.get("output"),
+    }  # fmt: skip
+
+
+def _and(names: Sequence[str]) -> str:
+    """``"t"``, ``"t and m"``, ``"t, m and H"``."""
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def _gp_fallback(physics, calibration, validation, fb: dict, fit, run, say, common):
+    """No closed form: calibrate with a GP discrepancy (M4) over the relevant inputs."""
+    from kohpymc.calibration import predict
+    from kohpymc.discrepancy import GaussianProcess
+
+    relevance = fb["relevance"]
+    inputs = list(relevance.relevant)
+    effect = f"depends on {_and(inputs)}; no closed form found"
+    say(f"{effect} ({fb['reason']}); calibrating with a GP discrepancy over {_and(inputs)} ...")
+    formulation = GaussianProcess(inputs)
+    scored: list = []
+    after, scores_after, _ = run(physics, "gp fallback", formulation, scored)
+    params = list(physics.parameters)
+    after_mean, after_sd = _moments(after, params)
+    at_cal = predict(scored[0].calibration, calibration, random_seed=0)
+    fitted = at_cal["predictions"]["y_model"].mean(("chain", "draw")).to_numpy().astype(float)
+    share = {k: _main_effect_share(calibration.inputs[k], fitted - fitted.mean())
+             for k in inputs}  # fmt: skip
+    common = dict(common)
+    check = fb["check"]
+    common.setdefault("closed_form_check", None if check is None else check.to_dict())
+    where = _where_it_fails(calibration, validation, inputs, fit, fb["region_level"])
+    return DiscoveryReport(
+        significant=True,
+        effect=effect,
+        inputs=inputs,
+        where=where,
+        validation={"before": fit.scores, "after": scores_after},
+        parameters={"before": fit.theta, "after": after_mean},
+        parameters_sd={"before": fit.theta_sd, "after": after_sd},
+        physics=physics,
+        after=after,
+        key_input=max(share, key=share.get),  # type: ignore[arg-type]
+        residuals={"before": fit.resid, "after": calibration.y - fitted},
+        fallback={
+            "formulation": "gp",
+            "inputs": inputs,
+            "reason": fb["reason"],
+            "log_ml_drop": relevance.log_ml_drop,
+            "range_over_length_scale": relevance.inverse_length,
+            "length_scale_over_range": dict(relevance.hyper.get("length", {})),
+        },
+        formulation=formulation,
+        **common,
     )
 
 

@@ -1,0 +1,24 @@
+"""Emulating an expensive simulator: design, runs, a GP emulator, its checks.
+
+* :mod:`~kohpymc.emulator.design`: space-filling designs over the calibration inputs ×
+  the prior box of θ (maximin Latin hypercube, Sobol) and their extension;
+* :mod:`~kohpymc.emulator.runs`: simulator runs at a design as tasks
+  (:func:`kohpymc.run_tasks`), cached on disk, failures recorded and skipped.
+"""
+
+from kohpymc.emulator.design import (
+    design_box,
+    extend_design,
+    maximin_distance,
+    space_filling_design,
+)
+from kohpymc.emulator.runs import SimulatorRuns, run_design
+
+__all__ = [
+    "design_box",
+    "extend_design",
+    "maximin_distance",
+    "space_filling_design",
+    "SimulatorRuns",
+    "run_design",
+]

@@ -15,6 +15,14 @@ from kohpymc.data import CalibrationData, pooled_replicate_sd
 from kohpymc.diagnostics import SamplerTroubleWarning, sampler_diagnostics
 from kohpymc.discovery import DiscoveryReport, discover
 from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation class
+from kohpymc.emulator import (
+    EmulatedPhysics,
+    Emulator,
+    design_box,
+    extend_design,
+    run_design,
+    space_filling_design,
+)
 from kohpymc.execution import TaskOutcome, run_tasks
 from kohpymc.identifiability import (
     IdentifiabilityReport,
@@ -61,6 +69,13 @@ __all__ = [
     "prior_box",
     "sampler_diagnostics",
     "SamplerTroubleWarning",
+    # emulating an expensive simulator
+    "Emulator",
+    "EmulatedPhysics",
+    "design_box",
+    "space_filling_design",
+    "extend_design",
+    "run_design",
     # identifiability
     "taylor_check",
     "check_formulation",

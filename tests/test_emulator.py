@@ -133,3 +133,228 @@ def test_a_design_missing_a_column_is_named():
     _, physics = _counted_physics()
     with pytest.raises(KeyError, match=r"\['b'\]"):
         run_design(physics, pd.DataFrame({"x": [0.1], "a": [1.0]}))
+
+
+# ----------------------------------------------------------------------------- GP
+
+
+def _smooth(inputs, params):
+    return params["a"] * np.exp(-params["k"] * inputs["x"])
+
+
+def _smooth_tensor(inputs, params):
+    import pytensor.tensor as pt
+
+    return params["a"] * pt.exp(-params["k"] * inputs["x"])
+
+
+_PRIORS = {"a": Uniform(0.5, 3.0), "k": Uniform(0.2, 2.0)}
+_X_OBS = np.linspace(0.0, 3.0, 20)
+_TRUTH = {"a": 1.7, "k": 0.8}
+_NOISE = 0.05
+
+
+def _decay_setup():
+    from kohpymc import CalibrationData
+
+    physics = PhysicsModel(_smooth, _PRIORS, inputs=["x"], name="decay")
+    rng = np.random.default_rng(1)
+    y = _smooth({"x": _X_OBS}, _TRUTH) + rng.normal(0.0, _NOISE, _X_OBS.size)
+    data = CalibrationData({"x": _X_OBS}, y, noise_sd=_NOISE)
+    return physics, data, design_box(physics, data)
+
+
+def _emulator(n, kernel="se", seed=1):
+    from kohpymc.emulator import Emulator
+
+    physics, data, box = _decay_setup()
+    runs = run_design(physics, space_filling_design(box, n, seed=seed))
+    return Emulator(runs, physics, box=box, kernel=kernel), physics, data, box
+
+
+def _dense_kernel(kind, A, B, ls, amp):
+    K = np.empty((len(A), len(B)))
+    for i in range(len(A)):
+        for j in range(len(B)):
+            r = np.sqrt(np.sum(((A[i] - B[j]) / ls) ** 2))
+            if kind == "se":
+                K[i, j] = amp * np.exp(-0.5 * r**2)
+            else:
+                K[i, j] = amp * (1 + np.sqrt(5) * r + 5 * r**2 / 3) * np.exp(-np.sqrt(5) * r)
+    return K
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_gp_prediction_matches_a_dense_numpy_computation(kernel):
+    import pytensor.tensor as pt
+
+    em, *_ = _emulator(25, kernel=kernel)
+    h = em.hyper
+    lo, width = em.lower, em.width
+    U = (em.runs.X - lo) / width
+    z = (em.runs.y - em.runs.y.mean()) / em.runs.y.std()
+    K = _dense_kernel(kernel, U, U, h.lengthscales, h.amplitude) + (h.nugget + 1e-10) * np.eye(25)
+    x = np.array([0.3, 1.1, 2.9])
+    theta = np.array([1.3, 0.7])
+    Z = np.column_stack([x, np.tile(theta, (3, 1))])
+    Ks = _dense_kernel(kernel, (Z - lo) / width, U, h.lengthscales, h.amplitude)
+    Kss = _dense_kernel(kernel, (Z - lo) / width, (Z - lo) / width, h.lengthscales, h.amplitude)
+    mean = em.runs.y.mean() + em.runs.y.std() * Ks @ np.linalg.solve(K, z)
+    cov = em.runs.y.std() ** 2 * (Kss - Ks @ np.linalg.solve(K, Ks.T) + h.nugget * np.eye(3))
+    m, v = em.predict({"x": x}, {"a": 1.3, "k": 0.7})
+    np.testing.assert_allclose(m, mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(v, np.diag(cov), rtol=1e-5, atol=1e-12)
+    th = pt.as_tensor(theta)
+    np.testing.assert_allclose(em.mean_tensor(th, x[:, None]).eval(), mean, rtol=1e-8)
+    np.testing.assert_allclose(em.variance_tensor(th, x[:, None]).eval(), np.diag(cov), rtol=1e-5)
+    np.testing.assert_allclose(em.covariance_tensor(th, x[:, None]).eval(), cov, atol=1e-10)
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_gp_mean_and_variance_gradients_match_finite_differences(kernel):
+    import pytensor
+    import pytensor.tensor as pt
+
+    em, *_ = _emulator(25, kernel=kernel)
+    x = np.array([0.2, 1.5, 2.7])
+    w = np.array([0.3, -1.2, 0.8])
+    theta = pt.vector("theta")
+    C = em.covariance_tensor(theta, x[:, None])
+    out = (
+        pt.dot(w, em.mean_tensor(theta, x[:, None]))
+        + 10 * pt.dot(w, em.variance_tensor(theta, x[:, None]))
+        + 5 * pt.dot(w, pt.dot(C, w))
+    )
+    grad = pytensor.function([theta], pytensor.grad(out, theta))
+    value = pytensor.function([theta], out)
+
+    t0 = np.array([1.4, 0.9])
+    eps = 1e-5
+    fd = [(value(t0 + eps * e) - value(t0 - eps * e)) / (2 * eps) for e in np.eye(2)]
+    np.testing.assert_allclose(grad(t0), fd, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_marginal_likelihood_gradient_matches_finite_differences(kernel):
+    from scipy.optimize import check_grad
+
+    from kohpymc.emulator.gp import _neg_log_posterior
+
+    em, *_ = _emulator(15, kernel=kernel)
+    p0 = np.r_[np.log([0.4, 0.8, 0.6]), 0.3, np.log(1e-3)]
+    err = check_grad(
+        lambda p: _neg_log_posterior(p, kernel, em.U, em.z)[0],
+        lambda p: _neg_log_posterior(p, kernel, em.U, em.z)[1],
+        p0,
+    )
+    assert err < 1e-4 * np.linalg.norm(_neg_log_posterior(p0, kernel, em.U, em.z)[1]) + 1e-5
+
+
+def test_leave_one_out_matches_refits_and_covers_on_a_smooth_function():
+    from kohpymc.emulator import Emulator
+
+    em, physics, _, box = _emulator(40)
+    mean, var = em.leave_one_out()
+    for i in (0, 17, 39):  # closed form == dropping the run (same hyperparameters)
+        keep = np.arange(40) != i
+        runs = run_design(physics, em.runs.points.iloc[np.flatnonzero(keep)])
+        one = Emulator(runs, physics, box=box, hyperparameters=em.hyper)
+        one.y_mean, one.y_sd = em.y_mean, em.y_sd
+        one.z = (runs.y - em.y_mean) / em.y_sd
+        one._factorize()
+        m, v = one.predict_matrix(em.runs.X[i : i + 1])
+        np.testing.assert_allclose(m, mean[i], rtol=1e-6)
+        np.testing.assert_allclose(v, var[i], rtol=1e-4)
+    z = (em.runs.y - mean) / np.sqrt(var)
+    assert 0.8 <= np.mean(np.abs(z) < 1.645) <= 1.0
+
+
+# ------------------------------------------------------- the emulator in the likelihood
+
+
+def test_every_formulation_builds_with_the_emulator_and_sees_its_covariance():
+    import pytensor.tensor as pt
+    from scipy import stats
+
+    import kohpymc as kp
+    from kohpymc.model import compose_model
+
+    em, physics, data, _ = _emulator(30)
+    emulated = em.physics_model()
+    point_theta = np.array([1.6, 0.85])
+    for formulation in (
+        kp.NoDiscrepancy(),
+        kp.ConstantBias(),
+        kp.IIDGaussian(),
+        kp.InputDependentGaussian(mean=["x"]),
+        kp.GaussianProcess(["x"]),
+        kp.NonStationaryGP(["x"], time="x"),
+        kp.ScaledGP(["x"]),
+    ):
+        built = compose_model(emulated, data, formulation)
+        assert "y" in built.model.named_vars, formulation.label
+        if formulation.label in ("M1", "M4"):  # the marginalized and the GP path
+            point = built.model.initial_point()
+            assert np.isfinite(built.model.compile_logp()(point)), formulation.label
+    # M0: the likelihood is N(η̂(θ), Σ_η(θ) + σ² I) exactly
+    built = compose_model(emulated, data, kp.NoDiscrepancy())
+    model = built.model
+    point = model.initial_point()
+    point["a_interval__"] = np.log((1.6 - 0.5) / (3.0 - 1.6))
+    point["k_interval__"] = np.log((0.85 - 0.2) / (2.0 - 0.85))
+    logp_y = model.compile_fn(model.logp(vars=[model["y"]], sum=True), on_unused_input="ignore")
+
+    th = pt.as_tensor(point_theta)
+    mean = em.mean_tensor(th, _X_OBS[:, None]).eval()
+    cov = em.covariance_tensor(th, _X_OBS[:, None]).eval() + _NOISE**2 * np.eye(20)
+    expected = stats.multivariate_normal(mean, cov).logpdf(data.y)
+    np.testing.assert_allclose(logp_y(point), expected, rtol=1e-6)
+    # the diagonal form adds the variances to the noise
+    built = compose_model(em.physics_model(covariance="diagonal"), data, kp.NoDiscrepancy())
+    logp_y = built.model.compile_fn(
+        built.model.logp(vars=[built.model["y"]], sum=True), on_unused_input="ignore"
+    )
+    sd = np.sqrt(np.diag(cov))
+    np.testing.assert_allclose(logp_y(point), stats.norm(mean, sd).logpdf(data.y).sum(), rtol=1e-6)
+    with pytest.raises(ValueError, match="emulated physics"):
+        compose_model(emulated, data, kp.GridGP(["x"]))
+
+
+def _posterior(cal):
+    post = cal.posterior
+    return {k: (float(post[k].mean()), float(post[k].std())) for k in ("a", "k")}
+
+
+_SAMPLING = {"draws": 1000, "tune": 1000, "chains": 2, "random_seed": 1}
+
+
+@pytest.fixture(scope="module")
+def direct_posterior():
+    import kohpymc as kp
+
+    _, data, _ = _decay_setup()
+    direct = PhysicsModel(_smooth_tensor, _PRIORS, inputs=["x"], backend="pytensor")
+    return _posterior(kp.calibrate(direct, data, **_SAMPLING))
+
+
+def test_a_near_exact_emulator_gives_the_direct_posterior(direct_posterior):
+    import kohpymc as kp
+
+    em, _, data, _ = _emulator(100)
+    emulated = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING))
+    for name, (mean, sd) in direct_posterior.items():
+        assert abs(emulated[name][0] - mean) < 0.1 * sd, (name, emulated[name], mean, sd)
+        assert 0.9 < emulated[name][1] / sd < 1.25
+
+
+def test_a_poor_emulator_widens_rather_than_shifts_the_posterior(direct_posterior):
+    import kohpymc as kp
+
+    em, _, data, _ = _emulator(15)
+    loo_mean, _ = em.leave_one_out()
+    assert np.sqrt(np.mean((loo_mean - em.runs.y) ** 2)) / np.std(em.runs.y) > 0.05  # poor
+    poor = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING, warn=False))
+    for name, (mean, sd) in direct_posterior.items():
+        assert poor[name][1] > 1.5 * sd, (name, poor[name], sd)  # wider
+        assert abs(poor[name][0] - _TRUTH[name]) < 2.0 * poor[name][1]  # truth covered
+        assert abs(poor[name][0] - mean) < 1.0 * poor[name][1]  # not shifted

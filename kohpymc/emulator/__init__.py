@@ -3,7 +3,9 @@
 * :mod:`~kohpymc.emulator.design`: space-filling designs over the calibration inputs ×
   the prior box of θ (maximin Latin hypercube, Sobol) and their extension;
 * :mod:`~kohpymc.emulator.runs`: simulator runs at a design as tasks
-  (:func:`kohpymc.run_tasks`), cached on disk, failures recorded and skipped.
+  (:func:`kohpymc.run_tasks`), cached on disk, failures recorded and skipped;
+* :mod:`~kohpymc.emulator.gp`: :class:`Emulator`, a GP over (inputs, θ) whose mean and
+  variance enter the calibration as an :class:`EmulatedPhysics` model.
 """
 
 from kohpymc.emulator.design import (
@@ -12,9 +14,13 @@ from kohpymc.emulator.design import (
     maximin_distance,
     space_filling_design,
 )
+from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
 from kohpymc.emulator.runs import SimulatorRuns, run_design
 
 __all__ = [
+    "Emulator",
+    "EmulatedPhysics",
+    "GPHyperparameters",
     "design_box",
     "extend_design",
     "maximin_distance",

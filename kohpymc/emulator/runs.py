@@ -123,6 +123,15 @@ def _simulate(key: str, item: tuple[PhysicsModel, dict[str, list[float]], dict[s
     return np.asarray(physics.evaluate(inputs, params), dtype=float).tolist()
 
 
+def _write_record(path: Path, record: dict[str, Any]) -> None:
+    text = json.dumps(record)
+
+    def write(tmp: Path) -> None:
+        tmp.write_text(text)
+
+    write_atomic(path, write)
+
+
 def _read_cache(path: Path) -> dict[str, Any] | None:
     try:
         return json.loads(path.read_text())
@@ -228,8 +237,7 @@ def run_design(
             else:
                 rec["output"], rec["error"] = None, outcome.error
             if folder is not None:
-                text = json.dumps(rec)
-                write_atomic(folder / f"{key}.json", lambda p, text=text: p.write_text(text))
+                _write_record(folder / f"{key}.json", rec)
     ok, bad = [], []
     for key in dict.fromkeys(order):
         rec = records[key]

@@ -18,6 +18,9 @@ from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation c
 from kohpymc.emulator import (
     EmulatedPhysics,
     Emulator,
+    EmulatorCheck,
+    EmulatorWarning,
+    check_emulator,
     design_box,
     extend_design,
     run_design,
@@ -72,6 +75,9 @@ __all__ = [
     # emulating an expensive simulator
     "Emulator",
     "EmulatedPhysics",
+    "check_emulator",
+    "EmulatorCheck",
+    "EmulatorWarning",
     "design_box",
     "space_filling_design",
     "extend_design",

@@ -5,9 +5,12 @@
 * :mod:`~kohpymc.emulator.runs`: simulator runs at a design as tasks
   (:func:`kohpymc.run_tasks`), cached on disk, failures recorded and skipped;
 * :mod:`~kohpymc.emulator.gp`: :class:`Emulator`, a GP over (inputs, θ) whose mean and
-  variance enter the calibration as an :class:`EmulatedPhysics` model.
+  variance enter the calibration as an :class:`EmulatedPhysics` model;
+* :mod:`~kohpymc.emulator.checking`: leave-one-out or held-out scores, a figure and an
+  :class:`EmulatorWarning` when the emulator is not fit for calibration.
 """
 
+from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_emulator
 from kohpymc.emulator.design import (
     design_box,
     extend_design,
@@ -18,6 +21,9 @@ from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
 from kohpymc.emulator.runs import SimulatorRuns, run_design
 
 __all__ = [
+    "EmulatorCheck",
+    "EmulatorWarning",
+    "check_emulator",
     "Emulator",
     "EmulatedPhysics",
     "GPHyperparameters",

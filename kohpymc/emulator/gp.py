@@ -8,7 +8,8 @@ r"""A Gaussian-process emulator of a simulator, usable as a physics model.
   ``s² (1 + √5 r + 5r²/3) exp(-√5 r)``, ``r² = Σ_k (Δu_k / ℓ_k)²``, plus a nugget ``g``;
 * hyperparameters ``(ℓ, s², g)`` by MAP: multi-start L-BFGS-B on the log marginal
   likelihood (analytic gradient) plus weak priors, ``ln ℓ_k ~ N(ln 0.5, 1.5²)``,
-  ``ln s² ~ N(0, 2²)``, ``ln g ~ N(ln 1e-6, 4²)``, within bounds.
+  ``ln s² ~ N(0, 2²)``, ``ln ρ ~ N(ln 1e-6, 4²)`` for the nugget ``g = ρ s²``, within
+  bounds (``ρ ≥ 1e-8`` keeps the kernel matrix well conditioned).
 
 The predictive mean ``η̂(x, θ)`` and variance ``v(x, θ)`` (the latent variance plus the
 nugget, in output units) are also written as PyTensor expressions of θ from the stored
@@ -43,10 +44,10 @@ _SQRT5 = np.sqrt(5.0)
 #: prior of ln ℓ_k (unit-box length scales): mean, sd
 _LS_PRIOR = (np.log(0.5), 1.5)
 _AMP_PRIOR = (0.0, 2.0)
-_NUGGET_PRIOR = (np.log(1e-6), 4.0)
+_NUGGET_PRIOR = (np.log(1e-6), 4.0)  # of ln ρ, the nugget relative to s²
 _BOUNDS_LS = (np.log(1e-3), np.log(1e3))
-_BOUNDS_AMP = (np.log(1e-3), np.log(1e3))
-_BOUNDS_NUGGET = (np.log(1e-10), np.log(0.5))
+_BOUNDS_AMP = (np.log(1e-3), np.log(1e6))
+_BOUNDS_NUGGET = (np.log(1e-8), np.log(0.5))
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,9 @@ def _neg_log_posterior(
     """Negative (log marginal likelihood + log prior) and its gradient in log space."""
     q = U.shape[1]
     log_ls, log_amp, log_g = params[:q], params[q], params[q + 1]
-    ls, amp, g = np.exp(log_ls), float(np.exp(log_amp)), float(np.exp(log_g))
+    # the nugget is relative to the amplitude, g = s² ρ, which bounds the condition number
+    ls, amp = np.exp(log_ls), float(np.exp(log_amp))
+    g = amp * float(np.exp(log_g))
     R, D = _kernel_numpy(kind, U, U, ls, 1.0)
     n = len(y)
     K = amp * R + (g + 1e-10) * np.eye(n)
@@ -107,7 +110,7 @@ def _neg_log_posterior(
         base = amp * (5.0 / 3.0) * (1.0 + _SQRT5 * r) * np.exp(-_SQRT5 * r)
     for k in range(q):
         grad[k] = -0.5 * np.sum(W * base * D[:, :, k])
-    grad[q] = -0.5 * np.sum(W * amp * R)
+    grad[q] = -0.5 * (np.sum(W * amp * R) + np.trace(W) * g)
     grad[q + 1] = -0.5 * np.trace(W) * g
     # weak priors (negative log densities and their gradients)
     m, s = _LS_PRIOR
@@ -150,7 +153,7 @@ def _fit_hyperparameters(
     return GPHyperparameters(
         lengthscales=np.exp(p[:q]),
         amplitude=float(np.exp(p[q])),
-        nugget=float(np.exp(p[q + 1])),
+        nugget=float(np.exp(p[q]) * np.exp(p[q + 1])),
         log_posterior=float(-best.fun),
     )
 
@@ -167,8 +170,10 @@ class Emulator:
         :meth:`physics_model`; its inputs and parameters name the columns.
     box : mapping, optional
         Column -> ``(lower, upper)`` defining the unit box (default: the runs' range).
-    kernel : {"se", "matern52"}
-        ARD squared exponential or Matérn 5/2.
+    kernel : {"matern52", "se"}
+        ARD Matérn 5/2 (default) or squared exponential.  On smooth test functions the
+        squared exponential was more accurate but its 90 % bands covered only 0.6–0.9
+        of held-out runs (overconfident), Matérn 5/2 covered 0.88–0.96.
     restarts : int
         Starts of the L-BFGS-B search for the hyperparameters (the first at
         ``ℓ = 0.5``, ``s² = 1``, the others random).
@@ -190,7 +195,7 @@ class Emulator:
     >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 30))
     >>> em = Emulator(runs, physics)
     >>> mean, var = em.predict({"x": [400.0], "P": [2.5]}, {"E": 200.0})
-    >>> bool(abs(mean[0] - 12.0) < 0.1), bool(var[0] < 0.01)
+    >>> bool(abs(mean[0] - 12.0) < 0.1), bool(var[0] < 0.1)
     (True, True)
     """
 
@@ -200,7 +205,7 @@ class Emulator:
         physics: PhysicsModel,
         *,
         box: Mapping[str, tuple[float, float]] | None = None,
-        kernel: Literal["se", "matern52"] = "se",
+        kernel: Literal["se", "matern52"] = "matern52",
         restarts: int = 5,
         seed: int = 0,
         hyperparameters: GPHyperparameters | None = None,

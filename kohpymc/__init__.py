@@ -22,8 +22,10 @@ from kohpymc.emulator import (
     EmulatorWarning,
     check_emulator,
     design_box,
+    emulate,
     extend_design,
     run_design,
+    sequential_design,
     space_filling_design,
 )
 from kohpymc.execution import TaskOutcome, run_tasks
@@ -75,6 +77,8 @@ __all__ = [
     # emulating an expensive simulator
     "Emulator",
     "EmulatedPhysics",
+    "emulate",
+    "sequential_design",
     "check_emulator",
     "EmulatorCheck",
     "EmulatorWarning",

@@ -385,3 +385,86 @@ def test_held_out_check_covers_and_a_poor_emulator_warns():
     assert not bad.fit and bad.relative_rmse > 0.1
     loo = check_emulator(em, warn=False)
     assert loo.kind == "leave-one-out" and loo.simulated.size == 60
+
+
+# ------------------------------------------------------------------ sequential design
+
+
+def test_posterior_design_runs_posterior_draws_at_the_calibration_inputs():
+    from kohpymc.emulator import posterior_design
+
+    physics, data, _ = _decay_setup()
+    draws = pd.DataFrame({"a": np.linspace(1.5, 1.9, 50), "k": np.linspace(0.7, 0.9, 50)})
+    d = posterior_design(draws, data, physics, 45, seed=2)
+    assert list(d.columns) == ["x", "a", "k"] and len(d) == 2 * 20  # round(45 / 20) draws
+    for _, group in d.groupby(["a", "k"]):
+        np.testing.assert_allclose(np.sort(group["x"]), _X_OBS)
+    assert d["a"].between(1.5, 1.9).all()
+    with pytest.raises(KeyError, match="'k'"):
+        posterior_design(draws[["a"]], data, physics, 10)
+
+
+@pytest.mark.slow
+def test_sequential_design_moves_a_poor_emulator_to_the_direct_posterior(direct_posterior):
+    from kohpymc.emulator import sequential_design
+
+    physics, data, _ = _decay_setup()
+    result = sequential_design(
+        physics, data, runs=15, new_runs=40, rounds=3, tolerance=0.2, **_SAMPLING, warn=False
+    )
+    table = result.table()
+    assert table["runs"].iloc[0] == 15 and table["runs"].iloc[-1] > 15
+    first, last = result.rounds[0], result.rounds[-1]
+    for name, (mean, sd) in direct_posterior.items():
+        assert last["sds"][name] < first["sds"][name]
+        assert abs(last["means"][name] - mean) < 0.5 * sd, (name, last, mean, sd)
+
+
+# ----------------------------------------------------------------------- study files
+
+
+def _study_file(tmp_path, emulator_table):
+    from kohpymc.examples import decay
+
+    text = decay.STUDY_FILE.read_text()
+    text = text.replace('"data/', f'"{decay.STUDY_FILE.parent}/data/')
+    text = text.replace("[check]", emulator_table + "\n[check]")
+    path = tmp_path / "study.toml"
+    path.write_text(text)
+    return path
+
+
+def test_an_emulator_table_in_a_study_file_is_read_and_checked(tmp_path):
+    from kohpymc import StudyConfigError, load_study
+    from kohpymc.emulator.study import EmulatorSettings
+
+    table = '[emulator]\nruns = 200\ndesign = "maximin-lhs"\nsequential = 2\n'
+    spec = load_study(_study_file(tmp_path, table))
+    assert spec.emulator == EmulatorSettings(runs=200, design="maximin-lhs", sequential=2)
+    assert load_study(_study_file(tmp_path, "")).emulator is None
+    for bad, key in (
+        ("runs = 1", "emulator.runs"),
+        ('design = "grid"', "emulator.design"),
+        ("sequentiel = 2", "emulator.sequentiel"),
+        ("tolerance = -1", "emulator.tolerance"),
+    ):
+        with pytest.raises(StudyConfigError, match=rf"study.toml: \[{key}\]"):
+            load_study(_study_file(tmp_path, f"[emulator]\n{bad}\n"))
+
+
+def test_study_physics_reuses_cached_runs(tmp_path):
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    counter, physics = _counted_physics()
+    from kohpymc import CalibrationData
+
+    data = CalibrationData({"x": np.linspace(0, 1, 5)}, np.zeros(5), noise_sd=0.1)
+    physics.parameters["a"] = Uniform(0.2, 2.0)  # no failing runs here
+    settings = EmulatorSettings(runs=20)
+    first = study_physics(settings, physics, data, tmp_path)
+    rows = counter.rows
+    again = study_physics(settings, physics, data, tmp_path)
+    assert rows == 20 and counter.rows == 20  # the second build ran nothing
+    np.testing.assert_allclose(first.emulator.hyper.lengthscales, again.emulator.hyper.lengthscales)
+    assert (tmp_path / "emulator" / "check.json").is_file()
+    assert (tmp_path / "emulator" / "check.png").is_file()

@@ -7,7 +7,9 @@
 * :mod:`~kohpymc.emulator.gp`: :class:`Emulator`, a GP over (inputs, θ) whose mean and
   variance enter the calibration as an :class:`EmulatedPhysics` model;
 * :mod:`~kohpymc.emulator.checking`: leave-one-out or held-out scores, a figure and an
-  :class:`EmulatorWarning` when the emulator is not fit for calibration.
+  :class:`EmulatorWarning` when the emulator is not fit for calibration;
+* :mod:`~kohpymc.emulator.sequential`: :func:`emulate` (design, run, fit) and
+  :func:`sequential_design` (add runs at posterior draws until the posterior settles).
 """
 
 from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_emulator
@@ -19,6 +21,12 @@ from kohpymc.emulator.design import (
 )
 from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
 from kohpymc.emulator.runs import SimulatorRuns, run_design
+from kohpymc.emulator.sequential import (
+    SequentialDesign,
+    emulate,
+    posterior_design,
+    sequential_design,
+)
 
 __all__ = [
     "EmulatorCheck",
@@ -33,4 +41,8 @@ __all__ = [
     "space_filling_design",
     "SimulatorRuns",
     "run_design",
+    "SequentialDesign",
+    "emulate",
+    "posterior_design",
+    "sequential_design",
 ]

@@ -129,6 +129,19 @@ def test_failed_runs_are_recorded_and_skipped(tmp_path):
     assert counter.calls == calls + 1
 
 
+@pytest.mark.slow
+def test_runs_on_a_local_dask_cluster_match_in_process_runs(tmp_path):
+    import os
+
+    physics = PhysicsModel(_smooth, _PRIORS, inputs=["x"], name="decay")
+    design = space_filling_design({"x": (0.0, 3.0), "a": (0.5, 3.0), "k": (0.2, 2.0)}, 8)
+    here = run_design(physics, design)
+    there = run_design(physics, design, workers=2, cache=tmp_path)
+    pd.testing.assert_frame_equal(here.points, there.points)
+    assert there.simulated == 8 and len(os.listdir(tmp_path)) == 8
+    assert run_design(physics, design, workers=2, cache=tmp_path).simulated == 0
+
+
 def test_a_design_missing_a_column_is_named():
     _, physics = _counted_physics()
     with pytest.raises(KeyError, match=r"\['b'\]"):

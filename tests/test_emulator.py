@@ -481,3 +481,6 @@ def test_study_physics_reuses_cached_runs(tmp_path):
     np.testing.assert_allclose(first.emulator.hyper.lengthscales, again.emulator.hyper.lengthscales)
     assert (tmp_path / "emulator" / "check.json").is_file()
     assert (tmp_path / "emulator" / "check.png").is_file()
+    table = pd.read_csv(tmp_path / "emulator" / "runs.csv")
+    assert len(table) == 20 and {"x", "a", "b", "output", "error"} <= set(table.columns)
+    assert (tmp_path / "emulator" / "emulator.json").is_file()

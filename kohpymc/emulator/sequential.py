@@ -157,8 +157,9 @@ class SequentialDesign:
     calibration : Calibration
         The last calibration through it.
     rounds : list of dict
-        Per round: ``runs`` (total), ``means``, ``sds`` (posterior of θ) and
-        ``shift`` (largest move of a posterior mean, in posterior sds; NaN in round 0).
+        Per round: ``runs`` (total), ``means``, ``sds`` (posterior of θ), ``shift``
+        (largest move of a posterior mean, in posterior sds; NaN in round 0) and
+        ``emulator`` (its repr: hyperparameters).
     converged : bool
         Whether the last shift is below the tolerance.
     """
@@ -270,7 +271,15 @@ def sequential_design(
             if previous is None
             else max(abs(means[k] - previous[k]) / sds[k] for k in params)
         )
-        history.append({"runs": emulator.n_runs, "means": means, "sds": sds, "shift": shift})
+        history.append(
+            {
+                "runs": emulator.n_runs,
+                "means": means,
+                "sds": sds,
+                "shift": shift,
+                "emulator": repr(emulator),
+            }
+        )
         result = SequentialDesign(emulator, cal, history, bool(shift < tolerance))
         if result.converged or round_ == rounds:
             break

@@ -16,7 +16,8 @@
 With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
 runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses
 them), the validation of the emulator goes to ``<output>/emulator/check.json`` and
-``check.png``, and the sequential rounds to ``rounds.csv``.
+``check.png``, the sequential rounds to ``rounds.csv``, the fitted hyperparameters to
+``emulator.json`` and every run (failures with their error) to ``runs.csv``.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+
+import pandas as pd
 
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
@@ -186,6 +189,7 @@ def study_physics(
         result.table().to_csv(folder / "rounds.csv")
         _write_check(folder, check_emulator(emulator))
     (folder / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
+    _write_emulator(folder, emulator)
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
 
 
@@ -196,6 +200,28 @@ def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:
         out["random_seed"] = sampling["random_seed"]
     out["warn"] = False
     return out
+
+
+def _write_emulator(folder: Path, emulator: Any) -> None:
+    """``emulator.json`` (hyperparameters) and ``runs.csv`` (every run, failures too)."""
+    h = emulator.hyper
+    record = {
+        "emulator": repr(emulator),
+        "kernel": emulator.kernel,
+        "columns": list(emulator.columns),
+        "lengthscales_unit_box": [float(v) for v in h.lengthscales],
+        "amplitude": h.amplitude,
+        "nugget": h.nugget,
+        "log_posterior": h.log_posterior,
+        "runs": emulator.n_runs,
+        "failed_runs": int(len(emulator.runs.failed)),
+    }
+    (folder / "emulator.json").write_text(json.dumps(record, indent=1))
+    runs = emulator.runs
+    table = runs.points.assign(error="")
+    if len(runs.failed):
+        table = pd.concat([table, runs.failed.assign(output=float("nan"))], ignore_index=True)
+    table.to_csv(folder / "runs.csv", index=False)
 
 
 def _write_check(folder: Path, check: Any) -> None:

@@ -331,6 +331,20 @@ def test_every_formulation_builds_with_the_emulator_and_sees_its_covariance():
     np.testing.assert_allclose(logp_y(point), stats.norm(mean, sd).logpdf(data.y).sum(), rtol=1e-6)
     with pytest.raises(ValueError, match="emulated physics"):
         compose_model(emulated, data, kp.GridGP(["x"]))
+    # predictions at new inputs add the emulator variance there to the noise
+    built = compose_model(emulated, data, kp.NoDiscrepancy(), new_inputs={"x": [0.5, 4.0]})
+    y_pred = built.model["y_pred"]
+    sd = pytensor_sd(y_pred, built.model, point)
+    _, var_new = em.predict({"x": [0.5, 4.0]}, point_theta)
+    np.testing.assert_allclose(sd, np.sqrt(_NOISE**2 + var_new), rtol=1e-6)
+    assert sd[1] > 3 * sd[0]  # x = 4 lies outside the design box: the emulator knows less
+
+
+def pytensor_sd(rv, model, point):
+    """The ``sigma`` input of a normal random variable, evaluated at a model point."""
+    (sigma,) = model.replace_rvs_by_values([rv.owner.inputs[-1]])
+    fn = model.compile_fn(sigma, on_unused_input="ignore")
+    return np.asarray(fn(point))
 
 
 def _posterior(cal):

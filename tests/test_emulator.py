@@ -479,6 +479,7 @@ def test_an_emulator_table_in_a_study_file_is_read_and_checked(tmp_path):
             load_study(_study_file(tmp_path, f"[emulator]\n{bad}\n"))
 
 
+@pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
 def test_study_physics_reuses_cached_runs(tmp_path):
     from kohpymc.emulator.study import EmulatorSettings, study_physics
 

@@ -20,6 +20,19 @@ from kohpymc.data import CalibrationData, pooled_replicate_sd
 from kohpymc.diagnostics import SamplerTroubleWarning, sampler_diagnostics
 from kohpymc.discovery import DiscoveryReport, discover
 from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation class
+from kohpymc.emulator import (
+    EmulatedPhysics,
+    Emulator,
+    EmulatorCheck,
+    EmulatorWarning,
+    check_emulator,
+    design_box,
+    emulate,
+    extend_design,
+    run_design,
+    sequential_design,
+    space_filling_design,
+)
 from kohpymc.execution import TaskOutcome, run_tasks
 from kohpymc.identifiability import (
     IdentifiabilityReport,
@@ -66,6 +79,18 @@ __all__ = [
     "prior_box",
     "sampler_diagnostics",
     "SamplerTroubleWarning",
+    # emulating an expensive simulator
+    "Emulator",
+    "EmulatedPhysics",
+    "emulate",
+    "sequential_design",
+    "check_emulator",
+    "EmulatorCheck",
+    "EmulatorWarning",
+    "design_box",
+    "space_filling_design",
+    "extend_design",
+    "run_design",
     # identifiability
     "taylor_check",
     "check_formulation",

@@ -28,6 +28,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from kohpymc.warning_filters import quiet_command_line
 
@@ -123,6 +124,25 @@ def _execution_overrides(args: argparse.Namespace, execution: dict) -> dict:
     return dict(execution)
 
 
+def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
+    """The study's physics replaced by its emulator (``[emulator]``; runs cached in out)."""
+    from kohpymc.emulator.study import study_physics
+
+    sampling = {k: kwargs[k] for k in ("draws", "tune", "chains", "random_seed") if k in kwargs}
+    physics = study_physics(
+        spec.emulator,
+        kwargs["physics"],
+        kwargs["calibration"],
+        out,
+        formulations=kwargs["formulations"],
+        sampling=sampling,
+        workers=kwargs.get("workers", 1),
+        scheduler=kwargs.get("scheduler"),
+    )
+    print(f"emulator: {physics.emulator!r} (checks in {out}/emulator/)")
+    return physics
+
+
 def _study(args: argparse.Namespace) -> int:
     from kohpymc.checks import check_execution
     from kohpymc.config import StudyConfigError
@@ -154,6 +174,8 @@ def _study(args: argparse.Namespace) -> int:
     )
     display = task_display(sys.stdout, quiet=args.quiet)
     try:
+        if spec.emulator is not None:
+            kwargs["physics"] = _emulated_physics(spec, kwargs, out)
         result = run_study(
             **kwargs,
             out_dir=out,

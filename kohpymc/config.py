@@ -44,6 +44,11 @@ formulations and sampler settings::
     [output]                          # optional; the CLI's --out wins
     dir = "beam_study"
 
+    [emulator]                        # optional: calibrate through a GP emulator
+    runs = 200                        # (keys: kohpymc.emulator.study, docs/emulator.md)
+    design = "maximin-lhs"
+    sequential = 2
+
     [check]                           # optional: settings of `kohpymc check` (kohpymc.sbc)
     formulation = "M0"
     replicates = 200
@@ -114,6 +119,7 @@ _SECTIONS: dict[str, set[str] | None] = {
     },
     "execution": {"workers", "scheduler"},
     "output": {"dir"},
+    "emulator": None,  # keys checked by kohpymc.emulator.study.EmulatorSettings
     "check": {
         "formulation", "replicates", "draws", "tune", "chains", "seed", "rank_draws", "simulate",
     },
@@ -192,6 +198,8 @@ class StudySpec:
     units : dict or None
         ``[data.units]``: unit strings of inputs and of the output (key ``"output"``),
         read by ``kohpymc discover``.
+    emulator : EmulatorSettings or None
+        The ``[emulator]`` table: calibrate through a GP emulator of the physics.
     """
 
     source: Path
@@ -206,6 +214,7 @@ class StudySpec:
     execution: dict[str, Any] = field(default_factory=dict)
     check: CheckSpec = field(default_factory=CheckSpec)
     units: dict[str, str] | None = None
+    emulator: Any = None
 
     def run_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of :func:`kohpymc.run_study` for this study."""
@@ -382,7 +391,21 @@ def load_study(path: str | Path) -> StudySpec:
         execution=execution,
         check=check,
         units=_units_table(path, doc["data"].get("units"), inputs, output),
+        emulator=_emulator_section(path, doc),
     )
+
+
+def _emulator_section(path: Path, doc: dict) -> Any:
+    """``[emulator]``: :class:`kohpymc.emulator.study.EmulatorSettings`, or None."""
+    from kohpymc.emulator.study import EmulatorSettings
+
+    if "emulator" not in doc:
+        return None
+    try:
+        return EmulatorSettings.from_table(doc["emulator"])
+    except KeyError as err:
+        why = "; ".join(getattr(err, "__notes__", [])) or "invalid"
+        raise _err(path, f"emulator.{err.args[0]}", why) from err
 
 
 def _read_document(path: Path) -> dict:

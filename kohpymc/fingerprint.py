@@ -86,14 +86,19 @@ def _prior(prior: Any) -> Any:
 def physics_fingerprint(physics: Any) -> str:
     """A hash of a physics model: function and Jacobian sources, inputs, priors, options.
 
+    A model whose results depend on more than its code (an emulator's training runs)
+    says so through a ``fingerprint_parts()`` method, whose value is hashed too.
+
     Examples
     --------
     >>> from kohpymc.examples import beam
     >>> physics_fingerprint(beam.physics_model()) == physics_fingerprint(beam.physics_model())
     True
     """
+    extra = getattr(physics, "fingerprint_parts", None)
     return digest(
         {
+            "extra": extra() if callable(extra) else None,
             "name": physics.name,
             "backend": physics.backend,
             "function": source_fingerprint(physics.function),

@@ -205,7 +205,19 @@ def compose_model(
         def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
             return physics.tensor(theta, Xt[:, :n_phys])
 
-        noise_sd = _noise_sd(data, noise_sd_prior, y_scale)
+        sigma_obs = _noise_sd(data, noise_sd_prior, y_scale)
+        X_phys = pt.as_tensor_variable(X[:, :n_phys])
+        # an emulator's predictive covariance enters the likelihood covariance of the
+        # formulations that accept it; for the others its variance adds to the noise
+        physics_cov = None
+        if discrepancy.accepts_physics_covariance:
+            physics_cov = physics.covariance_tensor(theta, X_phys)
+        physics_var = None if physics_cov is not None else physics.variance_tensor(theta, X_phys)
+        noise_sd = sigma_obs if physics_var is None else pt.sqrt(sigma_obs**2 + physics_var)
+
+        def physics_variance(Xt: pt.TensorVariable) -> pt.TensorVariable | None:
+            return physics.variance_tensor(theta, Xt[:, :n_phys])
+
         before = set(model.named_vars)
         ctx = ModelContext(
             input_names=names,
@@ -220,22 +232,34 @@ def compose_model(
             span=span,
             obs_dim=OBS_DIM,
             marginalize=marginalize,
+            measurement_sd=None if physics_var is None else sigma_obs,
+            physics_covariance=physics_cov,
         )
         record = _checked_record(discrepancy.build(ctx), discrepancy, model)
         created = tuple(k for k in model.named_vars if k not in before and k != record.observed)
         if new_inputs is not None:
-            _add_predictions(model, record, physics_mean, noise_sd, new_inputs, names)
+            _add_predictions(
+                model, record, physics_mean, sigma_obs, physics_variance, new_inputs, names
+            )
     return CalibrationModel(model, record, discrepancy, names, created)
 
 
-def _add_predictions(model, record, physics_mean, noise_sd, new_inputs, names) -> None:
-    """``physics``, ``y_model``, ``discrepancy`` and ``y_pred`` over dim ``"pred"``."""
+def _add_predictions(
+    model, record, physics_mean, sigma_obs, physics_variance, new_inputs, names
+) -> None:
+    """``physics``, ``y_model``, ``discrepancy`` and ``y_pred`` over dim ``"pred"``.
+
+    ``y_pred`` adds σ_obs and, for an emulated physics model, the emulator variance at
+    the new inputs.
+    """
     Xn_values = new_input_matrix(new_inputs, names)
     model.add_coord(PRED_DIM, np.arange(Xn_values.shape[0]))
     Xn = pt.as_tensor_variable(Xn_values)
     G_new = pm.Deterministic("physics", physics_mean(Xn), dims=PRED_DIM)
     y_model = pm.Deterministic("y_model", record.predictor(Xn, G_new), dims=PRED_DIM)
     pm.Deterministic("discrepancy", y_model - G_new, dims=PRED_DIM)
+    variance = physics_variance(Xn)
+    noise_sd = sigma_obs if variance is None else pt.sqrt(sigma_obs**2 + variance)
     pm.Normal("y_pred", mu=y_model, sigma=noise_sd, dims=PRED_DIM)
 
 

@@ -62,7 +62,9 @@ class ModelContext:
     physics_mean : callable
         ``physics_mean(X) -> G(X; θ)`` for any ``(m, d)`` input tensor.
     noise_sd : TensorVariable
-        Measurement-noise sd σ_obs (a constant when known, else a random variable).
+        The sd of the independent error each row's likelihood adds: σ_obs (a constant
+        when known, else a random variable) or, when the physics model has a variance
+        (an emulator), ``sqrt(σ_obs² + v(x_i; θ))`` per row.
     y_scale : float
         A positive output scale (sd of ``y``) used to size default priors.
     center, scale : dict
@@ -74,6 +76,14 @@ class ModelContext:
     marginalize : bool
         Integrate linear discrepancy-mean coefficients with normal priors out of the
         likelihood (recovering them by whitening); ``False`` samples them directly.
+    measurement_sd : TensorVariable, optional
+        σ_obs alone (a scalar), when ``noise_sd`` also holds a physics variance;
+        ``None`` means ``noise_sd`` is σ_obs.
+    physics_covariance : TensorVariable, optional
+        ``(n, n)`` covariance of the physics output between the calibration rows (an
+        emulator's ``Σ_η(θ)``), given only to formulations whose
+        :attr:`Discrepancy.accepts_physics_covariance` is true: they add it to the
+        likelihood covariance, ``N(G + μ_δ, Σ_η + Σ_δ + σ_obs² I)``.
     """
 
     input_names: tuple[str, ...]
@@ -89,6 +99,13 @@ class ModelContext:
     obs_dim: str = "obs"
     marginalize: bool = True
     extra: dict[str, object] = field(default_factory=dict)
+    measurement_sd: pt.TensorVariable | None = None
+    physics_covariance: pt.TensorVariable | None = None
+
+    @property
+    def sigma_obs(self) -> pt.TensorVariable:
+        """The measurement-noise sd σ_obs alone (a scalar)."""
+        return self.noise_sd if self.measurement_sd is None else self.measurement_sd
 
     def column(self, name: str) -> int:
         """Index of input ``name`` in ``X``."""
@@ -232,6 +249,10 @@ class Discrepancy(ABC):
     study_defaults: ClassVar[Mapping[str, str]] = {}
     #: constructor arguments that only Python code can give (callables)
     code_only: ClassVar[tuple[str, ...]] = ()
+    #: :meth:`build` adds :attr:`ModelContext.physics_covariance` (an emulator's
+    #: correlated error) to its likelihood covariance; otherwise only the emulator's
+    #: per-row variance reaches it, through ``noise_sd``
+    accepts_physics_covariance: ClassVar[bool] = False
 
     def __init_subclass__(cls, kind: str | None = None, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

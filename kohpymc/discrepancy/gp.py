@@ -40,11 +40,36 @@ def _marginal_likelihood(gp: pm.gp.Marginal, ctx: ModelContext, X: pt.TensorVari
     likelihood is :class:`~kohpymc.gaussian.GaussianLikelihood` (one LAPACK pass per
     gradient instead of PyMC's Cholesky-and-solve graph).  Returns ``(mean, cov)``.
     """
-    noise = pm.gp.cov.WhiteNoise(ctx.noise_sd)
+    noise = (
+        pm.gp.cov.WhiteNoise(ctx.noise_sd)
+        if ctx.physics_covariance is None
+        else _CalibrationRowsNoise(ctx.noise_sd, ctx.physics_covariance, len(ctx.input_names))
+    )
     mu, cov = gp._build_marginal_likelihood(X=X, noise_func=noise, jitter=JITTER_DEFAULT)
     gp.X, gp.y, gp.sigma = X, ctx.y, noise
     GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
     return mu, cov
+
+
+class _CalibrationRowsNoise(pm.gp.cov.Covariance):
+    """``σ_obs² I + Σ_η``: measurement noise plus an emulator's error, calibration rows only.
+
+    Like ``WhiteNoise`` it is zero between different sets of rows; ``full(X)`` is only
+    used on the calibration rows (the marginal likelihood and the GP conditional's
+    training covariance), where ``Σ_η`` was computed.
+    """
+
+    def __init__(self, sigma, physics_cov, input_dim: int) -> None:
+        super().__init__(input_dim)
+        self.sigma, self.physics_cov = sigma, physics_cov
+
+    def diag(self, X):
+        return self.sigma**2 + pt.diag(self.physics_cov)
+
+    def full(self, X, Xs=None):
+        if Xs is None:
+            return self.sigma**2 * pt.eye(X.shape[0]) + self.physics_cov
+        return pt.zeros((X.shape[0], Xs.shape[0]))
 
 
 class _KOHMean(pm.gp.mean.Mean):
@@ -111,6 +136,7 @@ class GaussianProcess(Discrepancy, kind="gp"):
     #: mimic smooth physics) still needs smaller steps: 0.9 left 1-3 divergences in 4000
     #: draws on the beam, 0.95 none (seeds 2026, 1, 2).
     default_target_accept = 0.95
+    accepts_physics_covariance = True
 
     def __init__(
         self,
@@ -186,6 +212,8 @@ class GaussianProcess(Discrepancy, kind="gp"):
             mu, total = _marginal_likelihood(gp, ctx, X)
             B = spec.design(ctx, X)  # type: ignore[union-attr]
             c0 = cov(X) + (ctx.noise_sd**2 + 1e-6) * pt.eye(ctx.X.shape[0])
+            if ctx.physics_covariance is not None:
+                c0 = c0 + ctx.physics_covariance
             chol = pt.linalg.cholesky(c0)
             spec.build_marginalized(  # type: ignore[union-attr]
                 ctx,

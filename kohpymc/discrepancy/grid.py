@@ -98,6 +98,9 @@ class GridGP(GaussianProcess, kind="grid_gp"):
     label = "M4"
     description = "stationary GP (grid/Kronecker)"
 
+    # one noise sd for all rows (the Kronecker algebra): an emulator's error cannot enter
+    accepts_physics_covariance = False
+
     def __init__(
         self,
         inputs: Sequence[str],
@@ -132,6 +135,11 @@ class GridGP(GaussianProcess, kind="grid_gp"):
             raise ValueError(
                 f"GridGP: model input(s) {outside} are not kernel inputs "
                 f"{list(self.gp_inputs)}; the physics would vary within a grid cell"
+            )
+        if ctx.measurement_sd is not None:
+            raise ValueError(
+                "GridGP needs one noise sd for all rows; an emulated physics model adds "
+                "its own variance per row (use GaussianProcess instead)"
             )
         if not isinstance(ctx.noise_sd, Constant):
             raise ValueError(

@@ -32,6 +32,7 @@ class IndependentDiscrepancy(Discrepancy):
 
     #: name of the mean coefficients in the model
     mean_name: ClassVar[str] = "delta_mean"
+    accepts_physics_covariance = True
 
     def mean_function(self, ctx: ModelContext) -> MeanSpec | None:
         """The mean μ_δ as a function spec (``None``: zero mean)."""
@@ -47,21 +48,33 @@ class IndependentDiscrepancy(Discrepancy):
         var_fn = self.variance_function(ctx)
         spec = self.mean_function(ctx)
         variance = ctx.noise_sd**2 if var_fn is None else ctx.noise_sd**2 + var_fn(X)
+        physics_cov = ctx.physics_covariance
         if spec is not None and marginalizable(spec, ctx):
             B = spec.design(ctx, X)
             m0, s0 = spec.gaussian_prior(ctx)  # type: ignore[union-attr, misc]
             diag = variance * pt.ones_like(ctx.G)
-            cov = pt.diag(diag) + pt.dot(B * s0**2, B.T)
+            base = pt.diag(diag) if physics_cov is None else pt.diag(diag) + physics_cov
+            cov = base + pt.dot(B * s0**2, B.T)
             mu = ctx.G + pt.dot(B, m0)
             GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
+            if physics_cov is None:
+                inv_B, inv_resid = B / diag[:, None], (ctx.y - ctx.G) / diag
+            else:
+                chol = pt.linalg.cholesky(base)
+                inv_B = pt.linalg.cho_solve((chol, True), B)
+                inv_resid = pt.linalg.cho_solve((chol, True), ctx.y - ctx.G)
             mean_fn = spec.build_marginalized(  # type: ignore[union-attr]
-                ctx, self.mean_name, B, B / diag[:, None], (ctx.y - ctx.G) / diag
+                ctx, self.mean_name, B, inv_B, inv_resid
             )
         else:
             mean_fn = None if spec is None else spec.build(ctx, self.mean_name)
             mu = ctx.G if mean_fn is None else ctx.G + mean_fn(X)
-            pm.Normal("y", mu=mu, sigma=pt.sqrt(variance), observed=ctx.y, dims=ctx.obs_dim)
-            cov = None
+            if physics_cov is None:
+                pm.Normal("y", mu=mu, sigma=pt.sqrt(variance), observed=ctx.y, dims=ctx.obs_dim)
+                cov = None
+            else:  # an emulator's correlated error: rows are no longer independent
+                cov = pt.diag(variance * pt.ones_like(ctx.G)) + physics_cov
+                GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
 
         def predict(X_new: pt.TensorVariable, G_new: pt.TensorVariable) -> pt.TensorVariable:
             mean = G_new if mean_fn is None else G_new + mean_fn(X_new)
@@ -70,7 +83,7 @@ class IndependentDiscrepancy(Discrepancy):
             spread = pm.Normal("delta_random", mu=0.0, sigma=pt.sqrt(var_fn(X_new)), dims="pred")
             return mean + spread
 
-        if cov is not None:  # coefficients integrated out: rows correlated through them
+        if cov is not None:  # coefficients integrated out or emulator error: rows correlated
             return Likelihood(predict, mean=mu, covariance=cov)
         return Likelihood(
             predict, mean=mu, variance=variance * pt.ones_like(ctx.G), independent_rows=True

@@ -201,7 +201,7 @@ class ScaledGP(GaussianProcess, kind="scaled_gp"):
         if self.lambda_z is None:
             spans = np.array([ctx.span[k] for k in self.gp_inputs])
             lam = pm.Deterministic(
-                "delta_lambda_z", default_lambda_z(n, spans, ls, eta, ctx.noise_sd)
+                "delta_lambda_z", default_lambda_z(n, spans, ls, eta, ctx.sigma_obs)
             )
         elif isinstance(self.lambda_z, Prior):
             lam = self.lambda_z.create("delta_lambda_z")

@@ -240,6 +240,39 @@ class PhysicsModel:
         X = pt.as_tensor_variable(X)
         return self.evaluator.tensor(self, theta, X)
 
+    def variance_tensor(self, theta: pt.TensorVariable, X: pt.TensorVariable) -> Any:
+        """Symbolic variance of ``G(X; θ)`` at the rows, or ``None`` (an exact model).
+
+        A surrogate of the physics (an emulator, see :class:`kohpymc.Emulator`) returns
+        its predictive variance, one value per row; :func:`kohpymc.model.compose_model`
+        adds it to the measurement-noise variance the formulation sees.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc.examples import beam
+        >>> beam.physics_model().variance_tensor(pt.as_tensor([200.0]), pt.zeros((1, 2))) is None
+        True
+        """
+        return None
+
+    def covariance_tensor(self, theta: pt.TensorVariable, X: pt.TensorVariable) -> Any:
+        """Symbolic covariance of ``G(X; θ)`` between the rows, or ``None``.
+
+        A surrogate that knows how its errors correlate across rows (a GP emulator at
+        one θ) returns an ``(n, n)`` matrix; formulations that accept it
+        (:attr:`kohpymc.discrepancy.Discrepancy.accepts_physics_covariance`) add it to
+        the likelihood covariance, the others get :meth:`variance_tensor` added to the
+        noise variance.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc.examples import beam
+        >>> beam.physics_model().covariance_tensor(pt.as_tensor([200.0]), pt.zeros((1, 2)))
+        """
+        return None
+
     def __repr__(self) -> str:
         return (
             f"PhysicsModel({self.name!r}, inputs={list(self.inputs)}, "

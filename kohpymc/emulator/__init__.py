@@ -1,0 +1,48 @@
+"""Emulating an expensive simulator: design, runs, a GP emulator, its checks.
+
+* :mod:`~kohpymc.emulator.design`: space-filling designs over the calibration inputs ×
+  the prior box of θ (maximin Latin hypercube, Sobol) and their extension;
+* :mod:`~kohpymc.emulator.runs`: simulator runs at a design as tasks
+  (:func:`kohpymc.run_tasks`), cached on disk, failures recorded and skipped;
+* :mod:`~kohpymc.emulator.gp`: :class:`Emulator`, a GP over (inputs, θ) whose mean and
+  variance enter the calibration as an :class:`EmulatedPhysics` model;
+* :mod:`~kohpymc.emulator.checking`: leave-one-out or held-out scores, a figure and an
+  :class:`EmulatorWarning` when the emulator is not fit for calibration;
+* :mod:`~kohpymc.emulator.sequential`: :func:`emulate` (design, run, fit) and
+  :func:`sequential_design` (add runs at posterior draws until the posterior settles).
+"""
+
+from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_emulator
+from kohpymc.emulator.design import (
+    design_box,
+    extend_design,
+    maximin_distance,
+    space_filling_design,
+)
+from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
+from kohpymc.emulator.runs import SimulatorRuns, run_design
+from kohpymc.emulator.sequential import (
+    SequentialDesign,
+    emulate,
+    posterior_design,
+    sequential_design,
+)
+
+__all__ = [
+    "EmulatorCheck",
+    "EmulatorWarning",
+    "check_emulator",
+    "Emulator",
+    "EmulatedPhysics",
+    "GPHyperparameters",
+    "design_box",
+    "extend_design",
+    "maximin_distance",
+    "space_filling_design",
+    "SimulatorRuns",
+    "run_design",
+    "SequentialDesign",
+    "emulate",
+    "posterior_design",
+    "sequential_design",
+]

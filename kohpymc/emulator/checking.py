@@ -1,0 +1,236 @@
+"""Is the emulator fit for calibration?  Leave-one-out or held-out runs, scored.
+
+:func:`check_emulator` predicts every run left out of the fit (closed-form leave-one-out
+of the GP, :meth:`~kohpymc.emulator.gp.Emulator.leave_one_out`) or runs it was not
+fitted to (``held_out=``) and reports:
+
+* standardised errors ``(simulated - mean) / sd`` (about N(0, 1) for a calibrated GP);
+* the coverage of the central ``level`` (90 %) predictive bands;
+* the RMSE relative to the sd of the simulated outputs;
+
+and issues an :class:`EmulatorWarning` when the emulator is not fit for calibration: a
+coverage far below ``level`` (its bands are too narrow, so the calibration would be
+overconfident), far above it (too wide: a posterior wider than needed), or a large
+relative error.  :meth:`EmulatorCheck.figure` draws predicted against simulated with
+the bands, and the histogram of the standardised errors.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from kohpymc.emulator.gp import Emulator
+from kohpymc.emulator.runs import SimulatorRuns
+
+__all__ = ["EmulatorCheck", "EmulatorWarning", "check_emulator"]
+
+
+class EmulatorWarning(UserWarning):
+    """An emulator that is not fit for calibration (bands miss, or large errors)."""
+
+
+@dataclass
+class EmulatorCheck:
+    """Scores of an emulator against runs it did not see.
+
+    Attributes
+    ----------
+    kind : str
+        ``"leave-one-out"`` or ``"held-out"``.
+    simulated, mean, sd : numpy.ndarray
+        Simulator outputs, predictive means and sds (of a new simulator output).
+    level : float
+        Nominal coverage of the bands.
+    problems : list of str
+        Why the emulator is not fit for calibration (empty when it is).
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import Emulator, design_box, run_design, space_filling_design
+    >>> from kohpymc.examples import beam
+    >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+    >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 30))
+    >>> check = check_emulator(Emulator(runs, physics), warn=False)
+    >>> check.kind, check.relative_rmse < 0.1, check.fit
+    ('leave-one-out', True, True)
+    """
+
+    kind: str
+    simulated: np.ndarray
+    mean: np.ndarray
+    sd: np.ndarray
+    level: float = 0.9
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def standardized_errors(self) -> np.ndarray:
+        """``(simulated - mean) / sd`` per run."""
+        return (self.simulated - self.mean) / self.sd
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of runs inside their central ``level`` predictive band."""
+        half = stats.norm.ppf(0.5 + self.level / 2)
+        return float(np.mean(np.abs(self.standardized_errors) <= half))
+
+    @property
+    def rmse(self) -> float:
+        """Root-mean-square error of the predictive means."""
+        return float(np.sqrt(np.mean((self.simulated - self.mean) ** 2)))
+
+    @property
+    def relative_rmse(self) -> float:
+        """RMSE over the sd of the simulated outputs."""
+        spread = float(np.std(self.simulated))
+        return self.rmse / spread if spread > 0 else float("inf")
+
+    @property
+    def fit(self) -> bool:
+        """No problems found."""
+        return not self.problems
+
+    def to_dict(self) -> dict[str, Any]:
+        """The scores as plain values (for a JSON file)."""
+        return {
+            "kind": self.kind,
+            "runs": int(self.simulated.size),
+            "level": self.level,
+            "coverage": self.coverage,
+            "rmse": self.rmse,
+            "relative_rmse": self.relative_rmse,
+            "mean_standardized_error": float(np.mean(self.standardized_errors)),
+            "sd_standardized_error": float(np.std(self.standardized_errors)),
+            "problems": list(self.problems),
+        }
+
+    def figure(self) -> Any:
+        """Predicted vs simulated with ``level`` bands, and the standardised errors.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> check = EmulatorCheck("held-out", np.array([1.0, 2.0]), np.array([1.1, 1.9]),
+        ...                       np.array([0.1, 0.1]))
+        >>> len(check.figure().axes)
+        2
+        """
+        import matplotlib.pyplot as plt
+
+        half = stats.norm.ppf(0.5 + self.level / 2)
+        fig, (ax, hist) = plt.subplots(1, 2, figsize=(9, 4))
+        order = np.argsort(self.simulated)
+        inside = np.abs(self.standardized_errors) <= half
+        ax.errorbar(
+            self.simulated[order],
+            self.mean[order],
+            yerr=half * self.sd[order],
+            fmt="none",
+            ecolor="0.6",
+            lw=1,
+            label=f"{self.level:.0%} band",
+        )
+        ax.plot(self.simulated[inside], self.mean[inside], "o", ms=3, label="covered")
+        ax.plot(self.simulated[~inside], self.mean[~inside], "x", color="C3", label="missed")
+        lims = [float(np.min(self.simulated)), float(np.max(self.simulated))]
+        ax.plot(lims, lims, "k--", lw=0.8)
+        ax.set_xlabel("simulated")
+        ax.set_ylabel("emulator prediction")
+        ax.set_title(
+            f"{self.kind}: coverage {self.coverage:.2f}, rel. RMSE {self.relative_rmse:.3f}"
+        )
+        ax.legend(fontsize="small")
+        z = self.standardized_errors
+        hist.hist(z, bins=max(5, min(30, z.size // 4)), density=True, color="C0", alpha=0.6)
+        grid = np.linspace(min(-4.0, float(z.min())), max(4.0, float(z.max())), 200)
+        hist.plot(grid, stats.norm.pdf(grid), "k-", lw=1, label="N(0, 1)")
+        hist.set_xlabel("standardised error")
+        hist.legend(fontsize="small")
+        fig.tight_layout()
+        return fig
+
+
+def check_emulator(
+    emulator: Emulator,
+    held_out: SimulatorRuns | None = None,
+    *,
+    level: float = 0.9,
+    coverage_tolerance: float | None = None,
+    max_relative_rmse: float = 0.1,
+    warn: bool = True,
+) -> EmulatorCheck:
+    """Score an emulator on runs it did not see and warn when it is not fit.
+
+    Parameters
+    ----------
+    emulator : Emulator
+        The fitted emulator.
+    held_out : SimulatorRuns, optional
+        Runs not used in the fit; without them, closed-form leave-one-out of the fit's
+        own runs (hyperparameters kept fixed).
+    level : float
+        Nominal coverage of the bands (0.9).
+    coverage_tolerance : float, optional
+        Allowed distance of the coverage from ``level``; default the larger of 0.05 and
+        three binomial sds ``3 sqrt(level (1 - level) / n)``.
+    max_relative_rmse : float
+        Largest RMSE relative to the sd of the simulated outputs.
+    warn : bool
+        Issue an :class:`EmulatorWarning` listing the problems.
+
+    Returns
+    -------
+    EmulatorCheck
+
+    Examples
+    --------
+    See :class:`EmulatorCheck`.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    if held_out is None:
+        mean, var = emulator.leave_one_out()
+        simulated, kind = emulator.runs.y, "leave-one-out"
+    else:
+        if len(held_out.y) == 0:
+            raise ValueError("check_emulator: held_out has no successful runs")
+        mean, var = emulator.predict_matrix(held_out.X)
+        simulated, kind = held_out.y, "held-out"
+    check = EmulatorCheck(kind, np.asarray(simulated, float), mean, np.sqrt(var), level)
+    n = simulated.size
+    tol = coverage_tolerance
+    if tol is None:
+        tol = max(0.05, 3.0 * np.sqrt(level * (1.0 - level) / n))
+    if check.coverage < level - tol:
+        check.problems.append(
+            f"{kind} coverage of the {level:.0%} bands is {check.coverage:.2f} (< "
+            f"{level - tol:.2f}): the emulator's variance is too small, a calibration "
+            "through it would be overconfident"
+        )
+    elif check.coverage > level + tol:
+        check.problems.append(
+            f"{kind} coverage of the {level:.0%} bands is {check.coverage:.2f} (> "
+            f"{level + tol:.2f}): the emulator's variance is too large, the posterior "
+            "would be wider than needed"
+        )
+    if check.relative_rmse > max_relative_rmse:
+        check.problems.append(
+            f"{kind} RMSE is {check.relative_rmse:.3f} of the outputs' sd (> "
+            f"{max_relative_rmse}): add runs (see kohpymc.emulator.sequential_design)"
+        )
+    if warn and check.problems:
+        warnings.warn(
+            f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is not fit for "
+            "calibration: " + "; ".join(check.problems),
+            EmulatorWarning,
+            stacklevel=2,
+        )
+    return check

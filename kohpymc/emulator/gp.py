@@ -1,0 +1,543 @@
+r"""A Gaussian-process emulator of a simulator, usable as a physics model.
+
+:class:`Emulator` fits a GP to simulator runs over (inputs x, parameters θ):
+
+* columns scaled to the unit box of the design (:func:`~kohpymc.emulator.design.design_box`),
+  outputs standardised to mean 0, sd 1;
+* an ARD kernel, squared exponential ``s² exp(-r²/2)`` or Matérn 5/2
+  ``s² (1 + √5 r + 5r²/3) exp(-√5 r)``, ``r² = Σ_k (Δu_k / ℓ_k)²``, plus a nugget ``g``;
+* hyperparameters ``(ℓ, s², g)`` by MAP: multi-start L-BFGS-B on the log marginal
+  likelihood (analytic gradient) plus weak priors, ``ln ℓ_k ~ N(ln 0.5, 1.5²)``,
+  ``ln s² ~ N(0, 2²)``, ``ln ρ ~ N(ln 1e-6, 4²)`` for the nugget ``g = ρ s²``, within
+  bounds (``ρ ≥ 1e-8`` keeps the kernel matrix well conditioned).
+
+The predictive mean ``η̂(x, θ)`` and variance ``v(x, θ)`` (the latent variance plus the
+nugget, in output units) are also written as PyTensor expressions of θ from the stored
+training matrices, so gradients with respect to θ are exact autodiff.
+:meth:`Emulator.physics_model` returns an :class:`EmulatedPhysics`: a
+:class:`~kohpymc.PhysicsModel` (backend ``"pytensor"``) whose mean is ``η̂`` and whose
+:meth:`~EmulatedPhysics.variance_tensor` is ``v``.  :func:`kohpymc.model.compose_model`
+adds that variance to the measurement-noise variance every formulation sees, so the
+likelihood is ``y ~ N(η̂(X, θ) + δ, diag v(X, θ) + Σ_δ + σ² I)``: a poor emulator widens
+the posterior instead of biasing it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import pytensor.tensor as pt
+from scipy import linalg, optimize
+
+from kohpymc.emulator.runs import SimulatorRuns
+from kohpymc.physics import PhysicsModel
+
+__all__ = ["EmulatedPhysics", "Emulator", "GPHyperparameters", "KERNELS"]
+
+#: kernels :class:`Emulator` knows
+KERNELS = ("se", "matern52")
+
+_SQRT5 = np.sqrt(5.0)
+#: prior of ln ℓ_k (unit-box length scales): mean, sd
+_LS_PRIOR = (np.log(0.5), 1.5)
+_AMP_PRIOR = (0.0, 2.0)
+_NUGGET_PRIOR = (np.log(1e-6), 4.0)  # of ln ρ, the nugget relative to s²
+_BOUNDS_LS = (np.log(1e-3), np.log(1e3))
+_BOUNDS_AMP = (np.log(1e-3), np.log(1e6))
+_BOUNDS_NUGGET = (np.log(1e-8), np.log(0.5))
+
+
+@dataclass(frozen=True)
+class GPHyperparameters:
+    """The fitted kernel settings (standardised output, unit-box inputs).
+
+    Attributes
+    ----------
+    lengthscales : numpy.ndarray
+        One per column (inputs, then parameters), in unit-box units.
+    amplitude : float
+        ``s²``, the kernel variance.
+    nugget : float
+        ``g``, the white-noise variance.
+    log_posterior : float
+        Log marginal likelihood plus log prior at the optimum.
+    """
+
+    lengthscales: np.ndarray
+    amplitude: float
+    nugget: float
+    log_posterior: float
+
+
+def _kernel_numpy(kind: str, U: np.ndarray, V: np.ndarray, ls: np.ndarray, amp: float):
+    """``K(U, V)`` and the scaled squared differences ``D_k / ℓ_k²`` (n, m, q)."""
+    D = ((U[:, None, :] - V[None, :, :]) / ls) ** 2
+    r2 = np.sum(D, axis=-1)
+    if kind == "se":
+        return amp * np.exp(-0.5 * r2), D
+    r = np.sqrt(r2)
+    return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * np.exp(-_SQRT5 * r), D
+
+
+def _neg_log_posterior(
+    params: np.ndarray, kind: str, U: np.ndarray, y: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """Negative (log marginal likelihood + log prior) and its gradient in log space."""
+    q = U.shape[1]
+    log_ls, log_amp, log_g = params[:q], params[q], params[q + 1]
+    # the nugget is relative to the amplitude, g = s² ρ, which bounds the condition number
+    ls, amp = np.exp(log_ls), float(np.exp(log_amp))
+    g = amp * float(np.exp(log_g))
+    R, D = _kernel_numpy(kind, U, U, ls, 1.0)
+    n = len(y)
+    K = amp * R + (g + 1e-10) * np.eye(n)
+    try:
+        chol = linalg.cholesky(K, lower=True)
+    except linalg.LinAlgError:
+        return 1e25, np.zeros_like(params)
+    alpha = linalg.cho_solve((chol, True), y)
+    Kinv = linalg.cho_solve((chol, True), np.eye(n))
+    nll = 0.5 * y @ alpha + np.sum(np.log(np.diag(chol))) + 0.5 * n * np.log(2 * np.pi)
+    W = np.outer(alpha, alpha) - Kinv  # d nll / dθ = -½ tr(W dK/dθ)
+    grad = np.empty_like(params)
+    if kind == "se":
+        base = amp * R
+    else:
+        r = np.sqrt(np.sum(D, axis=-1))
+        base = amp * (5.0 / 3.0) * (1.0 + _SQRT5 * r) * np.exp(-_SQRT5 * r)
+    for k in range(q):
+        grad[k] = -0.5 * np.sum(W * base * D[:, :, k])
+    grad[q] = -0.5 * (np.sum(W * amp * R) + np.trace(W) * g)
+    grad[q + 1] = -0.5 * np.trace(W) * g
+    # weak priors (negative log densities and their gradients)
+    m, s = _LS_PRIOR
+    nll += np.sum((log_ls - m) ** 2) / (2 * s**2)
+    grad[:q] += (log_ls - m) / s**2
+    m, s = _AMP_PRIOR
+    nll += (log_amp - m) ** 2 / (2 * s**2)
+    grad[q] += (log_amp - m) / s**2
+    m, s = _NUGGET_PRIOR
+    nll += (log_g - m) ** 2 / (2 * s**2)
+    grad[q + 1] += (log_g - m) / s**2
+    return float(nll), grad
+
+
+def _fit_hyperparameters(
+    kind: str, U: np.ndarray, y: np.ndarray, restarts: int, seed: int
+) -> GPHyperparameters:
+    q = U.shape[1]
+    rng = np.random.default_rng(seed)
+    bounds = [_BOUNDS_LS] * q + [_BOUNDS_AMP, _BOUNDS_NUGGET]
+    starts = [np.r_[np.full(q, np.log(0.5)), 0.0, np.log(1e-4)]]
+    for _ in range(max(0, restarts - 1)):
+        starts.append(
+            np.r_[rng.uniform(np.log(0.05), np.log(3.0), q), rng.normal(0, 0.5), np.log(1e-4)]
+        )
+    best = None
+    for x0 in starts:
+        res = optimize.minimize(
+            _neg_log_posterior,
+            x0,
+            args=(kind, U, y),
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+        )
+        if best is None or res.fun < best.fun:
+            best = res
+    assert best is not None
+    p = best.x
+    return GPHyperparameters(
+        lengthscales=np.exp(p[:q]),
+        amplitude=float(np.exp(p[q])),
+        nugget=float(np.exp(p[q]) * np.exp(p[q + 1])),
+        log_posterior=float(-best.fun),
+    )
+
+
+class Emulator:
+    r"""A GP emulator ``η̂(x, θ)`` of a simulator, fitted to its runs.
+
+    Parameters
+    ----------
+    runs : SimulatorRuns
+        Successful simulator runs (:func:`~kohpymc.emulator.runs.run_design`).
+    physics : PhysicsModel
+        The simulator's physics model: its priors become those of
+        :meth:`physics_model`; its inputs and parameters name the columns.
+    box : mapping, optional
+        Column -> ``(lower, upper)`` defining the unit box (default: the runs' range).
+    kernel : {"matern52", "se"}
+        ARD Matérn 5/2 (default) or squared exponential.  On smooth test functions the
+        squared exponential was more accurate but its 90 % bands covered only 0.6–0.9
+        of held-out runs (overconfident), Matérn 5/2 covered 0.88–0.96.
+    restarts : int
+        Starts of the L-BFGS-B search for the hyperparameters (the first at
+        ``ℓ = 0.5``, ``s² = 1``, the others random).
+    seed : int
+        Seed of the random starts.
+    hyperparameters : GPHyperparameters, optional
+        Use these instead of fitting.
+
+    Attributes
+    ----------
+    hyper : GPHyperparameters
+    n_runs : int
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+    >>> from kohpymc.examples import beam
+    >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+    >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 30))
+    >>> em = Emulator(runs, physics)
+    >>> mean, var = em.predict({"x": [400.0], "P": [2.5]}, {"E": 200.0})
+    >>> bool(abs(mean[0] - 12.0) < 0.1), bool(var[0] < 0.1)
+    (True, True)
+    """
+
+    def __init__(
+        self,
+        runs: SimulatorRuns,
+        physics: PhysicsModel,
+        *,
+        box: Mapping[str, tuple[float, float]] | None = None,
+        kernel: Literal["se", "matern52"] = "matern52",
+        restarts: int = 5,
+        seed: int = 0,
+        hyperparameters: GPHyperparameters | None = None,
+    ) -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
+        if tuple(runs.inputs) != tuple(physics.inputs) or tuple(runs.parameters) != tuple(
+            physics.parameters
+        ):
+            raise ValueError(
+                f"Emulator: the runs have inputs {list(runs.inputs)} and parameters "
+                f"{list(runs.parameters)}, the physics model {physics.name!r} has "
+                f"{list(physics.inputs)} and {list(physics.parameters)}"
+            )
+        X, y = runs.X, runs.y
+        if len(y) < 2:
+            raise ValueError(f"Emulator needs at least 2 successful runs, got {len(y)}")
+        self.physics = physics
+        self.runs = runs
+        self.kernel = kernel
+        self.columns: tuple[str, ...] = tuple(runs.inputs + runs.parameters)
+        self.n_inputs = len(runs.inputs)
+        box = dict(box or {})
+        lo = np.array(
+            [box[k][0] if k in box else X[:, j].min() for j, k in enumerate(self.columns)]
+        )
+        hi = np.array(
+            [box[k][1] if k in box else X[:, j].max() for j, k in enumerate(self.columns)]
+        )
+        self.lower = lo.astype(float)
+        self.width = np.where(hi > lo, hi - lo, 1.0).astype(float)
+        self.y_mean = float(np.mean(y))
+        sd = float(np.std(y))
+        self.y_sd = sd if sd > 0 else 1.0
+        self.U = (X - self.lower) / self.width
+        self.z = (y - self.y_mean) / self.y_sd
+        self.hyper = hyperparameters or _fit_hyperparameters(kernel, self.U, self.z, restarts, seed)
+        self._factorize()
+
+    @property
+    def n_runs(self) -> int:
+        """Number of runs the GP is fitted to."""
+        return len(self.z)
+
+    def _factorize(self) -> None:
+        h = self.hyper
+        R, _ = _kernel_numpy(self.kernel, self.U, self.U, h.lengthscales, h.amplitude)
+        K = R + (h.nugget + 1e-10) * np.eye(self.n_runs)
+        self._chol = linalg.cholesky(K, lower=True)
+        self._alpha = linalg.cho_solve((self._chol, True), self.z)
+        self._chol_inv = linalg.solve_triangular(self._chol, np.eye(self.n_runs), lower=True)
+
+    # ------------------------------------------------------------------- numpy
+    def _matrix(self, inputs: Mapping[str, Any], params: Any) -> np.ndarray:
+        arrays, n = self.physics._as_inputs(inputs)
+        theta = self.physics._as_params(params)
+        cols = [arrays[k] for k in self.physics.inputs]
+        cols += [np.full(n, theta[k]) for k in self.physics.parameters]
+        return np.column_stack(cols)
+
+    def predict_matrix(self, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean and variance at rows ``Z`` (columns: inputs, then parameters).
+
+        The variance is that of a new simulator output (latent variance plus nugget),
+        in output units squared.
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+        >>> from kohpymc.examples import beam
+        >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+        >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 20))
+        >>> mean, var = Emulator(runs, physics).predict_matrix(runs.X[:2])
+        >>> bool(np.allclose(mean, runs.y[:2], atol=1e-2))
+        True
+        """
+        Z = np.atleast_2d(np.asarray(Z, dtype=float))
+        if Z.shape[1] != len(self.columns):
+            raise ValueError(f"predict_matrix: rows need columns {list(self.columns)}")
+        h = self.hyper
+        Us = (Z - self.lower) / self.width
+        Ks, _ = _kernel_numpy(self.kernel, Us, self.U, h.lengthscales, h.amplitude)
+        mean = Ks @ self._alpha
+        V = self._chol_inv @ Ks.T
+        var = h.amplitude + h.nugget - np.sum(V**2, axis=0)
+        var = np.maximum(var, h.nugget)
+        return self.y_mean + self.y_sd * mean, self.y_sd**2 * var
+
+    def predict(
+        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean and variance at input rows ``inputs`` and one θ ``params``.
+
+        Examples
+        --------
+        See :class:`Emulator`.
+        """
+        return self.predict_matrix(self._matrix(inputs, params))
+
+    def leave_one_out(self) -> tuple[np.ndarray, np.ndarray]:
+        """Closed-form leave-one-out mean and variance of every run (fixed hyperparameters).
+
+        ``μ_{-i} = y_i - [K⁻¹z]_i / [K⁻¹]_ii``, ``v_{-i} = 1 / [K⁻¹]_ii`` (Rasmussen &
+        Williams 2006, §5.4.2), in output units.
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+        >>> from kohpymc.examples import beam
+        >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+        >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 20))
+        >>> mean, var = Emulator(runs, physics).leave_one_out()
+        >>> mean.shape == var.shape == (20,)
+        True
+        """
+        diag = np.sum(self._chol_inv**2, axis=0)  # diag of K⁻¹ = L⁻ᵀ L⁻¹
+        mean_z = self.z - self._alpha / diag
+        return self.y_mean + self.y_sd * mean_z, self.y_sd**2 / diag
+
+    # ----------------------------------------------------------------- pytensor
+    def _scaled_rows(self, theta: Any, X: Any) -> list[Any]:
+        """Unit-box columns of the rows ``(X, θ)`` as tensors (θ broadcast over rows)."""
+        theta = pt.as_tensor_variable(theta)
+        X = pt.as_tensor_variable(X)
+        cols = [(X[:, j] - self.lower[j]) / self.width[j] for j in range(self.n_inputs)]
+        ones = pt.ones_like(X[:, 0])
+        for i in range(len(self.columns) - self.n_inputs):
+            j = self.n_inputs + i
+            cols.append(ones * ((theta[i] - self.lower[j]) / self.width[j]))
+        return cols
+
+    def _cross_kernel(self, theta: Any, X: Any) -> Any:
+        """``K(rows, runs)`` as a tensor, shape ``(n, N)``."""
+        h = self.hyper
+        r2 = 0.0
+        for j, col in enumerate(self._scaled_rows(theta, X)):
+            r2 = r2 + ((col[:, None] - self.U[None, :, j]) / h.lengthscales[j]) ** 2
+        if self.kernel == "se":
+            return h.amplitude * pt.exp(-0.5 * r2)
+        r = pt.sqrt(r2 + 1e-12)
+        return h.amplitude * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * pt.exp(-_SQRT5 * r)
+
+    def mean_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic predictive mean ``η̂(X, θ)``, ``X`` ``(n, d)`` in input order.
+
+        Examples
+        --------
+        See :meth:`variance_tensor`.
+        """
+        return self.y_mean + self.y_sd * pt.dot(self._cross_kernel(theta, X), self._alpha)
+
+    def variance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic predictive variance ``v(X, θ)`` (latent plus nugget), output units².
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+        >>> from kohpymc.examples import beam
+        >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+        >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 20))
+        >>> em = Emulator(runs, physics)
+        >>> X = np.array([[400.0, 2.5]])
+        >>> v = em.variance_tensor(pt.as_tensor([200.0]), X).eval()
+        >>> bool(np.allclose(v, em.predict({"x": [400.0], "P": [2.5]}, [200.0])[1]))
+        True
+        """
+        h = self.hyper
+        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        var = h.amplitude + h.nugget - pt.sum(V**2, axis=0)
+        return self.y_sd**2 * pt.maximum(var, h.nugget)
+
+    def covariance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic predictive covariance ``Σ_η(X, θ)`` between the rows (output units²).
+
+        Its diagonal is :meth:`variance_tensor` (up to the clipping there).
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+        >>> from kohpymc.examples import beam
+        >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+        >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 20))
+        >>> em = Emulator(runs, physics)
+        >>> X = np.array([[300.0, 2.5], [400.0, 2.5]])
+        >>> C = em.covariance_tensor(pt.as_tensor([200.0]), X).eval()
+        >>> v = em.variance_tensor(pt.as_tensor([200.0]), X).eval()
+        >>> bool(np.allclose(np.diag(C), v))
+        True
+        """
+        h = self.hyper
+        cols = self._scaled_rows(theta, X)
+        r2 = 0.0
+        for j in range(self.n_inputs):  # θ is shared by all rows: only inputs differ
+            r2 = r2 + ((cols[j][:, None] - cols[j][None, :]) / h.lengthscales[j]) ** 2
+        if self.kernel == "se":
+            prior = h.amplitude * pt.exp(-0.5 * r2)
+        else:
+            r = pt.sqrt(r2 + 1e-12)
+            prior = h.amplitude * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * pt.exp(-_SQRT5 * r)
+        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        n = pt.as_tensor_variable(X).shape[0]
+        cov = prior - pt.dot(V.T, V) + h.nugget * pt.eye(n)
+        return self.y_sd**2 * cov
+
+    def physics_model(
+        self,
+        *,
+        covariance: Literal["full", "diagonal"] = "full",
+        name: str | None = None,
+    ) -> EmulatedPhysics:
+        """The emulator as a physics model (priors of the simulator's parameters).
+
+        Parameters
+        ----------
+        covariance : {"full", "diagonal"}
+            ``"full"``: the emulator's predictive covariance between the calibration
+            rows, ``Σ_η(θ)``, enters the likelihood covariance (formulations M0–M6);
+            ``"diagonal"``: only its variances, added to the noise variance.  The
+            diagonal form treats the emulator errors of the rows as independent, which
+            overstates the information of a poor emulator: the likelihood then favours
+            θ near design points (measured: biased posteriors with 8–15 runs), so
+            ``"full"`` is the default.
+        name : str, optional
+            Label of the physics model (default: the simulator's name + "(emulated)").
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+        >>> from kohpymc.examples import beam
+        >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+        >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 20))
+        >>> Emulator(runs, physics).physics_model().name
+        'euler_bernoulli (emulated)'
+        """
+        if covariance not in ("full", "diagonal"):
+            raise ValueError(f"covariance must be 'full' or 'diagonal', got {covariance!r}")
+        return EmulatedPhysics(self, covariance=covariance, name=name)
+
+    def __repr__(self) -> str:
+        h = self.hyper
+        ls = ", ".join(f"{k}={v:.3g}" for k, v in zip(self.columns, h.lengthscales, strict=True))
+        return (
+            f"Emulator({self.physics.name!r}, runs={self.n_runs}, kernel={self.kernel!r}, "
+            f"lengthscales=({ls}), amplitude={h.amplitude:.3g}, nugget={h.nugget:.3g})"
+        )
+
+
+def _is_numeric(value: Any) -> bool:
+    return isinstance(value, int | float | np.floating | np.integer | np.ndarray)
+
+
+class EmulatedPhysics(PhysicsModel):
+    """A physics model whose ``G`` is an emulator's mean, with its predictive variance.
+
+    Evaluating it with numpy values uses the emulator directly (no compilation); in a
+    PyMC model it is a PyTensor expression of θ (exact gradients), and
+    :meth:`variance_tensor` gives the emulator variance that
+    :func:`kohpymc.model.compose_model` adds to the noise variance.
+
+    Examples
+    --------
+    See :meth:`Emulator.physics_model`.
+    """
+
+    def __init__(
+        self,
+        emulator: Emulator,
+        *,
+        covariance: Literal["full", "diagonal"] = "full",
+        name: str | None = None,
+    ) -> None:
+        self.emulator = emulator
+        self.covariance = covariance
+        source = emulator.physics
+        super().__init__(
+            self._emulated,
+            dict(source.parameters),
+            source.inputs,
+            backend="pytensor",
+            name=name or f"{source.name} (emulated)",
+        )
+
+    def fingerprint_parts(self) -> dict[str, Any]:
+        """What this model's results depend on beyond its source code: the emulator.
+
+        Its training runs, scaling, kernel and hyperparameters and the covariance mode
+        (read by :func:`kohpymc.fingerprint.physics_fingerprint`, so a study rerun with a
+        refitted emulator does not reuse results of the old one).
+        """
+        from kohpymc.fingerprint import physics_fingerprint
+
+        em = self.emulator
+        return {
+            "simulator": physics_fingerprint(em.physics),
+            "kernel": em.kernel,
+            "covariance": self.covariance,
+            "U": np.asarray(em.U, dtype=float).round(12).tolist(),
+            "z": np.asarray(em.z, dtype=float).round(12).tolist(),
+            "scaling": [em.lower.tolist(), em.width.tolist(), em.y_mean, em.y_sd],
+            "hyper": repr(em.hyper),
+        }
+
+    def _emulated(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> Any:
+        if all(_is_numeric(v) for v in params.values()):
+            mean, _ = self.emulator.predict(inputs, params)
+            return mean
+        theta = pt.stack([pt.as_tensor_variable(params[k]) for k in self.parameters])
+        X = pt.stack([pt.as_tensor_variable(inputs[k]) for k in self.inputs], axis=1)
+        return self.emulator.mean_tensor(theta, X)
+
+    def evaluate(
+        self,
+        inputs: Mapping[str, Any],
+        params: Mapping[str, float] | Sequence[float],
+        *,
+        check_finite: bool = True,
+    ) -> np.ndarray:
+        """The emulator mean at the rows (numpy, no compilation)."""
+        return self.emulator.predict(inputs, params)[0]
+
+    def jacobian_matrix(
+        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+    ) -> np.ndarray:
+        """Finite-difference ``∂η̂/∂θ`` of the emulator mean (numpy, no compilation)."""
+        return self.finite_difference_jacobian(inputs, self._as_params(params))
+
+    def variance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic emulator variance ``v(X, θ)`` at the rows."""
+        return self.emulator.variance_tensor(theta, X)
+
+    def covariance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic emulator covariance ``Σ_η(X, θ)`` (``None`` in diagonal mode)."""
+        if self.covariance == "diagonal":
+            return None
+        return self.emulator.covariance_tensor(theta, X)

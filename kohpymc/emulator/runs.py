@@ -1,0 +1,257 @@
+"""Simulator runs at the points of a design: as tasks, cached on disk, failures kept.
+
+:func:`run_design` runs the physics model at every row of a design (input values and
+parameter values) through :func:`kohpymc.run_tasks` — in this process by default, on a
+Dask cluster with ``workers=`` or ``scheduler=``.  Rows sharing the same θ go to one
+task (one simulator call over those inputs, as a solver computes a whole curve per θ).
+With ``cache=`` a folder, every finished point is written there as one small JSON file
+named by a hash of (input point, simulator identity), atomically; a rerun, or a run of
+an extended design, reads those files and only runs the points not there yet.  A
+failed run is recorded (with its error) and skipped; it is not retried unless
+``retry_failed=True``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from kohpymc.execution import run_tasks
+from kohpymc.physics import PhysicsModel
+from kohpymc.progress import TaskDisplay
+from kohpymc.study_files import write_atomic
+
+__all__ = ["SimulatorRuns", "point_key", "run_design", "simulator_identity"]
+
+
+def simulator_identity(physics: PhysicsModel, label: str | None = None) -> str:
+    """A string naming the simulator for cache keys: its name and its source code.
+
+    ``label`` (e.g. a version of an external solver) replaces the source when given.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> simulator_identity(beam.physics_model(), label="v1")
+    'euler_bernoulli:v1'
+    """
+    if label is not None:
+        return f"{physics.name}:{label}"
+    function = physics.function
+    try:
+        source = inspect.getsource(function)
+    except (OSError, TypeError):
+        source = getattr(function, "__qualname__", repr(function))
+    digest = hashlib.sha256(source.encode()).hexdigest()[:16]
+    return f"{physics.name}:{digest}"
+
+
+def point_key(point: Mapping[str, float], simulator: str) -> str:
+    """The cache key of one run: a hash of the point's values (to 17 digits) and simulator.
+
+    Examples
+    --------
+    >>> point_key({"x": 1.0, "E": 200.0}, "beam") == point_key({"E": 200.0, "x": 1.0}, "beam")
+    True
+    """
+    text = json.dumps(
+        {"simulator": simulator, "point": {k: repr(float(point[k])) for k in sorted(point)}},
+        sort_keys=True,
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+@dataclass
+class SimulatorRuns:
+    """The runs of a design: points with outputs, failures, and what ran this time.
+
+    Attributes
+    ----------
+    points : pandas.DataFrame
+        Successful runs: the design's columns plus ``"output"``.
+    failed : pandas.DataFrame
+        Failed runs: the design's columns plus ``"error"``.
+    inputs, parameters : tuple of str
+        Which columns are physics inputs and which are parameters.
+    simulated : int
+        Points run by the simulator in this call (not read from the cache).
+    cached : int
+        Points read from the cache.
+    seconds : float
+        Wall time of the simulator tasks run in this call (summed over tasks).
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> import pandas as pd
+    >>> runs = run_design(beam.physics_model(),
+    ...                   pd.DataFrame({"x": [400.0], "P": [2.5], "E": [200.0]}))
+    >>> runs.points["output"].tolist(), runs.simulated
+    ([12.0], 1)
+    """
+
+    points: pd.DataFrame
+    failed: pd.DataFrame
+    inputs: tuple[str, ...]
+    parameters: tuple[str, ...]
+    simulated: int = 0
+    cached: int = 0
+    seconds: float = 0.0
+
+    @property
+    def X(self) -> np.ndarray:
+        """``(n, d + p)``: input columns, then parameter columns, of the successful runs."""
+        return self.points[list(self.inputs + self.parameters)].to_numpy(float)
+
+    @property
+    def y(self) -> np.ndarray:
+        """``(n,)`` simulator outputs of the successful runs."""
+        return self.points["output"].to_numpy(float)
+
+
+def _simulate(key: str, item: tuple[PhysicsModel, dict[str, list[float]], dict[str, float]]):
+    """One task: the simulator at one θ over a set of input rows."""
+    physics, inputs, params = item
+    return np.asarray(physics.evaluate(inputs, params), dtype=float).tolist()
+
+
+def _write_record(path: Path, record: dict[str, Any]) -> None:
+    text = json.dumps(record)
+
+    def write(tmp: Path) -> None:
+        tmp.write_text(text)
+
+    write_atomic(path, write)
+
+
+def _read_cache(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def run_design(
+    physics: PhysicsModel,
+    design: pd.DataFrame,
+    *,
+    cache: str | Path | None = None,
+    simulator_label: str | None = None,
+    retry_failed: bool = False,
+    workers: int = 1,
+    scheduler: Any = None,
+    progress: TaskDisplay | None = None,
+) -> SimulatorRuns:
+    """Run the simulator at every row of ``design`` (cached, failures recorded).
+
+    Parameters
+    ----------
+    physics : PhysicsModel
+        The simulator: ``physics.evaluate(inputs, params)``.
+    design : pandas.DataFrame
+        One column per physics input and per parameter (e.g. from
+        :func:`~kohpymc.emulator.design.space_filling_design`).
+    cache : str or Path, optional
+        Folder of cached runs (created when missing); without it nothing is cached.
+    simulator_label : str, optional
+        Names the simulator's version in the cache keys instead of its source code.
+    retry_failed : bool
+        Run again points whose cached run failed.
+    workers, scheduler, progress :
+        Where the tasks run, as for :func:`kohpymc.run_tasks`.
+
+    Returns
+    -------
+    SimulatorRuns
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kohpymc.examples import beam
+    >>> design = pd.DataFrame({"x": [200.0, 400.0], "P": [2.5, 2.5], "E": [200.0, 200.0]})
+    >>> folder = tempfile.mkdtemp()
+    >>> run_design(beam.physics_model(), design, cache=folder).simulated
+    2
+    >>> run_design(beam.physics_model(), design, cache=folder).simulated
+    0
+    """
+    inputs, params = tuple(physics.inputs), tuple(physics.parameters)
+    columns = list(inputs + params)
+    missing = [k for k in columns if k not in design.columns]
+    if missing:
+        raise KeyError(
+            f"run_design: the design lacks column(s) {missing} of {physics.name!r} "
+            f"(needs inputs {list(inputs)} and parameters {list(params)})"
+        )
+    values = design[columns].to_numpy(float)
+    if not np.all(np.isfinite(values)):
+        raise ValueError("run_design: the design contains NaN/inf")
+    simulator = simulator_identity(physics, simulator_label)
+    folder = None if cache is None else Path(cache)
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+    records: dict[str, dict[str, Any]] = {}  # key -> {"point", "output", "error"}
+    order: list[str] = []
+    todo: dict[tuple[float, ...], list[str]] = {}
+    cached = 0
+    for row in values:
+        point = dict(zip(columns, row.tolist(), strict=True))
+        key = point_key(point, simulator)
+        order.append(key)
+        if key in records or any(key in keys for keys in todo.values()):
+            continue
+        hit = None if folder is None else _read_cache(folder / f"{key}.json")
+        if hit is not None and (hit.get("error") is None or not retry_failed):
+            records[key] = hit
+            cached += 1
+            continue
+        theta = tuple(point[k] for k in params)
+        todo.setdefault(theta, []).append(key)
+        records[key] = {"point": point, "output": None, "error": None, "simulator": simulator}
+    items = {}
+    for t, (theta, keys) in enumerate(todo.items()):
+        rows = [records[k]["point"] for k in keys]
+        x = {name: [r[name] for r in rows] for name in inputs}
+        items[f"run-{t}"] = (physics, x, dict(zip(params, theta, strict=True)), keys)
+    tasks = {name: item[:3] for name, item in items.items()}
+    seconds = 0.0
+    simulated = 0
+    for outcome in run_tasks(
+        _simulate, tasks, workers=workers, scheduler=scheduler, progress=progress
+    ):
+        keys = items[outcome.key][3]
+        seconds += outcome.seconds
+        simulated += len(keys)
+        for j, key in enumerate(keys):
+            rec = records[key]
+            if outcome.error is None:
+                rec["output"], rec["error"] = float(outcome.value[j]), None
+            else:
+                rec["output"], rec["error"] = None, outcome.error
+            if folder is not None:
+                _write_record(folder / f"{key}.json", rec)
+    ok, bad = [], []
+    for key in dict.fromkeys(order):
+        rec = records[key]
+        row = {k: rec["point"][k] for k in columns}
+        if rec.get("error") is None and rec.get("output") is not None:
+            ok.append({**row, "output": float(rec["output"])})
+        else:
+            bad.append({**row, "error": str(rec.get("error"))})
+    return SimulatorRuns(
+        points=pd.DataFrame(ok, columns=[*columns, "output"]),
+        failed=pd.DataFrame(bad, columns=[*columns, "error"]),
+        inputs=inputs,
+        parameters=params,
+        simulated=simulated,
+        cached=cached,
+        seconds=seconds,
+    )

@@ -1,0 +1,292 @@
+"""Emulate-and-calibrate, then add runs where the posterior puts its mass.
+
+:func:`emulate` designs, runs and fits in one call.  :func:`sequential_design` then
+alternates: calibrate through the emulator, run the simulator at θ drawn from that
+posterior (each at the calibration inputs, :func:`posterior_design`), refit, recalibrate;
+it stops when no posterior mean of θ moved by more than ``tolerance`` posterior sds or
+after ``rounds`` rounds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+
+from kohpymc.data import CalibrationData
+from kohpymc.discrepancy.base import Discrepancy
+from kohpymc.emulator.design import DesignMethod, design_box, space_filling_design
+from kohpymc.emulator.gp import Emulator
+from kohpymc.emulator.runs import SimulatorRuns, run_design
+from kohpymc.physics import PhysicsModel
+
+__all__ = ["SequentialDesign", "emulate", "posterior_design", "sequential_design"]
+
+
+def emulate(
+    physics: PhysicsModel,
+    data: CalibrationData,
+    *,
+    runs: int = 100,
+    design: DesignMethod = "maximin-lhs",
+    kernel: Literal["matern52", "se"] = "matern52",
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    cache: str | Path | None = None,
+    seed: int = 0,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> Emulator:
+    """Design ``runs`` simulator runs over the data's inputs × θ's prior box, run, fit.
+
+    Parameters
+    ----------
+    physics : PhysicsModel
+        The simulator.
+    data : CalibrationData
+        Calibration data (their input ranges bound the design).
+    runs : int
+        Number of design points.
+    design : {"maximin-lhs", "lhs", "sobol"}
+        Design method (:func:`~kohpymc.emulator.design.space_filling_design`).
+    kernel : {"matern52", "se"}
+        GP kernel.
+    bounds : mapping, optional
+        Parameter boxes replacing the prior boxes (:func:`kohpymc.prior_box`).
+    cache : path, optional
+        Folder of cached runs (:func:`~kohpymc.emulator.runs.run_design`).
+    seed : int
+        Seed of the design and of the hyperparameter search.
+    workers, scheduler :
+        Where the runs go (:func:`kohpymc.run_tasks`).
+
+    Returns
+    -------
+    Emulator
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> em = emulate(beam.physics_model(), beam.generate_data(seed=1), runs=20)
+    >>> em.n_runs
+    20
+    """
+    box = design_box(physics, data, bounds=bounds)
+    points = space_filling_design(box, runs, method=design, seed=seed)
+    done = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
+    return Emulator(done, physics, box=box, kernel=kernel, seed=seed)
+
+
+def posterior_design(
+    draws: pd.DataFrame,
+    data: CalibrationData,
+    physics: PhysicsModel,
+    n_new: int,
+    *,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """New design points: posterior draws of θ, each at every calibration input row.
+
+    ``max(1, round(n_new / m))`` draws are picked at random (``m`` distinct calibration
+    input rows), so the simulator runs once per θ over the inputs (about ``n_new``
+    points in all).
+
+    Parameters
+    ----------
+    draws : pandas.DataFrame
+        Posterior draws, one column per parameter.
+    data : CalibrationData
+        The calibration inputs.
+    physics : PhysicsModel
+        Names the input and parameter columns.
+    n_new : int
+        About how many points to add.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> draws = pd.DataFrame({"E": [190.0, 200.0, 210.0]})
+    >>> d = posterior_design(draws, data, beam.physics_model(), 2 * data.n)
+    >>> len(d) == 2 * data.n, list(d.columns)
+    (True, ['x', 'P', 'E'])
+    """
+    params = list(physics.parameters)
+    missing = [k for k in params if k not in draws.columns]
+    if missing:
+        raise KeyError(f"posterior_design: the draws lack parameter(s) {missing}")
+    X = np.unique(data.matrix(tuple(physics.inputs)), axis=0)
+    m = X.shape[0]
+    k = min(len(draws), max(1, int(round(n_new / m))))
+    rng = np.random.default_rng(seed)
+    picked = draws[params].to_numpy(float)[rng.choice(len(draws), size=k, replace=False)]
+    rows = [np.column_stack([X, np.tile(theta, (m, 1))]) for theta in picked]
+    return pd.DataFrame(np.vstack(rows), columns=[*physics.inputs, *params])
+
+
+def _draws(calibration: Any, params: list[str]) -> pd.DataFrame:
+    post = calibration.posterior
+    return pd.DataFrame({k: np.asarray(post[k]).reshape(-1) for k in params})
+
+
+def _merged(a: SimulatorRuns, b: SimulatorRuns) -> SimulatorRuns:
+    points = pd.concat([a.points, b.points], ignore_index=True)
+    failed = pd.concat([a.failed, b.failed], ignore_index=True)
+    return SimulatorRuns(
+        points=points,
+        failed=failed,
+        inputs=a.inputs,
+        parameters=a.parameters,
+        simulated=a.simulated + b.simulated,
+        cached=a.cached + b.cached,
+        seconds=a.seconds + b.seconds,
+    )
+
+
+@dataclass
+class SequentialDesign:
+    """The rounds of :func:`sequential_design` and where they ended.
+
+    Attributes
+    ----------
+    emulator : Emulator
+        The last emulator (fitted to all runs).
+    calibration : Calibration
+        The last calibration through it.
+    rounds : list of dict
+        Per round: ``runs`` (total), ``means``, ``sds`` (posterior of θ), ``shift``
+        (largest move of a posterior mean, in posterior sds; NaN in round 0) and
+        ``emulator`` (its repr: hyperparameters).
+    converged : bool
+        Whether the last shift is below the tolerance.
+    """
+
+    emulator: Emulator
+    calibration: Any
+    rounds: list[dict[str, Any]] = field(default_factory=list)
+    converged: bool = False
+
+    def table(self) -> pd.DataFrame:
+        """One row per round: runs, shift, posterior mean and sd of each parameter."""
+        rows = []
+        for i, r in enumerate(self.rounds):
+            row: dict[str, Any] = {"round": i, "runs": r["runs"], "shift_sd": r["shift"]}
+            for k in r["means"]:
+                row[f"{k}_mean"], row[f"{k}_sd"] = r["means"][k], r["sds"][k]
+            rows.append(row)
+        return pd.DataFrame(rows).set_index("round")
+
+
+def sequential_design(
+    physics: PhysicsModel,
+    data: CalibrationData,
+    discrepancy: Discrepancy | None = None,
+    *,
+    emulator: Emulator | None = None,
+    runs: int = 100,
+    design: DesignMethod = "maximin-lhs",
+    new_runs: int | None = None,
+    rounds: int = 2,
+    tolerance: float = 0.1,
+    cache: str | Path | None = None,
+    seed: int = 0,
+    workers: int = 1,
+    scheduler: Any = None,
+    **calibrate_kwargs: Any,
+) -> SequentialDesign:
+    """Calibrate through an emulator, add runs at posterior draws, refit, repeat.
+
+    Parameters
+    ----------
+    physics : PhysicsModel
+        The simulator.
+    data : CalibrationData
+        Calibration data.
+    discrepancy : Discrepancy, optional
+        Formulation of the calibrations (default M0).
+    emulator : Emulator, optional
+        A first emulator; default :func:`emulate` with ``runs`` and ``design``.
+    new_runs : int, optional
+        About how many runs each round adds (default ``runs // 2``); see
+        :func:`posterior_design`.
+    rounds : int
+        Most rounds of added runs (0: just the first calibration).
+    tolerance : float
+        Stop when no posterior mean of θ moved by more than this many posterior sds.
+    cache, seed, workers, scheduler :
+        As for :func:`emulate`.
+    **calibrate_kwargs :
+        Passed to :func:`kohpymc.calibrate` (draws, chains, random_seed, ...).
+
+    Returns
+    -------
+    SequentialDesign
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> result = sequential_design(beam.physics_model(), beam.generate_data(seed=1),
+    ...                            runs=20, rounds=1, draws=300, tune=300,
+    ...                            chains=2)  # doctest: +SKIP
+    >>> result.table().columns[:2].tolist()  # doctest: +SKIP
+    ['runs', 'shift_sd']
+    """
+    from kohpymc.calibration import calibrate
+
+    if rounds < 0:
+        raise ValueError(f"rounds must be >= 0, got {rounds}")
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    if emulator is None:
+        emulator = emulate(
+            physics,
+            data,
+            runs=runs,
+            design=design,
+            cache=cache,
+            seed=seed,
+            workers=workers,
+            scheduler=scheduler,
+        )
+    add = int(new_runs) if new_runs is not None else max(1, emulator.n_runs // 2)
+    params = list(physics.parameters)
+    box = {
+        k: (float(lo), float(lo + w))
+        for k, lo, w in zip(emulator.columns, emulator.lower, emulator.width, strict=True)
+    }
+    result: SequentialDesign | None = None
+    previous: dict[str, float] | None = None
+    history: list[dict[str, Any]] = []
+    all_runs = emulator.runs
+    for round_ in range(rounds + 1):
+        cal = calibrate(emulator.physics_model(), data, discrepancy, **calibrate_kwargs)
+        draws = _draws(cal, params)
+        means = {k: float(draws[k].mean()) for k in params}
+        sds = {k: float(draws[k].std()) for k in params}
+        shift = (
+            float("nan")
+            if previous is None
+            else max(abs(means[k] - previous[k]) / sds[k] for k in params)
+        )
+        history.append(
+            {
+                "runs": emulator.n_runs,
+                "means": means,
+                "sds": sds,
+                "shift": shift,
+                "emulator": repr(emulator),
+            }
+        )
+        result = SequentialDesign(emulator, cal, history, bool(shift < tolerance))
+        if result.converged or round_ == rounds:
+            break
+        previous = means
+        points = posterior_design(draws, data, physics, add, seed=seed + round_ + 1)
+        more = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
+        all_runs = _merged(all_runs, more)
+        emulator = Emulator(all_runs, physics, box=box, kernel=emulator.kernel, seed=seed)
+    assert result is not None
+    return result

@@ -1,0 +1,240 @@
+"""The ``[emulator]`` table of a study file and the emulated physics of a study.
+
+::
+
+    [emulator]
+    runs = 200                  # initial design size
+    design = "maximin-lhs"      # or "lhs", "sobol"
+    sequential = 2              # rounds of runs added at posterior draws (0: none)
+    # kernel = "matern52"       # or "se"
+    # new_runs = 100            # runs added per round (default runs // 2)
+    # tolerance = 0.1           # stop when posterior means move less (in posterior sds)
+    # formulation = "M0"        # label of [formulations] the rounds calibrate with
+    # covariance = "full"       # or "diagonal" (see Emulator.physics_model)
+    # seed = 0
+
+With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
+runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses
+them), the validation of the emulator goes to ``<output>/emulator/check.json`` and
+``check.png``, the sequential rounds to ``rounds.csv``, the fitted hyperparameters to
+``emulator.json`` and every run (failures with their error) to ``runs.csv``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from kohpymc.data import CalibrationData
+from kohpymc.discrepancy.base import Discrepancy
+from kohpymc.emulator.checking import check_emulator
+from kohpymc.emulator.design import DESIGNS
+from kohpymc.emulator.gp import KERNELS, EmulatedPhysics
+from kohpymc.emulator.sequential import emulate, sequential_design
+from kohpymc.physics import PhysicsModel
+
+__all__ = ["EmulatorSettings", "study_physics"]
+
+
+@dataclass(frozen=True)
+class EmulatorSettings:
+    """The ``[emulator]`` table of a study file.
+
+    Examples
+    --------
+    >>> settings = EmulatorSettings.from_table({"runs": 200, "sequential": 2})
+    >>> settings.runs, settings.design, settings.sequential, settings.kernel
+    (200, 'maximin-lhs', 2, 'matern52')
+    >>> EmulatorSettings.from_table({"runs": 0})
+    Traceback (most recent call last):
+    ...
+    KeyError: 'runs'
+    must be an integer >= 2, got 0
+    """
+
+    runs: int = 100
+    design: str = "maximin-lhs"
+    sequential: int = 0
+    kernel: str = "matern52"
+    new_runs: int | None = None
+    tolerance: float = 0.1
+    formulation: str | None = None
+    covariance: str = "full"
+    seed: int = 0
+
+    @classmethod
+    def from_table(cls, table: Mapping[str, Any]) -> EmulatorSettings:
+        """Check a TOML table; a bad value raises ``KeyError(key)`` with ``.note``.
+
+        The error's ``args[0]`` is the key at fault and ``__notes__`` say why (the
+        caller adds the file name).
+        """
+        allowed = set(cls.__dataclass_fields__)
+        unknown = sorted(set(table) - allowed)
+        if unknown:
+            raise _bad(unknown[0], f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+        values = dict(table)
+        for key, minimum in (("runs", 2), ("sequential", 0), ("new_runs", 1), ("seed", 0)):
+            if key in values:
+                v = values[key]
+                if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+                    raise _bad(key, f"must be an integer >= {minimum}, got {v!r}")
+        choices = {"design": DESIGNS, "kernel": KERNELS, "covariance": ("full", "diagonal")}
+        for key, options in choices.items():
+            if key in values and values[key] not in options:
+                raise _bad(key, f"must be one of {list(options)}, got {values[key]!r}")
+        if "tolerance" in values:
+            tol = values["tolerance"]
+            if isinstance(tol, bool) or not isinstance(tol, int | float) or not tol > 0:
+                raise _bad("tolerance", f"must be a number > 0, got {tol!r}")
+            values["tolerance"] = float(tol)
+        if "formulation" in values and not isinstance(values["formulation"], str):
+            raise _bad("formulation", "must be a formulation label (a string)")
+        return cls(**values)
+
+
+def _bad(key: str, why: str) -> KeyError:
+    err = KeyError(key)
+    err.add_note(why)
+    return err
+
+
+def study_physics(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    out_dir: str | Path,
+    *,
+    formulations: Mapping[str, Discrepancy] | None = None,
+    sampling: Mapping[str, Any] | None = None,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> EmulatedPhysics:
+    """Build (or rebuild from cached runs) a study's emulator; return it as physics.
+
+    Parameters
+    ----------
+    settings : EmulatorSettings
+        The ``[emulator]`` table.
+    physics, calibration :
+        The study's simulator and calibration data.
+    out_dir : path
+        The study's output folder (``emulator/`` is written inside).
+    formulations : mapping, optional
+        The study's formulations; ``settings.formulation`` picks the one the
+        sequential rounds calibrate with (default M0, no discrepancy).
+    sampling : mapping, optional
+        Sampler settings of the rounds' calibrations (``draws``, ``chains``, ...).
+    workers, scheduler :
+        Where the simulator runs go.
+
+    Returns
+    -------
+    EmulatedPhysics
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kohpymc.examples import beam
+    >>> physics = study_physics(EmulatorSettings(runs=30), beam.physics_model(),
+    ...                         beam.generate_data(seed=1), tempfile.mkdtemp())
+    >>> physics.emulator.n_runs
+    30
+    """
+    folder = Path(out_dir) / "emulator"
+    folder.mkdir(parents=True, exist_ok=True)
+    cache = folder / "runs"
+    emulator = emulate(
+        physics,
+        calibration,
+        runs=settings.runs,
+        design=settings.design,  # type: ignore[arg-type]
+        kernel=settings.kernel,  # type: ignore[arg-type]
+        cache=cache,
+        seed=settings.seed,
+        workers=workers,
+        scheduler=scheduler,
+    )
+    check = check_emulator(emulator)
+    _write_check(folder, check)
+    if settings.sequential > 0:
+        discrepancy = None
+        if settings.formulation is not None:
+            if formulations is None or settings.formulation not in formulations:
+                raise KeyError(
+                    f"[emulator] formulation {settings.formulation!r} is not one of the "
+                    f"study's formulations {sorted(formulations or {})}"
+                )
+            discrepancy = formulations[settings.formulation]
+        result = sequential_design(
+            physics,
+            calibration,
+            discrepancy,
+            emulator=emulator,
+            new_runs=settings.new_runs,
+            rounds=settings.sequential,
+            tolerance=settings.tolerance,
+            cache=cache,
+            seed=settings.seed,
+            workers=workers,
+            scheduler=scheduler,
+            **_calibrate_settings(sampling or {}),
+        )
+        emulator = result.emulator
+        result.table().to_csv(folder / "rounds.csv")
+        _write_check(folder, check_emulator(emulator))
+    (folder / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
+    _write_emulator(folder, emulator)
+    return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+
+
+def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:
+    keys = {"draws", "tune", "chains", "target_accept", "sampler", "mode", "reparameterize"}
+    out = {k: v for k, v in sampling.items() if k in keys}
+    if "random_seed" in sampling:
+        out["random_seed"] = sampling["random_seed"]
+    out["warn"] = False
+    return out
+
+
+def _write_emulator(folder: Path, emulator: Any) -> None:
+    """``emulator.json`` (hyperparameters) and ``runs.csv`` (every run, failures too)."""
+    h = emulator.hyper
+    record = {
+        "emulator": repr(emulator),
+        "kernel": emulator.kernel,
+        "columns": list(emulator.columns),
+        "lengthscales_unit_box": [float(v) for v in h.lengthscales],
+        "amplitude": h.amplitude,
+        "nugget": h.nugget,
+        "log_posterior": h.log_posterior,
+        "runs": emulator.n_runs,
+        "failed_runs": int(len(emulator.runs.failed)),
+    }
+    (folder / "emulator.json").write_text(json.dumps(record, indent=1))
+    runs = emulator.runs
+    table = runs.points.assign(error="")
+    if len(runs.failed):
+        table = pd.concat([table, runs.failed.assign(output=float("nan"))], ignore_index=True)
+    table.to_csv(folder / "runs.csv", index=False)
+
+
+def _write_check(folder: Path, check: Any) -> None:
+    from kohpymc.study_files import write_atomic
+
+    text = json.dumps(check.to_dict(), indent=1)
+
+    def write(tmp: Path) -> None:
+        tmp.write_text(text)
+
+    write_atomic(folder / "check.json", write)
+    import matplotlib.pyplot as plt
+
+    fig = check.figure()
+    fig.savefig(folder / "check.png", dpi=100)
+    plt.close(fig)

@@ -1,0 +1,513 @@
+"""The emulator: designs, cached simulator runs, the GP, its checks, its likelihood."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from kohpymc import PhysicsModel, Uniform
+from kohpymc.emulator import (
+    design_box,
+    extend_design,
+    maximin_distance,
+    run_design,
+    space_filling_design,
+)
+from kohpymc.examples import beam
+
+# ----------------------------------------------------------------------------- design
+
+
+def test_designs_stay_in_the_box_and_are_latin():
+    box = {"x": (0.0, 2.0), "a": (-1.0, 1.0), "b": (10.0, 20.0)}
+    for method in ("maximin-lhs", "lhs", "sobol"):
+        d = space_filling_design(box, 16, method=method, seed=3)
+        assert list(d.columns) == ["x", "a", "b"] and len(d) == 16
+        for k, (lo, hi) in box.items():
+            assert d[k].between(lo, hi).all(), (method, k)
+    d = space_filling_design(box, 16, method="maximin-lhs", seed=3)
+    for k, (lo, hi) in box.items():  # one point per stratum in every column
+        strata = np.floor((d[k].to_numpy() - lo) / (hi - lo) * 16).astype(int)
+        assert sorted(strata) == list(range(16))
+
+
+def test_maximin_lhs_spreads_points_better_than_plain_lhs():
+    box = {"x": (0.0, 1.0), "a": (0.0, 1.0), "b": (0.0, 1.0)}
+    plain = [
+        maximin_distance(space_filling_design(box, 30, method="lhs", seed=s).to_numpy())
+        for s in range(5)
+    ]
+    best = [maximin_distance(space_filling_design(box, 30, seed=s).to_numpy()) for s in range(5)]
+    assert min(best) > max(plain)
+
+
+def test_design_box_uses_data_ranges_and_prior_box():
+    data = beam.generate_data(seed=1)
+    box = design_box(beam.physics_model(), data)
+    assert box["x"] == (float(data.inputs["x"].min()), float(data.inputs["x"].max()))
+    assert box["E"] == (50.0, 300.0)
+    with pytest.raises(KeyError, match="'x'"):
+        design_box(beam.physics_model())
+
+
+def test_extended_design_keeps_old_points_and_adds_far_ones():
+    box = {"x": (0.0, 1.0), "a": (0.0, 1.0)}
+    first = space_filling_design(box, 10, seed=1)
+    more = extend_design(first, box, 5, seed=2)
+    assert len(more) == 15
+    pd.testing.assert_frame_equal(more.iloc[:10], first)
+    new = more.iloc[10:].to_numpy()
+    gaps = np.min(np.linalg.norm(new[:, None] - first.to_numpy()[None], axis=-1), axis=1)
+    assert gaps.min() > 0.05
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+class _Counted:
+    """A simulator that counts its calls and fails where a < 0.1."""
+
+    def __init__(self):
+        self.calls = 0
+        self.rows = 0
+
+    def __call__(self, inputs, params):
+        self.calls += 1
+        self.rows += len(inputs["x"])
+        if params["a"] < 0.1:
+            raise RuntimeError("solver diverged")
+        return params["a"] * np.sin(3 * inputs["x"]) + params["b"] * inputs["x"]
+
+
+def _counted_physics():
+    counter = _Counted()
+    physics = PhysicsModel(
+        counter, {"a": Uniform(0.0, 2.0), "b": Uniform(-1.0, 1.0)}, inputs=["x"], name="counted"
+    )
+    return counter, physics
+
+
+def test_cached_runs_are_not_repeated_and_an_extension_runs_only_new_points(tmp_path):
+    counter, physics = _counted_physics()
+    box = {"x": (0.0, 1.0), "a": (0.2, 2.0), "b": (-1.0, 1.0)}
+    design = space_filling_design(box, 12, seed=4)
+    first = run_design(physics, design, cache=tmp_path)
+    assert first.simulated == 12 and counter.rows == 12 and len(first.points) == 12
+    again = run_design(physics, design, cache=tmp_path)
+    assert counter.rows == 12 and again.simulated == 0 and again.cached == 12
+    pd.testing.assert_frame_equal(first.points, again.points)
+    bigger = extend_design(design, box, 5, seed=5)
+    more = run_design(physics, bigger, cache=tmp_path)
+    assert counter.rows == 17 and more.simulated == 5 and more.cached == 12
+    assert len(list(tmp_path.glob("*.json"))) == 17
+    assert not list(tmp_path.glob(".*"))  # no temporary files left
+
+
+def test_runs_sharing_theta_go_to_one_simulator_call():
+    counter, physics = _counted_physics()
+    design = pd.DataFrame(
+        {"x": [0.1, 0.5, 0.9, 0.3], "a": [1.0, 1.0, 1.0, 0.5], "b": [0.2, 0.2, 0.2, 0.0]}
+    )
+    runs = run_design(physics, design)
+    assert counter.calls == 2 and counter.rows == 4
+    expected = design["a"] * np.sin(3 * design["x"]) + design["b"] * design["x"]
+    np.testing.assert_allclose(runs.y, expected)
+
+
+def test_failed_runs_are_recorded_and_skipped(tmp_path):
+    counter, physics = _counted_physics()
+    design = pd.DataFrame({"x": [0.1, 0.5, 0.9], "a": [1.0, 0.05, 1.5], "b": [0.2, 0.0, -0.3]})
+    runs = run_design(physics, design, cache=tmp_path)
+    assert len(runs.points) == 2 and len(runs.failed) == 1
+    assert runs.failed["a"].tolist() == [0.05]
+    assert "solver diverged" in runs.failed["error"].iloc[0]
+    calls = counter.calls
+    again = run_design(physics, design, cache=tmp_path)  # the failure is cached too
+    assert counter.calls == calls and len(again.failed) == 1
+    run_design(physics, design, cache=tmp_path, retry_failed=True)
+    assert counter.calls == calls + 1
+
+
+@pytest.mark.slow
+def test_runs_on_a_local_dask_cluster_match_in_process_runs(tmp_path):
+    import os
+
+    physics = PhysicsModel(_smooth, _PRIORS, inputs=["x"], name="decay")
+    design = space_filling_design({"x": (0.0, 3.0), "a": (0.5, 3.0), "k": (0.2, 2.0)}, 8)
+    here = run_design(physics, design)
+    there = run_design(physics, design, workers=2, cache=tmp_path)
+    pd.testing.assert_frame_equal(here.points, there.points)
+    assert there.simulated == 8 and len(os.listdir(tmp_path)) == 8
+    assert run_design(physics, design, workers=2, cache=tmp_path).simulated == 0
+
+
+def test_a_design_missing_a_column_is_named():
+    _, physics = _counted_physics()
+    with pytest.raises(KeyError, match=r"\['b'\]"):
+        run_design(physics, pd.DataFrame({"x": [0.1], "a": [1.0]}))
+
+
+# ----------------------------------------------------------------------------- GP
+
+
+def _smooth(inputs, params):
+    return params["a"] * np.exp(-params["k"] * inputs["x"])
+
+
+def _smooth_tensor(inputs, params):
+    import pytensor.tensor as pt
+
+    return params["a"] * pt.exp(-params["k"] * inputs["x"])
+
+
+_PRIORS = {"a": Uniform(0.5, 3.0), "k": Uniform(0.2, 2.0)}
+_X_OBS = np.linspace(0.0, 3.0, 20)
+_TRUTH = {"a": 1.7, "k": 0.8}
+_NOISE = 0.05
+
+
+def _decay_setup():
+    from kohpymc import CalibrationData
+
+    physics = PhysicsModel(_smooth, _PRIORS, inputs=["x"], name="decay")
+    rng = np.random.default_rng(1)
+    y = _smooth({"x": _X_OBS}, _TRUTH) + rng.normal(0.0, _NOISE, _X_OBS.size)
+    data = CalibrationData({"x": _X_OBS}, y, noise_sd=_NOISE)
+    return physics, data, design_box(physics, data)
+
+
+def _emulator(n, kernel="matern52", seed=1):
+    from kohpymc.emulator import Emulator
+
+    physics, data, box = _decay_setup()
+    runs = run_design(physics, space_filling_design(box, n, seed=seed))
+    return Emulator(runs, physics, box=box, kernel=kernel), physics, data, box
+
+
+def _dense_kernel(kind, A, B, ls, amp):
+    K = np.empty((len(A), len(B)))
+    for i in range(len(A)):
+        for j in range(len(B)):
+            r = np.sqrt(np.sum(((A[i] - B[j]) / ls) ** 2))
+            if kind == "se":
+                K[i, j] = amp * np.exp(-0.5 * r**2)
+            else:
+                K[i, j] = amp * (1 + np.sqrt(5) * r + 5 * r**2 / 3) * np.exp(-np.sqrt(5) * r)
+    return K
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_gp_prediction_matches_a_dense_numpy_computation(kernel):
+    import pytensor.tensor as pt
+
+    em, *_ = _emulator(25, kernel=kernel)
+    h = em.hyper
+    lo, width = em.lower, em.width
+    U = (em.runs.X - lo) / width
+    z = (em.runs.y - em.runs.y.mean()) / em.runs.y.std()
+    K = _dense_kernel(kernel, U, U, h.lengthscales, h.amplitude) + (h.nugget + 1e-10) * np.eye(25)
+    x = np.array([0.3, 1.1, 2.9])
+    theta = np.array([1.3, 0.7])
+    Z = np.column_stack([x, np.tile(theta, (3, 1))])
+    Ks = _dense_kernel(kernel, (Z - lo) / width, U, h.lengthscales, h.amplitude)
+    Kss = _dense_kernel(kernel, (Z - lo) / width, (Z - lo) / width, h.lengthscales, h.amplitude)
+    mean = em.runs.y.mean() + em.runs.y.std() * Ks @ np.linalg.solve(K, z)
+    cov = em.runs.y.std() ** 2 * (Kss - Ks @ np.linalg.solve(K, Ks.T) + h.nugget * np.eye(3))
+    m, v = em.predict({"x": x}, {"a": 1.3, "k": 0.7})
+    np.testing.assert_allclose(m, mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(v, np.diag(cov), rtol=1e-5, atol=1e-12)
+    th = pt.as_tensor(theta)
+    np.testing.assert_allclose(em.mean_tensor(th, x[:, None]).eval(), mean, rtol=1e-8)
+    np.testing.assert_allclose(em.variance_tensor(th, x[:, None]).eval(), np.diag(cov), rtol=1e-5)
+    np.testing.assert_allclose(em.covariance_tensor(th, x[:, None]).eval(), cov, atol=1e-10)
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_gp_mean_and_variance_gradients_match_finite_differences(kernel):
+    import pytensor
+    import pytensor.tensor as pt
+
+    em, *_ = _emulator(25, kernel=kernel)
+    x = np.array([0.2, 1.5, 2.7])
+    w = np.array([0.3, -1.2, 0.8])
+    theta = pt.vector("theta")
+    C = em.covariance_tensor(theta, x[:, None])
+    out = (
+        pt.dot(w, em.mean_tensor(theta, x[:, None]))
+        + 10 * pt.dot(w, em.variance_tensor(theta, x[:, None]))
+        + 5 * pt.dot(w, pt.dot(C, w))
+    )
+    grad = pytensor.function([theta], pytensor.grad(out, theta))
+    value = pytensor.function([theta], out)
+
+    t0 = np.array([1.4, 0.9])
+    eps = 1e-5
+    fd = [(value(t0 + eps * e) - value(t0 - eps * e)) / (2 * eps) for e in np.eye(2)]
+    np.testing.assert_allclose(grad(t0), fd, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_marginal_likelihood_gradient_matches_finite_differences(kernel):
+    from scipy.optimize import check_grad
+
+    from kohpymc.emulator.gp import _neg_log_posterior
+
+    em, *_ = _emulator(15, kernel=kernel)
+    p0 = np.r_[np.log([0.4, 0.8, 0.6]), 0.3, np.log(1e-3)]  # ln ℓ, ln s², ln ρ
+    err = check_grad(
+        lambda p: _neg_log_posterior(p, kernel, em.U, em.z)[0],
+        lambda p: _neg_log_posterior(p, kernel, em.U, em.z)[1],
+        p0,
+    )
+    assert err < 1e-4 * np.linalg.norm(_neg_log_posterior(p0, kernel, em.U, em.z)[1]) + 1e-5
+
+
+def test_leave_one_out_matches_refits_and_covers_on_a_smooth_function():
+    from kohpymc.emulator import Emulator
+
+    em, physics, _, box = _emulator(40)
+    mean, var = em.leave_one_out()
+    for i in (0, 17, 39):  # closed form == dropping the run (same hyperparameters)
+        keep = np.arange(40) != i
+        runs = run_design(physics, em.runs.points.iloc[np.flatnonzero(keep)])
+        one = Emulator(runs, physics, box=box, hyperparameters=em.hyper)
+        one.y_mean, one.y_sd = em.y_mean, em.y_sd
+        one.z = (runs.y - em.y_mean) / em.y_sd
+        one._factorize()
+        m, v = one.predict_matrix(em.runs.X[i : i + 1])
+        np.testing.assert_allclose(m, mean[i], rtol=1e-6)
+        np.testing.assert_allclose(v, var[i], rtol=1e-4)
+    z = (em.runs.y - mean) / np.sqrt(var)
+    assert 0.8 <= np.mean(np.abs(z) < 1.645) <= 1.0
+
+
+# ------------------------------------------------------- the emulator in the likelihood
+
+
+def test_every_formulation_builds_with_the_emulator_and_sees_its_covariance():
+    import pytensor.tensor as pt
+    from scipy import stats
+
+    import kohpymc as kp
+    from kohpymc.model import compose_model
+
+    em, physics, data, _ = _emulator(30)
+    emulated = em.physics_model()
+    point_theta = np.array([1.6, 0.85])
+    for formulation in (
+        kp.NoDiscrepancy(),
+        kp.ConstantBias(),
+        kp.IIDGaussian(),
+        kp.InputDependentGaussian(mean=["x"]),
+        kp.GaussianProcess(["x"]),
+        kp.NonStationaryGP(["x"], time="x"),
+        kp.ScaledGP(["x"]),
+    ):
+        built = compose_model(emulated, data, formulation)
+        assert "y" in built.model.named_vars, formulation.label
+        if formulation.label in ("M1", "M4"):  # the marginalized and the GP path
+            point = built.model.initial_point()
+            assert np.isfinite(built.model.compile_logp()(point)), formulation.label
+    # M0: the likelihood is N(η̂(θ), Σ_η(θ) + σ² I) exactly
+    built = compose_model(emulated, data, kp.NoDiscrepancy())
+    model = built.model
+    point = model.initial_point()
+    point["a_interval__"] = np.log((1.6 - 0.5) / (3.0 - 1.6))
+    point["k_interval__"] = np.log((0.85 - 0.2) / (2.0 - 0.85))
+    logp_y = model.compile_fn(model.logp(vars=[model["y"]], sum=True), on_unused_input="ignore")
+
+    th = pt.as_tensor(point_theta)
+    mean = em.mean_tensor(th, _X_OBS[:, None]).eval()
+    cov = em.covariance_tensor(th, _X_OBS[:, None]).eval() + _NOISE**2 * np.eye(20)
+    expected = stats.multivariate_normal(mean, cov).logpdf(data.y)
+    np.testing.assert_allclose(logp_y(point), expected, rtol=1e-6)
+    # the diagonal form adds the variances to the noise
+    built = compose_model(em.physics_model(covariance="diagonal"), data, kp.NoDiscrepancy())
+    logp_y = built.model.compile_fn(
+        built.model.logp(vars=[built.model["y"]], sum=True), on_unused_input="ignore"
+    )
+    sd = np.sqrt(np.diag(cov))
+    np.testing.assert_allclose(logp_y(point), stats.norm(mean, sd).logpdf(data.y).sum(), rtol=1e-6)
+    with pytest.raises(ValueError, match="emulated physics"):
+        compose_model(emulated, data, kp.GridGP(["x"]))
+    # predictions at new inputs add the emulator variance there to the noise
+    built = compose_model(emulated, data, kp.NoDiscrepancy(), new_inputs={"x": [0.5, 4.0]})
+    y_pred = built.model["y_pred"]
+    sd = pytensor_sd(y_pred, built.model, point)
+    _, var_new = em.predict({"x": [0.5, 4.0]}, point_theta)
+    np.testing.assert_allclose(sd, np.sqrt(_NOISE**2 + var_new), rtol=1e-6)
+    assert sd[1] > 3 * sd[0]  # x = 4 lies outside the design box: the emulator knows less
+
+
+def pytensor_sd(rv, model, point):
+    """The ``sigma`` input of a normal random variable, evaluated at a model point."""
+    (sigma,) = model.replace_rvs_by_values([rv.owner.inputs[-1]])
+    fn = model.compile_fn(sigma, on_unused_input="ignore")
+    return np.asarray(fn(point))
+
+
+def _posterior(cal):
+    post = cal.posterior
+    return {k: (float(post[k].mean()), float(post[k].std())) for k in ("a", "k")}
+
+
+_SAMPLING = {"draws": 1000, "tune": 1000, "chains": 2, "random_seed": 1}
+
+
+@pytest.fixture(scope="module")
+def direct_posterior():
+    import kohpymc as kp
+
+    _, data, _ = _decay_setup()
+    direct = PhysicsModel(_smooth_tensor, _PRIORS, inputs=["x"], backend="pytensor")
+    return _posterior(kp.calibrate(direct, data, **_SAMPLING))
+
+
+def test_a_near_exact_emulator_gives_the_direct_posterior(direct_posterior):
+    import kohpymc as kp
+
+    em, _, data, _ = _emulator(150, kernel="se")  # relative LOO error 0.013, held-out 0.002
+    emulated = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING))
+    for name, (mean, sd) in direct_posterior.items():
+        assert abs(emulated[name][0] - mean) < 0.1 * sd, (name, emulated[name], mean, sd)
+        assert 0.9 < emulated[name][1] / sd < 1.25
+
+
+def test_a_poor_emulator_widens_rather_than_shifts_the_posterior(direct_posterior):
+    import kohpymc as kp
+
+    em, _, data, _ = _emulator(15)
+    loo_mean, _ = em.leave_one_out()
+    assert np.sqrt(np.mean((loo_mean - em.runs.y) ** 2)) / np.std(em.runs.y) > 0.05  # poor
+    poor = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING, warn=False))
+    for name, (mean, sd) in direct_posterior.items():
+        assert poor[name][1] > 1.5 * sd, (name, poor[name], sd)  # wider
+        assert abs(poor[name][0] - _TRUTH[name]) < 2.0 * poor[name][1]  # truth covered
+        assert abs(poor[name][0] - mean) < 1.0 * poor[name][1]  # not shifted
+
+
+# ----------------------------------------------------------------------------- checks
+
+
+def test_held_out_check_covers_and_a_poor_emulator_warns():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from kohpymc.emulator import EmulatorWarning, check_emulator
+
+    em, physics, _, box = _emulator(60)
+    held = run_design(physics, space_filling_design(box, 200, method="sobol", seed=9))
+    check = check_emulator(em, held, warn=False)
+    assert check.kind == "held-out" and check.fit
+    assert abs(check.coverage - 0.9) < 0.07
+    assert check.relative_rmse < 0.08
+    z = check.standardized_errors
+    assert abs(np.mean(z)) < 0.3 and 0.6 < np.std(z) < 1.5
+    assert len(check.figure().axes) == 2
+    assert set(check.to_dict()) >= {"coverage", "relative_rmse", "problems"}
+    poor, *_ = _emulator(6)
+    with pytest.warns(EmulatorWarning, match="not fit for calibration"):
+        bad = check_emulator(poor, held)
+    assert not bad.fit and bad.relative_rmse > 0.1
+    loo = check_emulator(em, warn=False)
+    assert loo.kind == "leave-one-out" and loo.simulated.size == 60
+
+
+# ------------------------------------------------------------------ sequential design
+
+
+def test_posterior_design_runs_posterior_draws_at_the_calibration_inputs():
+    from kohpymc.emulator import posterior_design
+
+    physics, data, _ = _decay_setup()
+    draws = pd.DataFrame({"a": np.linspace(1.5, 1.9, 50), "k": np.linspace(0.7, 0.9, 50)})
+    d = posterior_design(draws, data, physics, 45, seed=2)
+    assert list(d.columns) == ["x", "a", "k"] and len(d) == 2 * 20  # round(45 / 20) draws
+    for _, group in d.groupby(["a", "k"]):
+        np.testing.assert_allclose(np.sort(group["x"]), _X_OBS)
+    assert d["a"].between(1.5, 1.9).all()
+    with pytest.raises(KeyError, match="'k'"):
+        posterior_design(draws[["a"]], data, physics, 10)
+
+
+@pytest.mark.slow
+def test_sequential_design_moves_a_poor_emulator_to_the_direct_posterior(direct_posterior):
+    from kohpymc.emulator import sequential_design
+
+    physics, data, _ = _decay_setup()
+    result = sequential_design(
+        physics, data, runs=15, new_runs=40, rounds=3, tolerance=0.2, **_SAMPLING, warn=False
+    )
+    table = result.table()
+    assert table["runs"].iloc[0] == 15 and table["runs"].iloc[-1] > 15
+    first, last = result.rounds[0], result.rounds[-1]
+    for name, (mean, sd) in direct_posterior.items():
+        assert last["sds"][name] < first["sds"][name]
+        assert abs(last["means"][name] - mean) < 0.5 * sd, (name, last, mean, sd)
+
+
+# ----------------------------------------------------------------------- study files
+
+
+def _study_file(tmp_path, emulator_table):
+    from kohpymc.examples import decay
+
+    text = decay.STUDY_FILE.read_text()
+    text = text.replace('"data/', f'"{decay.STUDY_FILE.parent}/data/')
+    text = text.replace("[check]", emulator_table + "\n[check]")
+    path = tmp_path / "study.toml"
+    path.write_text(text)
+    return path
+
+
+def test_an_emulator_table_in_a_study_file_is_read_and_checked(tmp_path):
+    from kohpymc import StudyConfigError, load_study
+    from kohpymc.emulator.study import EmulatorSettings
+
+    table = '[emulator]\nruns = 200\ndesign = "maximin-lhs"\nsequential = 2\n'
+    spec = load_study(_study_file(tmp_path, table))
+    assert spec.emulator == EmulatorSettings(runs=200, design="maximin-lhs", sequential=2)
+    assert load_study(_study_file(tmp_path, "")).emulator is None
+    for bad, key in (
+        ("runs = 1", "emulator.runs"),
+        ('design = "grid"', "emulator.design"),
+        ("sequentiel = 2", "emulator.sequentiel"),
+        ("tolerance = -1", "emulator.tolerance"),
+    ):
+        with pytest.raises(StudyConfigError, match=rf"study.toml: \[{key}\]"):
+            load_study(_study_file(tmp_path, f"[emulator]\n{bad}\n"))
+
+
+@pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
+def test_study_physics_reuses_cached_runs(tmp_path):
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    counter, physics = _counted_physics()
+    from kohpymc import CalibrationData
+
+    data = CalibrationData({"x": np.linspace(0, 1, 5)}, np.zeros(5), noise_sd=0.1)
+    physics.parameters["a"] = Uniform(0.2, 2.0)  # no failing runs here
+    settings = EmulatorSettings(runs=20)
+    first = study_physics(settings, physics, data, tmp_path)
+    rows = counter.rows
+    again = study_physics(settings, physics, data, tmp_path)
+    assert rows == 20 and counter.rows == 20  # the second build ran nothing
+    np.testing.assert_allclose(first.emulator.hyper.lengthscales, again.emulator.hyper.lengthscales)
+    assert (tmp_path / "emulator" / "check.json").is_file()
+    assert (tmp_path / "emulator" / "check.png").is_file()
+    table = pd.read_csv(tmp_path / "emulator" / "runs.csv")
+    assert len(table) == 20 and {"x", "a", "b", "output", "error"} <= set(table.columns)
+    assert (tmp_path / "emulator" / "emulator.json").is_file()
+
+
+def test_a_refitted_emulator_has_another_fingerprint_so_a_study_does_not_reuse_old_results():
+    from kohpymc.fingerprint import physics_fingerprint
+
+    small, *_ = _emulator(12, seed=1)
+    same, *_ = _emulator(12, seed=1)
+    more, *_ = _emulator(20, seed=1)
+    key = physics_fingerprint(small.physics_model())
+    assert key == physics_fingerprint(same.physics_model())
+    assert key != physics_fingerprint(more.physics_model())
+    assert key != physics_fingerprint(small.physics_model(covariance="diagonal"))

@@ -511,3 +511,94 @@ def test_a_refitted_emulator_has_another_fingerprint_so_a_study_does_not_reuse_o
     assert key == physics_fingerprint(same.physics_model())
     assert key != physics_fingerprint(more.physics_model())
     assert key != physics_fingerprint(small.physics_model(covariance="diagonal"))
+
+
+# ----------------------------------------------------- natural units spanning decades
+
+
+def _arrhenius(inputs, params):
+    return params["A"] * np.exp(-params["Ea"] / (8.314 * inputs["T"]))
+
+
+def _arrhenius_runs(n, seed=3):
+    from kohpymc import LogNormal
+
+    physics = PhysicsModel(
+        _arrhenius, {"A": LogNormal(16.0, 2.0), "Ea": Uniform(2e4, 9e4)}, ["T"], name="rate"
+    )
+    box = {"T": (300.0, 400.0), "A": (np.exp(12.7), np.exp(19.3)), "Ea": (2e4, 9e4)}
+    return physics, box, run_design(physics, space_filling_design(box, n, seed=seed))
+
+
+def test_a_column_spanning_decades_is_spread_on_a_log_scale():
+    box = {"A": (1e3, 1e7), "x": (0.0, 1.0)}
+    design = space_filling_design(box, 200, seed=1)
+    # half the points below the geometric middle (1e5), not 1 %
+    assert 0.4 < np.mean(design["A"] < 1e5) < 0.6
+    assert 0.4 < np.mean(design["x"] < 0.5) < 0.6
+    more = extend_design(design, box, 50, seed=2)
+    assert more["A"].between(1e3, 1e7).all() and 0.3 < np.mean(more["A"].iloc[200:] < 1e5) < 0.7
+
+
+def test_log_output_emulator_matches_a_dense_log_normal_computation_and_its_gradient():
+    import pytensor
+    import pytensor.tensor as pt
+
+    from kohpymc.emulator import Emulator
+
+    physics, box, runs = _arrhenius_runs(60)
+    em = Emulator(runs, physics, box=box, log_output=True)
+    assert em.log_columns.tolist() == [False, True, False]  # A spans e^12.7..e^19.3
+    T = np.array([310.0, 350.0, 390.0])
+    theta = {"A": 2e7, "Ea": 5.2e4}
+    # dense reference: GP on ln y in the scaled box, then log-normal moments
+    h = em.hyper
+    Z = np.column_stack([T, np.full(3, np.log(theta["A"])), np.full(3, theta["Ea"])])
+    U = (Z - em.lower) / em.width
+    K = _dense_kernel("matern52", em.U, em.U, h.lengthscales, h.amplitude)
+    K += (h.nugget + 1e-10) * np.eye(em.n_runs)
+    Ks = _dense_kernel("matern52", U, em.U, h.lengthscales, h.amplitude)
+    m = em.y_mean + em.y_sd * (Ks @ np.linalg.solve(K, em.z))
+    Kss = _dense_kernel("matern52", U, U, h.lengthscales, h.amplitude)
+    C = em.y_sd**2 * (Kss - Ks @ np.linalg.solve(K, Ks.T) + h.nugget * np.eye(3))
+    mean, var = em.predict({"T": T}, theta)
+    np.testing.assert_allclose(mean, np.exp(m + np.diag(C) / 2), rtol=1e-6)
+    np.testing.assert_allclose(var, np.expm1(np.diag(C)) * np.exp(2 * m + np.diag(C)), rtol=1e-5)
+    th = pt.as_tensor([theta["A"], theta["Ea"]])
+    cov = em.covariance_tensor(th, T[:, None]).eval()
+    # the latent covariance here is ~1e-9 of the prior amplitude, so the 1e-12 the Matérn
+    # distance carries for a smooth gradient at r = 0 shows at 1e-4: rtol 1e-3; and a dense
+    # solve would cancel worse: map the emulator's own Cholesky-based latent covariance
+    # through the log-normal formula Cov(e^a, e^b) = e^{μa + μb + (σa² + σb²)/2} (e^{σab} − 1)
+    V = em._chol_inv @ Ks.T
+    latent = em.y_sd**2 * (Kss - V.T @ V + h.nugget * np.eye(3))
+    half = m + np.diag(latent) / 2
+    expected = np.exp(half[:, None] + half[None]) * np.expm1(latent)
+    scale = np.sqrt(np.outer(var, var))  # off-diagonal errors relative to the variances
+    assert np.all(np.abs(cov - expected) <= 1e-3 * (np.abs(expected) + scale))
+    np.testing.assert_allclose(np.diag(cov), var, rtol=1e-3)
+    np.testing.assert_allclose(em.mean_tensor(th, T[:, None]).eval(), mean, rtol=1e-6)
+    # the gradient in θ through ln A and the log-normal mean, against central differences
+    a = pt.dvector("a")
+    grad = pytensor.function([a], pytensor.grad(em.mean_tensor(a, T[:, None]).sum(), a))
+    x0 = np.array([theta["A"], theta["Ea"]])
+    for j, step in enumerate((1e3, 1.0)):
+        dx = np.zeros(2)
+        dx[j] = step
+        fd = em.predict({"T": T}, x0 + dx)[0].sum() - em.predict({"T": T}, x0 - dx)[0].sum()
+        np.testing.assert_allclose(grad(x0)[j], fd / (2 * step), rtol=1e-4)
+
+
+def test_log_scales_make_an_arrhenius_emulator_usable():
+    """Rates over a wide prior box span decades: emulating ln y over ln A is far better than
+    y over A (measured: leave-one-out RMSE 0.18 of the outputs' sd -> 0.005 on a study)."""
+    from kohpymc.emulator import Emulator, check_emulator
+
+    physics, box, runs = _arrhenius_runs(60)
+    plain = check_emulator(Emulator(runs, physics, box=box), warn=False)
+    logged = check_emulator(Emulator(runs, physics, box=box, log_output=True), warn=False)
+    assert logged.relative_rmse < 0.02 < plain.relative_rmse
+    signed = PhysicsModel(lambda i, p: p["a"] * i["x"], {"a": Uniform(-1, 1)}, ["x"])
+    bad = run_design(signed, space_filling_design({"x": (0.0, 1.0), "a": (-1.0, 1.0)}, 10))
+    with pytest.raises(ValueError, match="outputs <= 0"):
+        Emulator(bad, signed, log_output=True)

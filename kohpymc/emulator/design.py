@@ -106,6 +106,57 @@ def _check_box(box: Box) -> tuple[list[str], np.ndarray, np.ndarray]:
     return names, lo, hi
 
 
+#: a positive column whose upper bound is this many times its lower one is scaled in logs
+DECADES_RATIO = 100.0
+
+
+def log_scaled(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which columns of a box are spread on a log scale: positive and two decades or more.
+
+    A prior box such as A in (e^12, e^20) for an Arrhenius prefactor puts nearly every
+    point of a linear design in its top decade; designs and the emulator's unit box use
+    ln x for such columns instead.
+
+    Examples
+    --------
+    >>> log_scaled(np.array([1e3, 0.0, 50.0]), np.array([1e8, 1.0, 300.0])).tolist()
+    [True, False, False]
+    """
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (lo > 0) & (hi / np.where(lo > 0, lo, 1.0) >= DECADES_RATIO)
+
+
+def to_unit(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Rows of a box mapped to the unit box (log scale for :func:`log_scaled` columns).
+
+    Examples
+    --------
+    >>> to_unit(np.array([[1e5, 0.5]]), np.array([1e3, 0.0]), np.array([1e7, 1.0])).tolist()
+    [[0.5, 0.5]]
+    """
+    logs = log_scaled(lo, hi)
+    a, b = np.where(logs, np.log(np.where(logs, lo, 1.0)), lo), np.where(logs, np.log(hi), hi)
+    width = np.where(b > a, b - a, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.where(logs, np.log(np.where(logs, values, 1.0)), values)
+    return (x - a) / width
+
+
+def from_unit(unit: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`to_unit`.
+
+    Examples
+    --------
+    >>> from_unit(np.array([[0.5, 0.5]]), np.array([1e3, 0.0]), np.array([1e7, 1.0])).round(6)
+    array([[1.e+05, 5.e-01]])
+    """
+    logs = log_scaled(lo, hi)
+    a, b = np.where(logs, np.log(np.where(logs, lo, 1.0)), lo), np.where(logs, np.log(hi), hi)
+    x = a + unit * (b - a)
+    return np.where(logs, np.exp(np.where(logs, x, 0.0)), x)
+
+
 def maximin_distance(points: np.ndarray) -> float:
     """The smallest distance between two rows of ``points`` (the maximin criterion).
 
@@ -194,7 +245,8 @@ def space_filling_design(
     method : {"maximin-lhs", "lhs", "sobol"}
         A Latin hypercube improved for the maximin distance (the best of 20, then
         coordinate swaps that widen the closest pair), a plain Latin hypercube, or the
-        first ``n`` points of a scrambled Sobol sequence.
+        first ``n`` points of a scrambled Sobol sequence.  Columns spanning two decades
+        or more (positive) are spread on a log scale (:func:`log_scaled`).
     seed : int
         Random seed.
 
@@ -215,7 +267,7 @@ def space_filling_design(
     names, lo, hi = _check_box(box)
     rng = np.random.default_rng(seed)
     unit = _unit_points(n, len(names), method, rng)
-    return pd.DataFrame(lo + unit * (hi - lo), columns=names)
+    return pd.DataFrame(from_unit(unit, lo, hi), columns=names)
 
 
 def extend_design(
@@ -247,8 +299,7 @@ def extend_design(
     n_new = int(n_new)
     if n_new < 0:
         raise ValueError(f"n_new must be >= 0, got {n_new}")
-    width = np.where(hi > lo, hi - lo, 1.0)
-    old = (design[names].to_numpy(float) - lo) / width
+    old = to_unit(design[names].to_numpy(float), lo, hi)
     rng = np.random.default_rng(seed)
     candidates = _lhs(max(pool * n_new, n_new), len(names), rng)
     chosen: list[np.ndarray] = []
@@ -261,5 +312,5 @@ def extend_design(
         chosen.append(candidates[k])
         nearest = np.minimum(nearest, np.sum((candidates - candidates[k]) ** 2, axis=1))
         nearest[k] = -1.0
-    new = pd.DataFrame(lo + np.array(chosen).reshape(-1, len(names)) * (hi - lo), columns=names)
+    new = pd.DataFrame(from_unit(np.array(chosen).reshape(-1, len(names)), lo, hi), columns=names)
     return pd.concat([design[names], new], ignore_index=True)

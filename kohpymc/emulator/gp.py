@@ -32,6 +32,7 @@ import numpy as np
 import pytensor.tensor as pt
 from scipy import linalg, optimize
 
+from kohpymc.emulator.design import log_scaled
 from kohpymc.emulator.runs import SimulatorRuns
 from kohpymc.physics import PhysicsModel
 
@@ -170,6 +171,8 @@ class Emulator:
         :meth:`physics_model`; its inputs and parameters name the columns.
     box : mapping, optional
         Column -> ``(lower, upper)`` defining the unit box (default: the runs' range).
+        A positive column spanning two decades or more is scaled by its logarithm
+        (:func:`~kohpymc.emulator.design.log_scaled`), as the designs spread it.
     kernel : {"matern52", "se"}
         ARD Matérn 5/2 (default) or squared exponential.  On smooth test functions the
         squared exponential was more accurate but its 90 % bands covered only 0.6–0.9
@@ -181,6 +184,10 @@ class Emulator:
         Seed of the random starts.
     hyperparameters : GPHyperparameters, optional
         Use these instead of fitting.
+    log_output : bool
+        Fit the GP to ln y (every run's output must be positive): for outputs spanning
+        decades over the design (rates, currents).  Predictions are the log-normal mean,
+        variance and covariance in output units.
 
     Attributes
     ----------
@@ -209,6 +216,7 @@ class Emulator:
         restarts: int = 5,
         seed: int = 0,
         hyperparameters: GPHyperparameters | None = None,
+        log_output: bool = False,
     ) -> None:
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
@@ -235,13 +243,22 @@ class Emulator:
         hi = np.array(
             [box[k][1] if k in box else X[:, j].max() for j, k in enumerate(self.columns)]
         )
+        self.log_columns = log_scaled(lo, hi)
+        lo, hi = self._transform(lo), self._transform(hi)
         self.lower = lo.astype(float)
         self.width = np.where(hi > lo, hi - lo, 1.0).astype(float)
-        self.y_mean = float(np.mean(y))
-        sd = float(np.std(y))
+        self.log_output = bool(log_output)
+        if self.log_output and not np.all(y > 0):
+            raise ValueError(
+                f"Emulator(log_output=True): {int(np.sum(y <= 0))} run(s) of "
+                f"{physics.name!r} have outputs <= 0"
+            )
+        g = np.log(y) if self.log_output else y
+        self.y_mean = float(np.mean(g))
+        sd = float(np.std(g))
         self.y_sd = sd if sd > 0 else 1.0
-        self.U = (X - self.lower) / self.width
-        self.z = (y - self.y_mean) / self.y_sd
+        self.U = (self._transform(X) - self.lower) / self.width
+        self.z = (g - self.y_mean) / self.y_sd
         self.hyper = hyperparameters or _fit_hyperparameters(kernel, self.U, self.z, restarts, seed)
         self._factorize()
 
@@ -259,6 +276,19 @@ class Emulator:
         self._chol_inv = linalg.solve_triangular(self._chol, np.eye(self.n_runs), lower=True)
 
     # ------------------------------------------------------------------- numpy
+    def _transform(self, values: np.ndarray) -> np.ndarray:
+        """Columns in the scale of the unit box: ln for :attr:`log_columns`."""
+        values = np.asarray(values, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.log_columns, np.log(np.abs(values)), values)
+
+    def _output_moments(self, mean: Any, var: Any, lib: Any = np) -> tuple[Any, Any]:
+        """Latent mean/variance (standardised) as output-unit mean and variance."""
+        m, v = self.y_mean + self.y_sd * mean, self.y_sd**2 * var
+        if not self.log_output:
+            return m, v
+        return lib.exp(m + v / 2.0), lib.expm1(v) * lib.exp(2.0 * m + v)
+
     def _matrix(self, inputs: Mapping[str, Any], params: Any) -> np.ndarray:
         arrays, n = self.physics._as_inputs(inputs)
         theta = self.physics._as_params(params)
@@ -286,13 +316,13 @@ class Emulator:
         if Z.shape[1] != len(self.columns):
             raise ValueError(f"predict_matrix: rows need columns {list(self.columns)}")
         h = self.hyper
-        Us = (Z - self.lower) / self.width
+        Us = (self._transform(Z) - self.lower) / self.width
         Ks, _ = _kernel_numpy(self.kernel, Us, self.U, h.lengthscales, h.amplitude)
         mean = Ks @ self._alpha
         V = self._chol_inv @ Ks.T
         var = h.amplitude + h.nugget - np.sum(V**2, axis=0)
         var = np.maximum(var, h.nugget)
-        return self.y_mean + self.y_sd * mean, self.y_sd**2 * var
+        return self._output_moments(mean, var)
 
     def predict(
         self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
@@ -323,18 +353,22 @@ class Emulator:
         """
         diag = np.sum(self._chol_inv**2, axis=0)  # diag of K⁻¹ = L⁻ᵀ L⁻¹
         mean_z = self.z - self._alpha / diag
-        return self.y_mean + self.y_sd * mean_z, self.y_sd**2 / diag
+        return self._output_moments(mean_z, 1.0 / diag)
 
     # ----------------------------------------------------------------- pytensor
     def _scaled_rows(self, theta: Any, X: Any) -> list[Any]:
         """Unit-box columns of the rows ``(X, θ)`` as tensors (θ broadcast over rows)."""
         theta = pt.as_tensor_variable(theta)
         X = pt.as_tensor_variable(X)
-        cols = [(X[:, j] - self.lower[j]) / self.width[j] for j in range(self.n_inputs)]
+
+        def scaled(values: Any, j: int) -> Any:
+            values = pt.log(values) if self.log_columns[j] else values
+            return (values - self.lower[j]) / self.width[j]
+
+        cols = [scaled(X[:, j], j) for j in range(self.n_inputs)]
         ones = pt.ones_like(X[:, 0])
         for i in range(len(self.columns) - self.n_inputs):
-            j = self.n_inputs + i
-            cols.append(ones * ((theta[i] - self.lower[j]) / self.width[j]))
+            cols.append(ones * scaled(theta[i], self.n_inputs + i))
         return cols
 
     def _cross_kernel(self, theta: Any, X: Any) -> Any:
@@ -355,7 +389,16 @@ class Emulator:
         --------
         See :meth:`variance_tensor`.
         """
-        return self.y_mean + self.y_sd * pt.dot(self._cross_kernel(theta, X), self._alpha)
+        mean = pt.dot(self._cross_kernel(theta, X), self._alpha)
+        if not self.log_output:
+            return self.y_mean + self.y_sd * mean
+        return self._output_moments(mean, self._latent_variance(theta, X), pt)[0]
+
+    def _latent_variance(self, theta: Any, X: Any) -> Any:
+        """Standardised predictive variance (latent plus nugget) as a tensor."""
+        h = self.hyper
+        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        return pt.maximum(h.amplitude + h.nugget - pt.sum(V**2, axis=0), h.nugget)
 
     def variance_tensor(self, theta: Any, X: Any) -> Any:
         """Symbolic predictive variance ``v(X, θ)`` (latent plus nugget), output units².
@@ -372,10 +415,11 @@ class Emulator:
         >>> bool(np.allclose(v, em.predict({"x": [400.0], "P": [2.5]}, [200.0])[1]))
         True
         """
-        h = self.hyper
-        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
-        var = h.amplitude + h.nugget - pt.sum(V**2, axis=0)
-        return self.y_sd**2 * pt.maximum(var, h.nugget)
+        var = self._latent_variance(theta, X)
+        if not self.log_output:
+            return self.y_sd**2 * var
+        mean = pt.dot(self._cross_kernel(theta, X), self._alpha)
+        return self._output_moments(mean, var, pt)[1]
 
     def covariance_tensor(self, theta: Any, X: Any) -> Any:
         """Symbolic predictive covariance ``Σ_η(X, θ)`` between the rows (output units²).
@@ -408,7 +452,13 @@ class Emulator:
         V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
         n = pt.as_tensor_variable(X).shape[0]
         cov = prior - pt.dot(V.T, V) + h.nugget * pt.eye(n)
-        return self.y_sd**2 * cov
+        if not self.log_output:
+            return self.y_sd**2 * cov
+        # log-normal: Cov(e^a, e^b) = e^{μa + μb + (σa² + σb²)/2} (e^{σab} − 1)
+        latent = self.y_sd**2 * cov
+        m = self.y_mean + self.y_sd * pt.dot(self._cross_kernel(theta, X), self._alpha)
+        half = m + pt.diagonal(latent) / 2.0
+        return pt.exp(half[:, None] + half[None, :]) * pt.expm1(latent)
 
     def physics_model(
         self,
@@ -449,7 +499,8 @@ class Emulator:
         ls = ", ".join(f"{k}={v:.3g}" for k, v in zip(self.columns, h.lengthscales, strict=True))
         return (
             f"Emulator({self.physics.name!r}, runs={self.n_runs}, kernel={self.kernel!r}, "
-            f"lengthscales=({ls}), amplitude={h.amplitude:.3g}, nugget={h.nugget:.3g})"
+            f"lengthscales=({ls}), amplitude={h.amplitude:.3g}, nugget={h.nugget:.3g}"
+            + (", log_output=True)" if self.log_output else ")")
         )
 
 
@@ -506,6 +557,8 @@ class EmulatedPhysics(PhysicsModel):
             "z": np.asarray(em.z, dtype=float).round(12).tolist(),
             "scaling": [em.lower.tolist(), em.width.tolist(), em.y_mean, em.y_sd],
             "hyper": repr(em.hyper),
+            "log_output": em.log_output,
+            "log_columns": np.asarray(em.log_columns).tolist(),
         }
 
     def _emulated(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> Any:

@@ -39,6 +39,7 @@ def emulate(
     seed: int = 0,
     workers: int = 1,
     scheduler: Any = None,
+    log_output: bool = False,
 ) -> Emulator:
     """Design ``runs`` simulator runs over the data's inputs × θ's prior box, run, fit.
 
@@ -62,6 +63,8 @@ def emulate(
         Seed of the design and of the hyperparameter search.
     workers, scheduler :
         Where the runs go (:func:`kohpymc.run_tasks`).
+    log_output : bool
+        Emulate ln y (positive outputs spanning decades; see :class:`Emulator`).
 
     Returns
     -------
@@ -77,7 +80,7 @@ def emulate(
     box = design_box(physics, data, bounds=bounds)
     points = space_filling_design(box, runs, method=design, seed=seed)
     done = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
-    return Emulator(done, physics, box=box, kernel=kernel, seed=seed)
+    return Emulator(done, physics, box=box, kernel=kernel, seed=seed, log_output=log_output)
 
 
 def posterior_design(
@@ -287,6 +290,9 @@ def sequential_design(
         points = posterior_design(draws, data, physics, add, seed=seed + round_ + 1)
         more = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
         all_runs = _merged(all_runs, more)
-        emulator = Emulator(all_runs, physics, box=box, kernel=emulator.kernel, seed=seed)
+        emulator = Emulator(
+            all_runs, physics, box=box, kernel=emulator.kernel, seed=seed,
+            log_output=emulator.log_output,
+        )  # fmt: skip
     assert result is not None
     return result

@@ -11,6 +11,7 @@
     # tolerance = 0.1           # stop when posterior means move less (in posterior sds)
     # formulation = "M0"        # label of [formulations] the rounds calibrate with
     # covariance = "full"       # or "diagonal" (see Emulator.physics_model)
+    # log_output = false        # emulate ln y (positive outputs spanning decades)
     # seed = 0
 
 With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
@@ -65,6 +66,7 @@ class EmulatorSettings:
     tolerance: float = 0.1
     formulation: str | None = None
     covariance: str = "full"
+    log_output: bool = False
     seed: int = 0
 
     @classmethod
@@ -93,6 +95,8 @@ class EmulatorSettings:
             if isinstance(tol, bool) or not isinstance(tol, int | float) or not tol > 0:
                 raise _bad("tolerance", f"must be a number > 0, got {tol!r}")
             values["tolerance"] = float(tol)
+        if "log_output" in values and not isinstance(values["log_output"], bool):
+            raise _bad("log_output", f"must be true or false, got {values['log_output']!r}")
         if "formulation" in values and not isinstance(values["formulation"], str):
             raise _bad("formulation", "must be a formulation label (a string)")
         return cls(**values)
@@ -155,6 +159,7 @@ def study_physics(
         runs=settings.runs,
         design=settings.design,  # type: ignore[arg-type]
         kernel=settings.kernel,  # type: ignore[arg-type]
+        log_output=settings.log_output,
         cache=cache,
         seed=settings.seed,
         workers=workers,

@@ -121,7 +121,7 @@ def slab_temperature(
     Examples
     --------
     >>> slab_temperature({"t": [3.0, 60.0]}, {"alpha": 4.2, "Ts": 100.0}, seconds=0).round(2)
-    array([22.07, 99.87])
+    array([27.42, 99.8 ])
     """
     if seconds is None:
         seconds = float(os.environ.get("KOHPYMC_SLOW_SIMULATOR_SECONDS", DEFAULT_SECONDS))

@@ -47,7 +47,7 @@ bench-discovery-mcmc: $(STAMP)
 	$(PY) -m benchmarks.discovery --mcmc --draws 500 --chains 2
 
 # a simulator sleeping 1 s per call: the direct study's cost (its calls counted on a
-# non-sleeping copy) against the emulated study (100 runs) on a 2-worker LocalCluster and
+# non-sleeping copy) against the emulated study (150 runs) on a 2-worker LocalCluster and
 # in-process (~10 min); table in benchmarks/results/slow_simulator.md
 bench-slow-simulator: $(STAMP)
 	$(PY) -m benchmarks.slow_simulator

@@ -4,7 +4,7 @@
 
 The study is ``kohpymc/examples/slow_simulator_study.toml`` (a plate's back-face
 temperature; 2 parameters; M0 and M1; 2 chains × 1000 draws after 1000 tuning steps; an
-``[emulator]`` of 100 runs).  Its simulator sleeps ``--seconds`` per call (the stand-in
+``[emulator]`` of 150 runs).  Its simulator sleeps ``--seconds`` per call (the stand-in
 cost of one finite-element run, :mod:`kohpymc.examples.slow_simulator`).
 
 1. **Direct**: the same study without ``[emulator]``, run with a simulator that does not

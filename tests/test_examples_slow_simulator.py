@@ -95,8 +95,8 @@ def test_emulator_runs_on_a_local_cluster_call_the_simulator_once_each_and_cache
 def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cache(
     tmp_path, capsys, dask_cluster
 ):
-    """The shipped study (100 runs, M0 and M1; 2 × 500 draws here) with a 0.05 s simulator
-    on the 2-worker LocalCluster: 100 simulator calls in the workers, a posterior that
+    """The shipped study (150 runs, M0 and M1; 2 × 500 draws here) with a 0.05 s simulator
+    on the 2-worker LocalCluster: 150 simulator calls in the workers, a posterior that
     covers the truth, and a rerun that runs the simulator nowhere."""
     log = tmp_path / "calls.log"
     path = example.write_study(
@@ -110,7 +110,7 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     calls = _calls(log)
     here = os.getpid()
     runs = [c for c in calls if c[0] != here]
-    assert len(runs) == 100 == len(pd.read_csv(out / "emulator" / "runs.csv"))
+    assert len(runs) == 150 == len(pd.read_csv(out / "emulator" / "runs.csv"))
     # the only calls in this process: the pre-flight check that each formulation builds
     # (compose_model evaluates the physics at the prior centre)
     assert {(a, t) for pid, a, t in calls if pid == here} <= {(5.5, 100.0)}
@@ -122,5 +122,5 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     before = len(calls)
     assert main([*args, "--scheduler", address]) == 0
     after = _calls(log)[before:]
-    assert [c for c in after if c[0] != here] == []  # no simulator run: all 100 cached
+    assert [c for c in after if c[0] != here] == []  # no simulator run: all 150 cached
     assert {(a, t) for _, a, t in after} <= {(5.5, 100.0)}

@@ -148,13 +148,11 @@ def physics_model(seconds: float | None = None) -> PhysicsModel:
     ('alpha', 'Ts')
     """
     priors = {"alpha": Uniform(1.0, 10.0), "Ts": Uniform(60.0, 140.0)}
-    if seconds is None:
-        function = slab_temperature
-    else:
 
-        def function(inputs: Mapping[str, Any], params: Mapping[str, Any]) -> np.ndarray:
-            return slab_temperature(inputs, params, seconds=seconds)
+    def sleeping(inputs: Mapping[str, Any], params: Mapping[str, Any]) -> np.ndarray:
+        return slab_temperature(inputs, params, seconds=seconds)
 
+    function = slab_temperature if seconds is None else sleeping
     return PhysicsModel(function, priors, inputs=["t"], name="slab_temperature")
 
 
@@ -234,7 +232,7 @@ def write_study(
             line = f'{key} = "{(data / f"slow_simulator_{key}.csv").as_posix()}"'
         elif section == "emulator" and key == "runs" and runs is not None:
             line = f"runs = {int(runs)}"
-        elif section == "sampling" and sampling and key in sampling:
+        elif section == "sampling" and sampling and key is not None and key in sampling:
             line = f"{key} = {int(sampling[key])}"
         lines.append(line)
     path = folder / "study.toml"

@@ -120,7 +120,9 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
         assert low < truth < high, (name, low, high)
         assert float(post[name].std()) < {"alpha": 0.3, "Ts": 1.0}[name]
     before = len(calls)
-    assert main([*args, "--scheduler", address]) == 0
+    assert main([*args[:-1], "--scheduler", address]) == 0  # not --quiet: reuse is printed
+    printed = capsys.readouterr().out
+    assert "M0: reused" in printed and "M1: reused" in printed
     after = _calls(log)[before:]
     assert [c for c in after if c[0] != here] == []  # no simulator run: all 150 cached
     assert {(a, t) for _, a, t in after} <= {(5.5, 100.0)}

@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test test-slow bench bench-discovery bench-discovery-mcmc lint format typecheck clean
+.PHONY: demo test test-slow bench bench-discovery bench-discovery-mcmc bench-slow-simulator lint format typecheck clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -45,6 +45,12 @@ bench-discovery: $(STAMP)
 # the full discover (two MCMC runs each) on six kinds of missing effect and two null models
 bench-discovery-mcmc: $(STAMP)
 	$(PY) -m benchmarks.discovery --mcmc --draws 500 --chains 2
+
+# a simulator sleeping 1 s per call: the direct study's cost (its calls counted on a
+# non-sleeping copy) against the emulated study (150 runs) on a 2-worker LocalCluster and
+# in-process (~10 min); table in benchmarks/results/slow_simulator.md
+bench-slow-simulator: $(STAMP)
+	$(PY) -m benchmarks.slow_simulator
 
 LINT_PATHS := kohpymc tests benchmarks notebooks tools
 

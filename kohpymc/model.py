@@ -9,6 +9,7 @@ checks all start from it; :func:`build_model` returns just the ``pm.Model``.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -93,10 +94,24 @@ def new_input_matrix(new_inputs: Any, names: tuple[str, ...]) -> np.ndarray:
     return X
 
 
+#: data set -> the physics models already run on it at the prior mean (this process only;
+#: weak references, so nothing is kept alive and nothing travels with a pickled model)
+_CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def _check_physics(physics: PhysicsModel, data: CalibrationData) -> None:
-    """Run the model once at the prior mean so failures surface before sampling."""
+    """Run the model once at the prior mean so failures surface before sampling.
+
+    Once per (physics model, data set) in a process: composing the formulations of a
+    study on the same data does not run an expensive simulator again (the result at the
+    same point is the same).
+    """
+    checked = _CHECKED.setdefault(data, weakref.WeakSet())
+    if physics in checked:
+        return
     point = physics.prior_mean()
     physics.evaluate({k: data.inputs[k] for k in physics.inputs}, point)
+    checked.add(physics)
 
 
 @dataclass(frozen=True)

@@ -193,12 +193,7 @@ def discover(
     pool: list[Any] = _checked_inputs(
         physics, calibration, validation, tolerance, threshold, candidates, library
     )
-    parsed = None if units is None else read_units(units, list(calibration.inputs))
-    groups: list[dict[str, int]] = []
-    if parsed is not None and generated:
-        extra, groups = pi_terms(calibration.inputs, parsed, exponents,
-                                 taken={t.name for t in pool})  # fmt: skip
-        pool += extra
+    parsed, groups = _dimensionless_candidates(units, calibration, exponents, pool, generated)
     sampler = {"draws": draws, "tune": tune, "chains": chains}
     gp_level = threshold / 10 if gp_level is None else gp_level
     if not 0 < gp_level < 1:
@@ -238,6 +233,28 @@ def discover(
         "before": fit.idata,
         "units": None if parsed is None else _units_summary(units, parsed, groups, selection),
     }
+    return _conclude(
+        physics, calibration, validation, fit, selection, jacobian, common, run, say,
+        threshold=threshold, gp_level=gp_level, region_level=region_level, seed=seed,
+    )  # fmt: skip
+
+
+def _dimensionless_candidates(units, calibration, exponents, pool: list, generated: bool):
+    """Parsed units and the π groups added to ``pool`` (in place) when units are given."""
+    parsed = None if units is None else read_units(units, list(calibration.inputs))
+    groups: list[dict[str, int]] = []
+    if parsed is not None and generated:
+        extra, groups = pi_terms(calibration.inputs, parsed, exponents,
+                                 taken={t.name for t in pool})  # fmt: skip
+        pool += extra
+    return parsed, groups
+
+
+def _conclude(
+    physics, calibration, validation, fit, selection, jacobian, common, run, say,
+    *, threshold, gp_level, region_level, seed,
+) -> DiscoveryReport:  # fmt: skip
+    """Steps 3–4: a checked closed form, the GP fallback, or "nothing missing"."""
     if not selection.significant:
         relevance = ard_relevance(
             calibration.inputs, fit.resid, jacobian, noise_sd=calibration.noise_sd,

@@ -40,7 +40,7 @@ from kohpymc.loo import pointwise_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.priors import Prior
-from kohpymc.sampling import sample_posterior
+from kohpymc.sampling import one_blas_thread, sample_posterior
 
 __all__ = ["Calibration", "calibrate", "predict"]
 
@@ -191,8 +191,20 @@ def _default_mode(model, data: CalibrationData) -> str | None:
 
 
 def _add_log_likelihood(idata: az.InferenceData, built, plain) -> None:
-    """The ``log_likelihood`` group: the sampled model's, made pointwise where needed."""
-    pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
+    """The ``log_likelihood`` group: the sampled model's, made pointwise where needed.
+
+    The sampled model's own (joint) values are computed only when they are what is
+    kept: rows independent in it, or no pointwise alternative.  Otherwise they would be
+    replaced at once, and a dense likelihood's joint value costs a factorization per draw.
+    """
+    record = built.likelihood
+    replaced = not record.independent_rows and (
+        plain.likelihood.independent_rows
+        or record.pointwise is not None
+        or record.covariance is not None
+    )
+    if not replaced:
+        pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
     pointwise = pointwise_log_likelihood(idata, built, plain)
     if pointwise is not None:
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")
@@ -211,6 +223,7 @@ def _variance_pairs(discrepancy: Discrepancy) -> list[tuple[str, str, str]]:
     return [] if partner is None else [("sigma_obs", *partner)]
 
 
+@one_blas_thread()
 def calibrate(
     physics: PhysicsModel,
     data: CalibrationData,
@@ -349,6 +362,7 @@ def calibrate(
     return Calibration(physics, data, discrepancy, built, idata, problems, report, noise_sd_prior)
 
 
+@one_blas_thread()
 def predict(
     calibration: Calibration,
     new_inputs: Any,

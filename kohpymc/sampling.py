@@ -12,7 +12,9 @@ r"""Running the sampler: nutpie by default, PyMC's NUTS or SMC on request, check
   was found.
 * ``sampler="smc"``: :func:`pymc.sample_smc`, which needs no gradient.
 
-BLAS threads are limited to one while sampling (``threadpoolctl``): the matrices here
+BLAS threads are limited to one while sampling, and :func:`kohpymc.calibrate` and
+:func:`kohpymc.predict` hold that limit for their whole call (``threadpoolctl``,
+so a script or notebook gets it without ``OPENBLAS_NUM_THREADS``): the matrices here
 are small, chains already run in parallel, and on a 2-core machine OpenBLAS's spinning
 threads made a GP calibration 4× slower.  The result's :class:`SamplingReport` says
 which sampler and which reparameterisation ran, and why.

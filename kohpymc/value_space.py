@@ -25,7 +25,7 @@ import pymc as pm
 import pytensor
 import pytensor.tensor as pt
 from pymc.logprob.transforms import IntervalTransform, LogTransform
-from pymc.pytensorf import join_nonshared_inputs
+from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
 __all__ = ["ValueSpace", "value_space"]
 
@@ -108,6 +108,15 @@ class ValueSpace:
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])
 
 
+def _constant_value(bound: Any) -> np.ndarray:
+    """A prior bound's numeric value, by constant folding (no compiled function).
+
+    Raises when the bound depends on a model variable.
+    """
+    folded = constant_fold([pt.as_tensor(bound)], raise_not_constant=True)[0]
+    return np.asarray(getattr(folded, "data", folded), dtype=float)
+
+
 def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarray, np.ndarray]:
     """Transform kind and (for intervals) numeric bounds of one free variable."""
     transform = model.rvs_to_transforms.get(rv)
@@ -119,8 +128,8 @@ def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarra
     if isinstance(transform, IntervalTransform):
         a, b, _, _ = transform.get_a_and_b(rv.owner.inputs)
         try:
-            lower = np.broadcast_to(np.asarray(pt.as_tensor(a).eval(), float), size).copy()
-            upper = np.broadcast_to(np.asarray(pt.as_tensor(b).eval(), float), size).copy()
+            lower = np.broadcast_to(_constant_value(a), size).copy()
+            upper = np.broadcast_to(_constant_value(b), size).copy()
         except Exception:  # noqa: BLE001 - bounds that depend on other parameters
             return "other", nan, nan
         return "interval", lower, upper

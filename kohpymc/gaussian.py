@@ -32,7 +32,7 @@ import numpy as np
 import pymc as pm
 import pytensor.tensor as pt
 from pytensor.gradient import DisconnectedType
-from pytensor.graph.basic import Apply
+from pytensor.graph.basic import Apply, Constant
 from pytensor.graph.op import Op
 from pytensor.tensor.random.basic import MvNormalRV
 from scipy.linalg import lapack
@@ -69,21 +69,38 @@ class GaussianLogDensity(Op):
 
     def perform(self, node, inputs, outputs):  # noqa: D102
         r, C = inputs
-        C = np.asarray(C, order="F")
         n = r.shape[0]
-        chol, info = lapack.dpotrf(C, lower=1, clean=1)
-        if info != 0 or not np.all(np.isfinite(chol)):
+        factor = self._factor(node, C)
+        if factor is None:
             outputs[0][0] = np.array(-np.inf)
             outputs[1][0] = np.zeros(n)
             outputs[2][0] = np.zeros((n, n))
             return
+        chol, inverse, log_det = factor
         alpha, _ = lapack.dpotrs(chol, r, lower=1)
-        inverse, _ = lapack.dpotri(chol, lower=1)
-        inverse = np.tril(inverse) + np.tril(inverse, -1).T
-        log_det = 2.0 * np.sum(np.log(np.diagonal(chol)))
         outputs[0][0] = np.array(-0.5 * (r @ alpha + log_det + n * _LOG_2PI))
         outputs[1][0] = alpha
-        outputs[2][0] = inverse
+        outputs[2][0] = inverse.copy()
+
+    @staticmethod
+    def _factor(node, C) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """Cholesky factor, inverse and log-determinant of ``C`` (``None``: not SPD).
+
+        A constant covariance (known noise, integrated-out mean coefficients: M1) is
+        factorized once per compiled node, not at every evaluation.
+        """
+        constant = isinstance(node.inputs[1], Constant)
+        if constant and hasattr(node.tag, "kohpymc_factor"):
+            return node.tag.kohpymc_factor
+        chol, info = lapack.dpotrf(np.asarray(C, order="F"), lower=1, clean=1)
+        factor = None
+        if info == 0 and np.all(np.isfinite(chol)):
+            inverse, _ = lapack.dpotri(chol, lower=1)
+            inverse = np.tril(inverse) + np.tril(inverse, -1).T
+            factor = (chol, inverse, 2.0 * float(np.sum(np.log(np.diagonal(chol)))))
+        if constant:
+            node.tag.kohpymc_factor = factor
+        return factor
 
     def grad(self, inputs, output_grads):  # noqa: D102
         g_logp, g_alpha, g_inverse = output_grads

@@ -65,7 +65,8 @@ class MultiOutputCalibration:
     idata : arviz.InferenceData
         ``posterior`` (θ shared, per-output variables prefixed ``<k>::``),
         ``sample_stats``, ``log_likelihood`` (``<k>::y`` over ``obs_<k>``),
-        ``observed_data``; each ``obs_<k>`` carries the input values as coordinates.
+        ``observed_data``; each ``obs_<k>`` carries the input values as coordinates
+        ``<k>::<input>`` (one name per output: the outputs' rows differ).
     problems : list of str
     identifiability : IdentifiabilityReport or None
     noise_sd_prior : Any
@@ -274,8 +275,9 @@ def calibrate_outputs(
         variance_pairs=_variance_pairs(built),
     )
     pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
-    for name in data.outputs:
-        _attach_input_coords(idata, obs_dim(name), data[name].inputs)
+    for name in data.outputs:  # every output's rows: coordinates <output>::<input>
+        coords = {variable(name, k): v for k, v in data[name].inputs.items()}
+        _attach_input_coords(idata, obs_dim(name), coords)
     problems = convergence_problems(idata) if sampling.sampler != "smc" else []
     problems += list(sampling.reparameterization.get("warnings", []))
     idata.attrs.update(

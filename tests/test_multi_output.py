@@ -255,3 +255,58 @@ def test_reliability_per_output_and_combined_against_monte_carlo(physics, exact_
     assert by_output.loc["combined", "mu_r"] == pytest.approx(
         by_output.loc[["u", "strain"], "mu_r"].mean()
     )
+
+
+# ------------------------------------------------------- coregionalised GP (ICM)
+def _icm_logp(built, E, ls, kappa, W):
+    model = built.model
+    logp = model.compile_logp(vars=[model["y"]], jacobian=False, mode="FAST_COMPILE")
+    point = model.initial_point()
+    point["E_interval__"] = np.log((E - 50.0) / (300.0 - E))
+    point["delta_ls_log__"] = np.log([ls])
+    point["delta_kappa_log__"] = np.log(kappa)
+    point["delta_W"] = np.asarray(W, float).reshape(2, 1)
+    return float(logp(point))
+
+
+def test_coregionalized_likelihood_against_dense_reference(physics):
+    """The joint ICM likelihood vs scipy with the covariance written out entry by entry."""
+    from kohpymc.multi_output import Coregionalized
+
+    data = bm.generate_data((2.5,), n_points=5, seed=MULTI_SEED)
+    built = compose_multi_output_model(physics, data, Coregionalized(["x"], rank=1))
+    assert built.model.named_vars_to_dims["y"] == ("obs",)
+    E, ls, kappa = 190.0, 150.0, np.array([0.7, 1.3])
+    rows = [
+        (k, x, y) for k in data.outputs for x, y in zip(data[k].inputs["x"], data[k].y, strict=True)
+    ]
+    s = {k: np.std(data[k].y) for k in data.outputs}
+    j = {k: i for i, k in enumerate(data.outputs)}
+
+    def reference(W):
+        B = np.outer(W, W) + np.diag(kappa)
+        n = len(rows)
+        C = np.empty((n, n))
+        for a, (ka, xa, _) in enumerate(rows):
+            for b, (kb, xb, _) in enumerate(rows):
+                k_ab = np.exp(-0.5 * (xa - xb) ** 2 / ls**2)
+                C[a, b] = s[ka] * s[kb] * (B[j[ka], j[kb]] * k_ab + 4.0 * (ka == kb))
+        for a, (ka, _, _) in enumerate(rows):
+            C[a, a] += data[ka].noise_sd ** 2 + 1e-6 * s[ka] ** 2
+        G = np.concatenate([bm.beam_outputs(data[k].inputs, {"E": E})[k] for k in data.outputs])
+        y = np.array([r[2] for r in rows])
+        return stats.multivariate_normal(G, C).logpdf(y)
+
+    W = np.array([0.8, -0.5])
+    assert _icm_logp(built, E, ls, kappa, W) == pytest.approx(reference(W), rel=1e-8)
+    # limiting case W = 0: independent outputs, the sum of two per-output likelihoods
+    independent = 0.0
+    for k in data.outputs:
+        x, y = data[k].inputs["x"], data[k].y
+        K = np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / ls**2)
+        C = s[k] ** 2 * (kappa[j[k]] * K + 4.0) + (
+            data[k].noise_sd ** 2 + 1e-6 * s[k] ** 2
+        ) * np.eye(5)
+        G = bm.beam_outputs(data[k].inputs, {"E": E})[k]
+        independent += stats.multivariate_normal(G, C).logpdf(y)
+    assert _icm_logp(built, E, ls, kappa, np.zeros(2)) == pytest.approx(independent, rel=1e-8)

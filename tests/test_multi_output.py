@@ -310,3 +310,72 @@ def test_coregionalized_likelihood_against_dense_reference(physics):
         G = bm.beam_outputs(data[k].inputs, {"E": E})[k]
         independent += stats.multivariate_normal(G, C).logpdf(y)
     assert _icm_logp(built, E, ls, kappa, np.zeros(2)) == pytest.approx(independent, rel=1e-8)
+
+
+# ---------------------------------------------------------------------- TOML
+_STUDY = """
+[physics]
+function = "kohpymc.examples.beam_multi_output:beam_outputs"
+inputs = ["x", "P"]
+output = ["u", "strain"]
+[physics.parameters]
+E = {{ prior = "uniform", lower = 50, upper = 300 }}
+[data]
+calibration = "{cal}"
+validation = "{cal}"
+noise_sd = {noise}
+[validation]
+tolerance = {{ u = 0.75, strain = 1e-3 }}
+[formulations]
+M0 = "none"
+both = {{ u = {{ type = "input_dependent", mean = ["x"] }}, strain = "constant" }}
+ICM = {{ type = "coregionalized", inputs = ["x"], rank = 2 }}
+"""
+
+
+def _write_study(tmp_path, *, noise="{ u = 0.3, strain = 1e-3 }", drop=None):
+    from kohpymc.examples import beam_multi_output as example
+
+    data = example.generate_data(n_points=4, seed=MULTI_SEED)
+    frames = [pd.DataFrame({**data[k].inputs, k: data[k].y}) for k in data.outputs]
+    table = frames[0].merge(frames[1], on=["x", "P"], how="outer")
+    if drop:
+        table = table.drop(columns=[drop])
+    table.to_csv(tmp_path / "cal.csv", index=False)
+    path = tmp_path / "study.toml"
+    path.write_text(_STUDY.format(cal="cal.csv", noise=noise))
+    return path
+
+
+def test_study_file_reads_outputs_noise_and_formulations(tmp_path):
+    from kohpymc import ConstantBias
+    from kohpymc.multi_output import Coregionalized, load_multi_output_study
+
+    spec = load_multi_output_study(_write_study(tmp_path))
+    assert spec.calibration.outputs == ("u", "strain")
+    assert spec.calibration.noise_sd == {"u": 0.3, "strain": 1e-3}
+    assert spec.calibration.sizes == {"u": 4, "strain": 4}  # NaN cells drop per output
+    assert isinstance(spec.formulations["both"]["strain"], ConstantBias)
+    assert isinstance(spec.formulations["ICM"], Coregionalized)
+    assert spec.formulations["ICM"].rank == 2
+
+
+def test_study_file_noise_key_not_an_output_named(tmp_path):
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path, noise="{ u = 0.3, strian = 1e-3 }")
+    with pytest.raises(StudyConfigError, match=r"study\.toml: \[data\.noise_sd\.strian\] is not"):
+        load_multi_output_study(path)
+
+
+def test_study_file_missing_output_column_named(tmp_path):
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path, drop="strain")
+    with pytest.raises(
+        StudyConfigError,
+        match=r"\[data\.calibration\] output column\(s\) \['strain'\] not found in .*cal\.csv",
+    ):
+        load_multi_output_study(path)

@@ -7,7 +7,8 @@
   sub-model (``u::y``, ``u::sigma_obs``, ``strain::delta`` ...) with its own discrepancy
   (independent by default) or one :class:`Coregionalized` GP over all outputs;
 * :func:`calibrate_outputs`, :func:`predict_output`, :func:`stacked_taylor_check`;
-* :func:`output_reliability` / :func:`reliability_table`: r(x) per output and combined.
+* :func:`output_reliability` / :func:`reliability_table`: r(x) per output and combined;
+* :func:`load_multi_output_study` / :func:`run_multi_output_study`: the same from TOML.
 """
 
 from kohpymc.multi_output.calibration import (
@@ -16,6 +17,7 @@ from kohpymc.multi_output.calibration import (
     predict_output,
     stacked_taylor_check,
 )
+from kohpymc.multi_output.config import MultiOutputStudySpec, load_multi_output_study
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
 from kohpymc.multi_output.model import MultiOutputModel, compose_multi_output_model
@@ -25,6 +27,7 @@ from kohpymc.multi_output.reliability import (
     output_reliability,
     reliability_table,
 )
+from kohpymc.multi_output.study import MultiOutputStudyResult, run_multi_output_study
 
 __all__ = [
     "MultiOutputData",
@@ -39,4 +42,8 @@ __all__ = [
     "OutputReliability",
     "output_reliability",
     "reliability_table",
+    "load_multi_output_study",
+    "MultiOutputStudySpec",
+    "run_multi_output_study",
+    "MultiOutputStudyResult",
 ]

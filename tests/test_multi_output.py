@@ -379,3 +379,24 @@ def test_study_file_missing_output_column_named(tmp_path):
         match=r"\[data\.calibration\] output column\(s\) \['strain'\] not found in .*cal\.csv",
     ):
         load_multi_output_study(path)
+
+
+# ------------------------------------------------------------------- discovery
+def test_discovery_runs_per_output_with_its_tolerance(monkeypatch, physics):
+    """Plumbing only (the discovery itself is tested in test_discovery.py)."""
+    import kohpymc.multi_output.discovery as module
+
+    calls = []
+
+    def fake(phys, cal, val, *, tolerance, units, **options):
+        calls.append((phys.name, cal.output_name, val.n, tolerance, units, options))
+        return phys.name
+
+    monkeypatch.setattr(module, "discover", fake)
+    cal = bm.generate_data((2.5,), n_points=6, seed=MULTI_SEED)
+    val = bm.generate_data((3.5,), n_points=3, seed=MULTI_SEED)
+    reports = module.discover_outputs(
+        physics, cal, val, tolerance={"u": 0.75, "strain": 1e-3}, draws=10
+    )
+    assert reports == {"u": "beam_outputs[u]", "strain": "beam_outputs[strain]"}
+    assert calls[1] == ("beam_outputs[strain]", "strain", 3, 1e-3, None, {"draws": 10})

@@ -8,6 +8,7 @@
   (independent by default) or one :class:`Coregionalized` GP over all outputs;
 * :func:`calibrate_outputs`, :func:`predict_output`, :func:`stacked_taylor_check`;
 * :func:`output_reliability` / :func:`reliability_table`: r(x) per output and combined;
+* :func:`discover_outputs`: :func:`kohpymc.discover` on each output;
 * :func:`load_multi_output_study` / :func:`run_multi_output_study`: the same from TOML.
 """
 
@@ -20,6 +21,7 @@ from kohpymc.multi_output.calibration import (
 from kohpymc.multi_output.config import MultiOutputStudySpec, load_multi_output_study
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
+from kohpymc.multi_output.discovery import discover_outputs
 from kohpymc.multi_output.model import MultiOutputModel, compose_multi_output_model
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.multi_output.reliability import (
@@ -46,4 +48,5 @@ __all__ = [
     "MultiOutputStudySpec",
     "run_multi_output_study",
     "MultiOutputStudyResult",
+    "discover_outputs",
 ]

@@ -30,7 +30,7 @@ import pytensor.tensor as pt
 
 from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.none import NoDiscrepancy
-from kohpymc.model import PRED_DIM, _add_predictions, _check_physics, _model_inputs, _scales
+from kohpymc.model import _add_predictions, _check_physics, _model_inputs, _scales
 from kohpymc.multi_output.data import MultiOutputData, per_output
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.priors import HalfNormal, Prior, as_prior
@@ -316,6 +316,3 @@ def compose_multi_output_model(
 def _is_prior_table(value: Mapping[str, Any]) -> bool:
     """``{"prior": "halfnormal", ...}`` is one prior, not a table per output."""
     return "prior" in value
-
-
-__all__ += ["PRED_DIM"]

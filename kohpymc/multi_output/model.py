@@ -28,9 +28,14 @@ import numpy as np
 import pymc as pm
 import pytensor.tensor as pt
 
-from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
+from kohpymc.discrepancy.base import Discrepancy, Likelihood
 from kohpymc.discrepancy.none import NoDiscrepancy
-from kohpymc.model import _add_predictions, _check_physics, _model_inputs, _scales
+from kohpymc.model import (
+    _add_predictions,
+    _check_physics,
+    _model_inputs,
+    formulation_context,
+)
 from kohpymc.multi_output.data import MultiOutputData, per_output
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.priors import HalfNormal, Prior, as_prior
@@ -186,43 +191,14 @@ def _build_output(
     names = _model_inputs(part_physics, disc, part_data)
     _check_physics(part_physics, part_data)
     X = part_data.matrix(names)
-    center, scale, span = _scales(X, names)
     y_scale = _y_scale(part_data.y)
-    n_phys = len(part_physics.inputs)
     with pm.Model(name=name) as sub:
         sub.add_coord(obs_dim(name), np.arange(part_data.n))
-
-        def physics_mean(Xt):
-            return part_physics.tensor(theta, Xt[:, :n_phys])
-
-        def physics_variance(Xt):
-            return part_physics.variance_tensor(theta, Xt[:, :n_phys])
-
         sigma_obs = _sigma_obs(name, part_data.noise_sd, noise_prior, y_scale)
-        X_phys = pt.as_tensor_variable(X[:, :n_phys])
-        physics_cov = (
-            part_physics.covariance_tensor(theta, X_phys)
-            if disc.accepts_physics_covariance
-            else None
-        )
-        physics_var = None if physics_cov is not None else physics_variance(X_phys)
-        noise_sd = sigma_obs if physics_var is None else pt.sqrt(sigma_obs**2 + physics_var)
-        ctx = ModelContext(
-            input_names=names,
-            X=X,
-            y=part_data.y,
-            G=physics_mean(pt.as_tensor_variable(X)),
-            physics_mean=physics_mean,
-            noise_sd=noise_sd,
-            y_scale=y_scale,
-            center=center,
-            scale=scale,
-            span=span,
-            obs_dim=obs_dim(name),
-            marginalize=marginalize,
-            measurement_sd=None if physics_var is None else sigma_obs,
-            physics_covariance=physics_cov,
-        )
+        ctx, physics_mean, physics_variance = formulation_context(
+            part_physics, disc, theta, sigma_obs, X, part_data.y, names,
+            y_scale=y_scale, obs_dim=obs_dim(name), marginalize=marginalize,
+        )  # fmt: skip
         record = disc.build(ctx)
         if not isinstance(record, Likelihood):
             raise TypeError(f"{type(disc).__name__}.build must return a Likelihood record")

@@ -400,3 +400,27 @@ def test_discovery_runs_per_output_with_its_tolerance(monkeypatch, physics):
     )
     assert reports == {"u": "beam_outputs[u]", "strain": "beam_outputs[strain]"}
     assert calls[1] == ("beam_outputs[strain]", "strain", 3, 1e-3, None, {"draws": 10})
+
+
+@pytest.mark.parametrize("joint", [False, True], ids=["independent", "coregionalized"])
+def test_predictions_of_one_output_from_the_joint_posterior(physics, joint):
+    """``physics`` is G_k at each draw's E (the example's formula); y_model = physics + δ."""
+    from kohpymc import ConstantBias
+    from kohpymc.multi_output import Coregionalized, predict_output
+
+    data = bm.generate_data((2.5,), n_points=5, seed=MULTI_SEED)
+    disc = Coregionalized(["x"], rank=1) if joint else {"strain": ConstantBias()}
+    built = compose_multi_output_model(physics, data, disc)
+    names = [v.name for v in built.model.free_RVs]
+    with built.model:
+        prior = pm.sample_prior_predictive(draws=6, var_names=names, random_seed=2)
+    cal = MultiOutputCalibration(
+        physics, data, disc, built, az.InferenceData(posterior=prior.prior)
+    )
+    new = {"x": [0.0, 150.0, 300.0], "P": [3.5] * 3}
+    pred = predict_output(cal, "strain", new, random_seed=3).predictions
+    assert pred["y_model"].dims == ("chain", "draw", "pred")
+    E = prior.prior["E"].values.ravel()
+    expected = np.stack([bm.bending_strain(new, {"E": e}) for e in E])
+    np.testing.assert_allclose(pred["physics"].values.reshape(-1, 3), expected, rtol=1e-12)
+    np.testing.assert_allclose(pred["y_model"] - pred["physics"], pred["discrepancy"], atol=1e-15)

@@ -43,6 +43,18 @@ from kohpymc.identifiability import (
 )
 from kohpymc.initialization import MultistartResult, multistart_least_squares, prior_box
 from kohpymc.model import build_model
+from kohpymc.multi_output import (
+    Coregionalized,
+    MultiOutputCalibration,
+    MultiOutputData,
+    MultiOutputPhysics,
+    calibrate_outputs,
+    discover_outputs,
+    load_multi_output_study,
+    output_reliability,
+    reliability_table,
+    run_multi_output_study,
+)
 from kohpymc.physics import PhysicsModel, PhysicsModelError
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
 from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
@@ -79,6 +91,17 @@ __all__ = [
     "prior_box",
     "sampler_diagnostics",
     "SamplerTroubleWarning",
+    # several outputs calibrating one θ jointly
+    "MultiOutputData",
+    "MultiOutputPhysics",
+    "calibrate_outputs",
+    "MultiOutputCalibration",
+    "Coregionalized",
+    "output_reliability",
+    "reliability_table",
+    "discover_outputs",
+    "load_multi_output_study",
+    "run_multi_output_study",
     # emulating an expensive simulator
     "Emulator",
     "EmulatedPhysics",

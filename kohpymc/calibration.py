@@ -50,7 +50,9 @@ def _attach_input_coords(idata: az.InferenceData, dim: str, inputs: Mapping[str,
         ds = idata[group]
         if dim in ds.dims:
             extra = {k: (dim, np.asarray(v)) for k, v in inputs.items() if k not in ds.variables}
-            idata[group] = ds.assign_coords(extra)
+            # setattr, not idata[group] = ...: item assignment appends the group's name
+            # to idata's group list again (arviz 0.23), so groups() would repeat it
+            setattr(idata, group, ds.assign_coords(extra))
 
 
 @dataclass

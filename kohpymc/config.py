@@ -449,6 +449,11 @@ def _physics_section(path: Path, base: Path, phys: dict):
     if not inputs:
         raise _err(path, "physics.inputs", "must name at least one input column")
     output = _require(path, phys, "physics", "output")
+    if isinstance(output, list):
+        raise _err(
+            path, "physics.output", f"is a list of outputs {output}: read a multi-output study "
+            "with kohpymc.load_multi_output_study (docs/multi-output.md)",
+        )  # fmt: skip
     if not isinstance(output, str) or not output:
         raise _err(path, "physics.output", f"must be a column name, got {output!r}")
     if output in inputs:

@@ -177,6 +177,60 @@ def _checked_record(record: Any, discrepancy: Discrepancy, model: pm.Model) -> L
     return record
 
 
+def formulation_context(
+    physics: PhysicsModel,
+    discrepancy: Discrepancy,
+    theta: Any,
+    sigma_obs: Any,
+    X: np.ndarray,
+    y: np.ndarray,
+    names: tuple[str, ...],
+    *,
+    y_scale: float,
+    obs_dim: str,
+    marginalize: bool,
+) -> tuple[ModelContext, Any, Any]:
+    """What a formulation is given to build on: ``(ctx, physics_mean, physics_variance)``.
+
+    ``X`` has the columns ``names`` (physics inputs first).  An emulator's predictive
+    covariance enters the likelihood covariance of the formulations that accept it; for
+    the others its variance adds to the noise.  Shared by :func:`compose_model` and the
+    per-output sub-models of :mod:`kohpymc.multi_output`.
+    """
+    center, scale, span = _scales(X, names)
+    n_phys = len(physics.inputs)
+
+    def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
+        return physics.tensor(theta, Xt[:, :n_phys])
+
+    def physics_variance(Xt: pt.TensorVariable) -> pt.TensorVariable | None:
+        return physics.variance_tensor(theta, Xt[:, :n_phys])
+
+    X_phys = pt.as_tensor_variable(X[:, :n_phys])
+    physics_cov = None
+    if discrepancy.accepts_physics_covariance:
+        physics_cov = physics.covariance_tensor(theta, X_phys)
+    physics_var = None if physics_cov is not None else physics.variance_tensor(theta, X_phys)
+    noise_sd = sigma_obs if physics_var is None else pt.sqrt(sigma_obs**2 + physics_var)
+    ctx = ModelContext(
+        input_names=names,
+        X=X,
+        y=y,
+        G=physics_mean(pt.as_tensor_variable(X)),
+        physics_mean=physics_mean,
+        noise_sd=noise_sd,
+        y_scale=y_scale,
+        center=center,
+        scale=scale,
+        span=span,
+        obs_dim=obs_dim,
+        marginalize=marginalize,
+        measurement_sd=None if physics_var is None else sigma_obs,
+        physics_covariance=physics_cov,
+    )
+    return ctx, physics_mean, physics_variance
+
+
 def compose_model(
     physics: PhysicsModel,
     data: CalibrationData,
@@ -209,47 +263,17 @@ def compose_model(
     names = _model_inputs(physics, discrepancy, data)
     _check_physics(physics, data)
     X = data.matrix(names)
-    center, scale, span = _scales(X, names)
     y_sd = float(np.std(data.y))
     y_scale = y_sd if y_sd > 0 else max(float(np.max(np.abs(data.y))), 1.0)
-    n_phys = len(physics.inputs)
     with pm.Model(coords={OBS_DIM: np.arange(data.n)}) as model:
         thetas = [prior.create(name) for name, prior in physics.parameters.items()]
         theta = pt.stack([pt.as_tensor_variable(t, dtype="float64") for t in thetas])
-
-        def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
-            return physics.tensor(theta, Xt[:, :n_phys])
-
         sigma_obs = _noise_sd(data, noise_sd_prior, y_scale)
-        X_phys = pt.as_tensor_variable(X[:, :n_phys])
-        # an emulator's predictive covariance enters the likelihood covariance of the
-        # formulations that accept it; for the others its variance adds to the noise
-        physics_cov = None
-        if discrepancy.accepts_physics_covariance:
-            physics_cov = physics.covariance_tensor(theta, X_phys)
-        physics_var = None if physics_cov is not None else physics.variance_tensor(theta, X_phys)
-        noise_sd = sigma_obs if physics_var is None else pt.sqrt(sigma_obs**2 + physics_var)
-
-        def physics_variance(Xt: pt.TensorVariable) -> pt.TensorVariable | None:
-            return physics.variance_tensor(theta, Xt[:, :n_phys])
-
         before = set(model.named_vars)
-        ctx = ModelContext(
-            input_names=names,
-            X=X,
-            y=data.y,
-            G=physics_mean(pt.as_tensor_variable(X)),
-            physics_mean=physics_mean,
-            noise_sd=noise_sd,
-            y_scale=y_scale,
-            center=center,
-            scale=scale,
-            span=span,
-            obs_dim=OBS_DIM,
-            marginalize=marginalize,
-            measurement_sd=None if physics_var is None else sigma_obs,
-            physics_covariance=physics_cov,
-        )
+        ctx, physics_mean, physics_variance = formulation_context(
+            physics, discrepancy, theta, sigma_obs, X, data.y, names,
+            y_scale=y_scale, obs_dim=OBS_DIM, marginalize=marginalize,
+        )  # fmt: skip
         record = _checked_record(discrepancy.build(ctx), discrepancy, model)
         created = tuple(k for k in model.named_vars if k not in before and k != record.observed)
         if new_inputs is not None:

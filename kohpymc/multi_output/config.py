@@ -1,0 +1,226 @@
+"""Multi-output studies from TOML: ``[physics] output = ["u", "strain"]``.
+
+The file has the keys of a single-output study (:mod:`kohpymc.config`) with these
+differences::
+
+    [physics]
+    function = "kohpymc.examples.beam_multi_output:beam_outputs"   # returns {output: array}
+    jacobian = "kohpymc.examples.beam_multi_output:beam_outputs_jacobian"  # optional
+    inputs = ["x", "P"]
+    output = ["u", "strain"]            # a list: the outputs' columns of the CSV files
+    [physics.parameters]
+    E = { prior = "uniform", lower = 50, upper = 300 }
+
+    [data]
+    calibration = "cal.csv"             # one column per input and per output
+    validation = "val.csv"
+    noise_sd = { u = 0.316, strain = 1e-3 }   # per output (or one number for all);
+                                              # outputs left out are calibrated
+
+    [validation]
+    tolerance = { u = 0.75, strain = 1e-3 }   # per output, in its units
+
+    [formulations]                      # label -> discrepancy of every output
+    M0 = "none"                         # one type for all outputs
+    M31 = { u = { type = "input_dependent", mean = ["x"] }, strain = "constant" }
+    ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
+
+Every problem names the file and the key (``[data.noise_sd.strian]``), or the file and
+the column of a CSV file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from kohpymc.checks import check_positive_number, check_tolerance
+from kohpymc.config import (
+    _err,
+    _formulation,
+    _load_callable,
+    _names,
+    _priors,
+    _read_document,
+    _require,
+    _sampling_section,
+)
+from kohpymc.multi_output.coregionalized import Coregionalized
+from kohpymc.multi_output.data import MultiOutputData
+from kohpymc.multi_output.physics import MultiOutputPhysics
+
+__all__ = ["MultiOutputStudySpec", "load_multi_output_study"]
+
+
+@dataclass
+class MultiOutputStudySpec:
+    """A checked multi-output study file.
+
+    Attributes
+    ----------
+    source : Path
+    physics : MultiOutputPhysics
+    calibration, validation : MultiOutputData
+    tolerance : dict of str to float
+        ε per output.
+    formulations : dict
+        Label -> a formulation, a mapping output -> formulation, or a
+        :class:`~kohpymc.multi_output.Coregionalized`.
+    sampling : dict
+        Keywords for :func:`~kohpymc.multi_output.calibrate_outputs`.
+    """
+
+    source: Path
+    physics: MultiOutputPhysics
+    calibration: MultiOutputData
+    validation: MultiOutputData
+    tolerance: dict[str, float]
+    formulations: dict[str, Any]
+    sampling: dict[str, Any] = field(default_factory=dict)
+
+
+def _outputs(path: Path, value: Any, inputs: list[str]) -> list[str]:
+    if isinstance(value, str):
+        value = [value]
+    outputs = _names(path, "physics.output", value)
+    clash = [k for k in outputs if k in inputs]
+    if clash:
+        raise _err(path, "physics.output", f"{clash} are also inputs {inputs}")
+    bad = [k for k in outputs if not k.isidentifier()]
+    if bad:
+        raise _err(path, "physics.output", f"output names must be identifiers, got {bad}")
+    return outputs
+
+
+def _per_output_table(path: Path, key: str, value: Any, outputs: list[str], check) -> dict:
+    """One number for all outputs, or a table output -> number (keys checked)."""
+    if not isinstance(value, dict):
+        value = dict.fromkeys(outputs, value)
+    unknown = [k for k in value if k not in outputs]
+    if unknown:
+        raise _err(path, f"{key}.{unknown[0]}", f"is not an output; outputs are {outputs}")
+    out = {}
+    for name, number in value.items():
+        try:
+            out[name] = check(number)
+        except (TypeError, ValueError) as err:
+            raise _err(path, f"{key}.{name}", str(err)) from err
+    return out
+
+
+def _multi_data(path: Path, base: Path, key: str, file: Any, inputs, outputs, noise):
+    if not isinstance(file, str):
+        raise _err(path, key, f"must be a CSV file name, got {file!r}")
+    csv = (base / file).resolve()
+    if not csv.is_file():
+        raise _err(path, key, f"data file {csv} not found")
+    try:
+        return MultiOutputData.from_csv(csv, inputs=inputs, outputs=outputs, noise_sd=noise)
+    except (KeyError, ValueError, TypeError) as err:
+        raise _err(path, key, str(err).strip("'\"")) from err
+
+
+def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> Any:
+    key = f"formulations.{label}"
+    if isinstance(value, dict) and value.get("type") == "coregionalized":
+        options = {k: v for k, v in value.items() if k != "type"}
+        unknown = sorted(set(options) - {"inputs", "rank"})
+        if unknown:
+            raise _err(path, key, f"coregionalized: unknown option(s) {unknown}")
+        gp_inputs = _names(path, f"{key}.inputs", options.get("inputs", inputs))
+        absent = [k for k in gp_inputs if k not in inputs]
+        if absent:
+            raise _err(path, f"{key}.inputs", f"{absent} are not physics inputs {inputs}")
+        try:
+            return Coregionalized(gp_inputs, rank=options.get("rank", 1))
+        except ValueError as err:
+            raise _err(path, f"{key}.rank", str(err)) from err
+    if isinstance(value, dict) and "type" not in value:
+        unknown = [k for k in value if k not in outputs]
+        if unknown:
+            raise _err(path, f"{key}.{unknown[0]}", f"is not an output; outputs are {outputs}")
+        return {k: _formulation(path, f"{label}.{k}", v, inputs, None) for k, v in value.items()}
+    return _formulation(path, label, value, inputs, None)
+
+
+def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
+    """Read and check a multi-output study file (keys: see the module docstring).
+
+    Raises
+    ------
+    StudyConfigError
+        Naming the file and the key, e.g. a ``noise_sd`` key that is not an output or
+        an output column missing from a CSV file.
+
+    Examples
+    --------
+    >>> from importlib.resources import files
+    >>> spec = load_multi_output_study(
+    ...     files("kohpymc.examples") / "beam_multi_output_study.toml")
+    >>> spec.calibration.outputs, spec.tolerance
+    (('u', 'strain'), {'u': 0.75, 'strain': 0.001})
+    """
+    path = Path(path)
+    doc = _read_document(path)
+    base = path.resolve().parent
+    phys = doc["physics"]
+    function = _load_callable(
+        _require(path, phys, "physics", "function"), base, path, "physics.function"
+    )
+    inputs = _names(path, "physics.inputs", _require(path, phys, "physics", "inputs"))
+    outputs = _outputs(path, _require(path, phys, "physics", "output"), inputs)
+    priors = _priors(path, _require(path, phys, "physics", "parameters"), inputs)
+    jacobian = (
+        _load_callable(phys["jacobian"], base, path, "physics.jacobian")
+        if "jacobian" in phys
+        else None
+    )
+    kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
+    try:
+        physics = MultiOutputPhysics(function, priors, inputs, outputs, jacobian=jacobian, **kwargs)
+    except (TypeError, ValueError, KeyError) as err:
+        raise _err(path, "physics", str(err)) from err
+    data = doc["data"]
+    noise = None
+    if data.get("noise_sd") is not None:
+        noise = _per_output_table(
+            path, "data.noise_sd", data["noise_sd"], outputs,
+            lambda v: check_positive_number(v, "noise_sd"),
+        )  # fmt: skip
+    if data.get("replicates") is not None:
+        raise _err(path, "data.replicates", "is not supported for multi-output studies yet")
+    calibration = _multi_data(
+        path, base, "data.calibration", _require(path, data, "data", "calibration"),
+        inputs, outputs, noise,
+    )  # fmt: skip
+    validation = _multi_data(
+        path, base, "data.validation", _require(path, data, "data", "validation"),
+        inputs, outputs, noise,
+    )  # fmt: skip
+    for key, data_set in (("calibration", calibration), ("validation", validation)):
+        for name in outputs:
+            try:
+                physics.output(name).evaluate(data_set[name].inputs, physics.prior_mean())
+            except Exception as err:  # noqa: BLE001 - any failure is reported with its key
+                raise _err(path, f"data.{key}", f"output {name!r}: {err}") from err
+    val = doc["validation"]
+    tolerance = _per_output_table(
+        path, "validation.tolerance", _require(path, val, "validation", "tolerance"), outputs,
+        check_tolerance,
+    )  # fmt: skip
+    missing = [k for k in outputs if k not in tolerance]
+    if missing:
+        raise _err(path, "validation.tolerance", f"gives no value for output(s) {missing}")
+    if "weights" in val:
+        raise _err(path, "validation.weights", "is not supported for multi-output studies yet")
+    table = doc.get("formulations") or {"M0": "none"}
+    formulations = {
+        str(label): _multi_formulation(path, str(label), value, inputs, outputs)
+        for label, value in table.items()
+    }
+    sampling = _sampling_section(path, doc)
+    sampling.pop("workers", None)
+    return MultiOutputStudySpec(
+        path, physics, calibration, validation, tolerance, formulations, sampling
+    )

@@ -1,0 +1,426 @@
+"""Several outputs calibrating one θ: data, model, identifiability, recovery, reliability."""
+
+from __future__ import annotations
+
+import arviz as az
+import numpy as np
+import pandas as pd
+import pymc as pm
+import pytest
+import xarray as xr
+from scipy import stats
+
+from kohpymc import CalibrationData, PhysicsModelError, Uniform
+from kohpymc.examples import beam_multi_output as bm
+from kohpymc.identifiability import taylor_check
+from kohpymc.multi_output import (
+    MultiOutputCalibration,
+    MultiOutputData,
+    MultiOutputPhysics,
+    calibrate_outputs,
+    compose_multi_output_model,
+    output_reliability,
+    stacked_taylor_check,
+)
+
+#: seed of the multi-output tests' synthetic data
+MULTI_SEED = 1807
+
+
+@pytest.fixture(scope="module")
+def physics():
+    return bm.physics_model()
+
+
+@pytest.fixture(scope="module")
+def exact_data():
+    """Two outputs simulated from the physics model itself at E = 200 (no discrepancy)."""
+    return bm.generate_data((2.5, 3.0), seed=MULTI_SEED, discrepancy=False)
+
+
+def _fisher_sd(physics, data, E=bm.TRUE_E):
+    """Posterior sd of E predicted by the Fisher information, per output and joint.
+
+    Independent of the model code: the analytic ∂G_k/∂E = -G_k/E of the example.
+    """
+    info = {}
+    for k in data.outputs:
+        part = data[k]
+        G = bm.beam_outputs(part.inputs, {"E": E})[k]
+        info[k] = float(np.sum((G / E) ** 2) / part.noise_sd**2)
+    return {k: v**-0.5 for k, v in info.items()}, sum(info.values()) ** -0.5
+
+
+# ---------------------------------------------------------------------------- data
+def test_csv_missing_output_column_named(tmp_path):
+    path = tmp_path / "d.csv"
+    pd.DataFrame({"x": [1.0, 2.0], "P": [1.0, 1.0], "u": [0.1, 0.2]}).to_csv(path, index=False)
+    with pytest.raises(KeyError, match=r"output column\(s\) \['strain'\] not found in .*d\.csv"):
+        MultiOutputData.from_csv(path, inputs=["x", "P"], outputs=["u", "strain"])
+
+
+def test_noise_sd_key_not_an_output_named():
+    frame = pd.DataFrame({"x": [1.0, 2.0], "u": [0.1, 0.2], "strain": [1e-4, 2e-4]})
+    with pytest.raises(KeyError, match="noise_sd names 'strian', which is not an output"):
+        MultiOutputData.from_dataframe(
+            frame, inputs=["x"], outputs=["u", "strain"], noise_sd={"u": 0.1, "strian": 1e-5}
+        )
+
+
+def test_missing_values_drop_rows_of_that_output_only():
+    frame = pd.DataFrame({"x": [1.0, 2.0, 3.0], "u": [0.1, 0.2, 0.3], "s": [1.0, np.nan, 3.0]})
+    data = MultiOutputData.from_dataframe(frame, inputs=["x"], outputs=["u", "s"], noise_sd=0.1)
+    assert data.sizes == {"u": 3, "s": 2}
+    assert data["s"].inputs["x"].tolist() == [1.0, 3.0]
+    assert data.stacked()["output"].tolist() == ["u", "u", "u", "s", "s"]
+
+
+def test_physics_must_return_a_mapping():
+    physics = MultiOutputPhysics(
+        lambda i, p: p["a"] * i["x"], {"a": Uniform(0, 1)}, inputs=["x"], outputs=["u"]
+    )
+    with pytest.raises(PhysicsModelError, match="must return a mapping"):
+        physics.output("u").evaluate({"x": [1.0]}, {"a": 0.5})
+
+
+def test_discrepancy_for_unknown_output_named(physics, exact_data):
+    from kohpymc import ConstantBias
+
+    with pytest.raises(KeyError, match="discrepancy names 'w', which is not an output"):
+        compose_multi_output_model(physics, exact_data, {"w": ConstantBias()})
+
+
+# ------------------------------------------------------------------- likelihood
+def test_joint_log_likelihood_is_sum_of_per_output_normals(physics, exact_data):
+    """Known σ for u, calibrated σ for strain: logp of the observed parts vs scipy."""
+    data = MultiOutputData(
+        {
+            "u": exact_data["u"],
+            "strain": CalibrationData(exact_data["strain"].inputs, exact_data["strain"].y),
+        }
+    )
+    built = compose_multi_output_model(physics, data)
+    model = built.model
+    assert set(model.named_vars) == {"E", "u::y", "strain::y", "strain::sigma_obs"}
+    assert model.named_vars_to_dims["u::y"] == ("obs_u",)
+    E, sigma_s = 187.0, 2.5e-3
+    logp = model.compile_logp(
+        vars=[model["u::y"], model["strain::y"]], jacobian=False, mode="FAST_COMPILE"
+    )
+    point = model.initial_point()
+    point[model.rvs_to_values[model["E"]].name] = np.log((E - 50.0) / (300.0 - E))
+    point["strain::sigma_obs_log__"] = np.log(sigma_s)
+    expected = 0.0
+    for k, sd in (("u", data["u"].noise_sd), ("strain", sigma_s)):
+        G = bm.beam_outputs(data[k].inputs, {"E": E})[k]
+        expected += stats.norm(G, sd).logpdf(data[k].y).sum()
+    assert logp(point) == pytest.approx(expected, rel=1e-10)
+
+
+# -------------------------------------------------------------- identifiability
+def _sum_difference_physics():
+    """Output a sees θ1 + θ2, output b sees θ1 - θ2: each alone has rank 1 of 2."""
+
+    def f(inputs, params):
+        x = np.asarray(inputs["x"], float)
+        return {"a": (params["t1"] + params["t2"]) * x, "b": (params["t1"] - params["t2"]) * x}
+
+    priors = {"t1": Uniform(0, 2), "t2": Uniform(0, 2)}
+    return MultiOutputPhysics(f, priors, inputs=["x"], outputs=["a", "b"])
+
+
+def test_stacked_check_identifies_what_no_single_output_does():
+    physics = _sum_difference_physics()
+    x = {"x": np.linspace(0.1, 1.0, 6)}
+    data = MultiOutputData(
+        {k: CalibrationData(x, np.zeros(6), noise_sd=s) for k, s in (("a", 0.1), ("b", 1e-4))}
+    )
+    # independent reference: each output's own sensitivity matrix has rank 1
+    for k in ("a", "b"):
+        single = taylor_check([physics.output(k)], x, {"t1": 1.0, "t2": 1.0})
+        assert not single.identifiable and single.rank == 1
+    built = compose_multi_output_model(physics, data, marginalize=False)
+    report = stacked_taylor_check(built)
+    assert report.identifiable and report.rank == 2
+    # rows are divided by each output's σ_obs: block b (σ = 1e-4) is 1000x block a (0.1)
+    A = report.matrix
+    np.testing.assert_allclose(A[:6], np.column_stack([x["x"], x["x"]]) / 0.1)
+    np.testing.assert_allclose(A[6:], np.column_stack([x["x"], -x["x"]]) / 1e-4)
+
+
+def test_stacked_check_sees_shared_confounding():
+    """Both outputs see only θ1 + θ2: the stack is rank deficient and names the pair."""
+
+    def f(inputs, params):
+        s = (params["t1"] + params["t2"]) * np.asarray(inputs["x"], float)
+        return {"a": s, "b": 2.0 * s}
+
+    physics = MultiOutputPhysics(
+        f, {"t1": Uniform(0, 2), "t2": Uniform(0, 2)}, inputs=["x"], outputs=["a", "b"]
+    )
+    x = {"x": np.linspace(0.1, 1.0, 6)}
+    data = MultiOutputData({k: CalibrationData(x, np.zeros(6), noise_sd=0.1) for k in "ab"})
+    report = stacked_taylor_check(compose_multi_output_model(physics, data, marginalize=False))
+    assert not report.identifiable and report.rank == 1
+
+
+# --------------------------------------------------------------------- recovery
+def test_joint_recovery_matches_gaussian_combination(physics, exact_data):
+    """M0 on two exact outputs: E covers the truth and its sd is the combined Fisher sd.
+
+    For this nearly linear case (posterior sd ≈ 0.5 % of E) the posterior sd of E from
+    both outputs is ``(Σ_k 1/sd_k²)^(-1/2)`` with ``sd_k`` from each output's Fisher
+    information, computed independently from the analytic derivative; tolerance 15 %
+    (sd estimated from 2 × 400 draws: ~5 % MC error, plus the 1/E curvature).
+    """
+    cal = calibrate_outputs(physics, exact_data, draws=400, tune=400, chains=2, random_seed=3)
+    E = cal.posterior["E"].values.ravel()
+    singles, joint = _fisher_sd(physics, exact_data)
+    assert abs(E.mean() - bm.TRUE_E) <= 3 * E.std()
+    assert E.std() == pytest.approx(joint, rel=0.15)
+    assert E.std() < min(singles.values())
+    assert not cal.problems or all("ESS" in p for p in cal.problems)
+    assert int(cal.idata.sample_stats["diverging"].sum()) == 0
+    assert cal.idata.observed_data["strain::y"].dims == ("obs_strain",)
+    assert "strain::x" in cal.idata.observed_data["strain::y"].coords
+
+
+@pytest.mark.slow
+def test_both_outputs_narrow_E_against_either_alone(physics, exact_data):
+    """Sampled single-output posteriors: joint sd below each and near the combination."""
+    sds = {}
+    for outputs in (["u"], ["strain"], ["u", "strain"]):
+        cal = calibrate_outputs(
+            physics, exact_data.select(outputs), draws=500, tune=500, chains=2, random_seed=4
+        )
+        E = cal.posterior["E"].values.ravel()
+        assert abs(E.mean() - bm.TRUE_E) <= 3 * E.std()
+        sds["+".join(outputs)] = E.std()
+    combined = (sds["u"] ** -2 + sds["strain"] ** -2) ** -0.5
+    assert sds["u+strain"] < min(sds["u"], sds["strain"])
+    assert sds["u+strain"] == pytest.approx(combined, rel=0.15)
+
+
+# ------------------------------------------------------------------- reliability
+def _prior_draw_calibration(physics, data, draws=40, seed=0):
+    """A MultiOutputCalibration whose 'posterior' is prior draws (no sampling)."""
+    built = compose_multi_output_model(physics, data)
+    names = [v.name for v in built.model.free_RVs]
+    with built.model:
+        prior = pm.sample_prior_predictive(draws=draws, var_names=names, random_seed=seed)
+    idata = az.InferenceData(posterior=prior.prior)
+    return MultiOutputCalibration(physics, data, None, built, idata)
+
+
+def test_reliability_per_output_and_combined_against_monte_carlo(physics, exact_data):
+    """r_k(x) from the exact normal integral vs brute-force Monte Carlo over y_D.
+
+    ``u`` has a known σ, ``strain`` a calibrated one (per-draw σ); 4000 y_D draws per
+    (draw, row): MC standard error of r below 0.01, tolerance 0.03.
+    """
+    data = MultiOutputData(
+        {
+            "u": exact_data["u"],
+            "strain": CalibrationData(exact_data["strain"].inputs, exact_data["strain"].y),
+        }
+    )
+    cal = _prior_draw_calibration(physics, data)
+    cal.idata.posterior["E"] = cal.idata.posterior["E"] * 0 + np.linspace(180, 220, 40)
+    sigma = xr.DataArray(np.linspace(5e-4, 3e-3, 40)[None, :], dims=("chain", "draw"))
+    cal.idata.posterior["strain::sigma_obs"] = sigma
+    val = bm.generate_data((3.5,), n_points=5, seed=MULTI_SEED + 1, discrepancy=False)
+    val = MultiOutputData(
+        {"u": val["u"], "strain": CalibrationData(val["strain"].inputs, val["strain"].y)}
+    )
+    tol = {"u": 0.5, "strain": 1e-3}
+    rel = output_reliability(cal, val, tol, random_seed=5)
+    assert rel.table.index.tolist() == ["u", "strain", "combined"]
+    rng = np.random.default_rng(MULTI_SEED)
+    E = cal.idata.posterior["E"].values.ravel()
+    mc_rows = []
+    for k in ("u", "strain"):
+        G = np.stack([bm.beam_outputs(val[k].inputs, {"E": e})[k] for e in E])  # (draw, row)
+        sd = np.full(E.size, val[k].noise_sd or 0.0) if k == "u" else sigma.values.ravel()
+        yD = val[k].y[None, :, None] + sd[:, None, None] * rng.normal(size=(*G.shape, 4000))
+        r_mc = (np.abs(yD - G[:, :, None]) < tol[k]).mean(axis=(0, 2))
+        np.testing.assert_allclose(rel.pointwise[k].values, r_mc, atol=0.03)
+        assert rel.table.loc[k, "mu_r"] == pytest.approx(r_mc.mean(), abs=0.02)
+        assert rel.table.loc[k, "n"] == 5
+        mc_rows.append(r_mc)
+    assert rel.table.loc["combined", "mu_r"] == pytest.approx(
+        np.concatenate(mc_rows).mean(), abs=0.02
+    )
+    assert "posterior draws of sigma_obs" in rel.table.loc["strain", "noise"]
+    by_output = output_reliability(cal, val, tol, random_seed=5, combine="outputs").table
+    assert by_output.loc["combined", "mu_r"] == pytest.approx(
+        by_output.loc[["u", "strain"], "mu_r"].mean()
+    )
+
+
+# ------------------------------------------------------- coregionalised GP (ICM)
+def _icm_logp(built, E, ls, kappa, W):
+    model = built.model
+    logp = model.compile_logp(vars=[model["y"]], jacobian=False, mode="FAST_COMPILE")
+    point = model.initial_point()
+    point["E_interval__"] = np.log((E - 50.0) / (300.0 - E))
+    point["delta_ls_log__"] = np.log([ls])
+    point["delta_kappa_log__"] = np.log(kappa)
+    point["delta_W"] = np.asarray(W, float).reshape(2, 1)
+    return float(logp(point))
+
+
+def test_coregionalized_likelihood_against_dense_reference(physics):
+    """The joint ICM likelihood vs scipy with the covariance written out entry by entry."""
+    from kohpymc.multi_output import Coregionalized
+
+    data = bm.generate_data((2.5,), n_points=5, seed=MULTI_SEED)
+    built = compose_multi_output_model(physics, data, Coregionalized(["x"], rank=1))
+    assert built.model.named_vars_to_dims["y"] == ("obs",)
+    E, ls, kappa = 190.0, 150.0, np.array([0.7, 1.3])
+    rows = [
+        (k, x, y) for k in data.outputs for x, y in zip(data[k].inputs["x"], data[k].y, strict=True)
+    ]
+    s = {k: np.std(data[k].y) for k in data.outputs}
+    j = {k: i for i, k in enumerate(data.outputs)}
+
+    def reference(W):
+        B = np.outer(W, W) + np.diag(kappa)
+        n = len(rows)
+        C = np.empty((n, n))
+        for a, (ka, xa, _) in enumerate(rows):
+            for b, (kb, xb, _) in enumerate(rows):
+                k_ab = np.exp(-0.5 * (xa - xb) ** 2 / ls**2)
+                C[a, b] = s[ka] * s[kb] * (B[j[ka], j[kb]] * k_ab + 4.0 * (ka == kb))
+        for a, (ka, _, _) in enumerate(rows):
+            C[a, a] += data[ka].noise_sd ** 2 + 1e-6 * s[ka] ** 2
+        G = np.concatenate([bm.beam_outputs(data[k].inputs, {"E": E})[k] for k in data.outputs])
+        y = np.array([r[2] for r in rows])
+        return stats.multivariate_normal(G, C).logpdf(y)
+
+    W = np.array([0.8, -0.5])
+    assert _icm_logp(built, E, ls, kappa, W) == pytest.approx(reference(W), rel=1e-8)
+    # limiting case W = 0: independent outputs, the sum of two per-output likelihoods
+    independent = 0.0
+    for k in data.outputs:
+        x, y = data[k].inputs["x"], data[k].y
+        K = np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / ls**2)
+        C = s[k] ** 2 * (kappa[j[k]] * K + 4.0) + (
+            data[k].noise_sd ** 2 + 1e-6 * s[k] ** 2
+        ) * np.eye(5)
+        G = bm.beam_outputs(data[k].inputs, {"E": E})[k]
+        independent += stats.multivariate_normal(G, C).logpdf(y)
+    assert _icm_logp(built, E, ls, kappa, np.zeros(2)) == pytest.approx(independent, rel=1e-8)
+
+
+# ---------------------------------------------------------------------- TOML
+_STUDY = """
+[physics]
+function = "kohpymc.examples.beam_multi_output:beam_outputs"
+inputs = ["x", "P"]
+output = ["u", "strain"]
+[physics.parameters]
+E = {{ prior = "uniform", lower = 50, upper = 300 }}
+[data]
+calibration = "{cal}"
+validation = "{cal}"
+noise_sd = {noise}
+[validation]
+tolerance = {{ u = 0.75, strain = 1e-3 }}
+[formulations]
+M0 = "none"
+both = {{ u = {{ type = "input_dependent", mean = ["x"] }}, strain = "constant" }}
+ICM = {{ type = "coregionalized", inputs = ["x"], rank = 2 }}
+"""
+
+
+def _write_study(tmp_path, *, noise="{ u = 0.3, strain = 1e-3 }", drop=None):
+    from kohpymc.examples import beam_multi_output as example
+
+    data = example.generate_data(n_points=4, seed=MULTI_SEED)
+    frames = [pd.DataFrame({**data[k].inputs, k: data[k].y}) for k in data.outputs]
+    table = frames[0].merge(frames[1], on=["x", "P"], how="outer")
+    if drop:
+        table = table.drop(columns=[drop])
+    table.to_csv(tmp_path / "cal.csv", index=False)
+    path = tmp_path / "study.toml"
+    path.write_text(_STUDY.format(cal="cal.csv", noise=noise))
+    return path
+
+
+def test_study_file_reads_outputs_noise_and_formulations(tmp_path):
+    from kohpymc import ConstantBias
+    from kohpymc.multi_output import Coregionalized, load_multi_output_study
+
+    spec = load_multi_output_study(_write_study(tmp_path))
+    assert spec.calibration.outputs == ("u", "strain")
+    assert spec.calibration.noise_sd == {"u": 0.3, "strain": 1e-3}
+    assert spec.calibration.sizes == {"u": 4, "strain": 4}  # NaN cells drop per output
+    assert isinstance(spec.formulations["both"]["strain"], ConstantBias)
+    assert isinstance(spec.formulations["ICM"], Coregionalized)
+    assert spec.formulations["ICM"].rank == 2
+
+
+def test_study_file_noise_key_not_an_output_named(tmp_path):
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path, noise="{ u = 0.3, strian = 1e-3 }")
+    with pytest.raises(StudyConfigError, match=r"study\.toml: \[data\.noise_sd\.strian\] is not"):
+        load_multi_output_study(path)
+
+
+def test_study_file_missing_output_column_named(tmp_path):
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path, drop="strain")
+    with pytest.raises(
+        StudyConfigError,
+        match=r"\[data\.calibration\] output column\(s\) \['strain'\] not found in .*cal\.csv",
+    ):
+        load_multi_output_study(path)
+
+
+# ------------------------------------------------------------------- discovery
+def test_discovery_runs_per_output_with_its_tolerance(monkeypatch, physics):
+    """Plumbing only (the discovery itself is tested in test_discovery.py)."""
+    import kohpymc.multi_output.discovery as module
+
+    calls = []
+
+    def fake(phys, cal, val, *, tolerance, units, **options):
+        calls.append((phys.name, cal.output_name, val.n, tolerance, units, options))
+        return phys.name
+
+    monkeypatch.setattr(module, "discover", fake)
+    cal = bm.generate_data((2.5,), n_points=6, seed=MULTI_SEED)
+    val = bm.generate_data((3.5,), n_points=3, seed=MULTI_SEED)
+    reports = module.discover_outputs(
+        physics, cal, val, tolerance={"u": 0.75, "strain": 1e-3}, draws=10
+    )
+    assert reports == {"u": "beam_outputs[u]", "strain": "beam_outputs[strain]"}
+    assert calls[1] == ("beam_outputs[strain]", "strain", 3, 1e-3, None, {"draws": 10})
+
+
+@pytest.mark.parametrize("joint", [False, True], ids=["independent", "coregionalized"])
+def test_predictions_of_one_output_from_the_joint_posterior(physics, joint):
+    """``physics`` is G_k at each draw's E (the example's formula); y_model = physics + δ."""
+    from kohpymc import ConstantBias
+    from kohpymc.multi_output import Coregionalized, predict_output
+
+    data = bm.generate_data((2.5,), n_points=5, seed=MULTI_SEED)
+    disc = Coregionalized(["x"], rank=1) if joint else {"strain": ConstantBias()}
+    built = compose_multi_output_model(physics, data, disc)
+    names = [v.name for v in built.model.free_RVs]
+    with built.model:
+        prior = pm.sample_prior_predictive(draws=6, var_names=names, random_seed=2)
+    cal = MultiOutputCalibration(
+        physics, data, disc, built, az.InferenceData(posterior=prior.prior)
+    )
+    new = {"x": [0.0, 150.0, 300.0], "P": [3.5] * 3}
+    pred = predict_output(cal, "strain", new, random_seed=3).predictions
+    assert pred["y_model"].dims == ("chain", "draw", "pred")
+    E = prior.prior["E"].values.ravel()
+    expected = np.stack([bm.bending_strain(new, {"E": e}) for e in E])
+    np.testing.assert_allclose(pred["physics"].values.reshape(-1, 3), expected, rtol=1e-12)
+    np.testing.assert_allclose(pred["y_model"] - pred["physics"], pred["discrepancy"], atol=1e-15)

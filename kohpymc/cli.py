@@ -143,12 +143,69 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
     return physics
 
 
+def _lists_outputs(path: str) -> bool:
+    """Whether a study file's ``[physics] output`` is a list (a multi-output study)."""
+    import tomllib
+
+    try:
+        with open(path, "rb") as handle:
+            doc = tomllib.load(handle)
+    except (OSError, tomllib.TOMLDecodeError):
+        return False  # load_study reports it, naming the file
+    physics = doc.get("physics")
+    return isinstance(physics, dict) and isinstance(physics.get("output"), list)
+
+
+def _multi_output_study(args: argparse.Namespace) -> int:
+    """``kohpymc study`` on a file with several outputs: joint calibration per formulation.
+
+    Writes ``<label>.nc`` per formulation and ``table.csv``/``table.md`` (one row per
+    output and a combined row per formulation), each file atomically as it is finished.
+    """
+    from kohpymc.config import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study, run_multi_output_study
+    from kohpymc.study_files import StudyFolder, write_table
+
+    try:
+        spec = load_multi_output_study(args.study)
+    except StudyConfigError as err:
+        return _bad_input(err)
+    out = Path(args.out) if args.out else spec.source.parent / f"{spec.source.stem}_results"
+    overrides = _sampler_overrides(args, {})
+    outputs = ", ".join(spec.physics.outputs)
+    if args.dry_run:
+        print(
+            f"dry run: {spec.source} is a multi-output study (outputs {outputs}; "
+            f"parameters {', '.join(spec.physics.parameter_names)}); formulations "
+            f"{', '.join(spec.formulations)}\nwould write to {out}; nothing sampled, "
+            "nothing written"
+        )
+        return 0
+    print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")
+    folder = StudyFolder(out, fresh=True)
+    try:
+        result = run_multi_output_study(spec, **overrides)
+    except (ValueError, KeyError) as err:
+        print(f"error: {spec.source}: {err}", file=sys.stderr)
+        return 2
+    for label, cal in result.calibrations.items():
+        folder.save_formulation(label, lambda p, cal=cal: cal.idata.to_netcdf(str(p)))
+    table = result.table
+    write_table(folder, table)
+    print()
+    print(table.to_string(float_format=lambda v: f"{v:.4g}"))
+    print(f"\nresults in {out}/ (table.md, table.csv, *.nc)")
+    return 0
+
+
 def _study(args: argparse.Namespace) -> int:
     from kohpymc.checks import check_execution
     from kohpymc.config import StudyConfigError
     from kohpymc.progress import task_display
     from kohpymc.study import StudyStepError, run_study
 
+    if _lists_outputs(args.study):
+        return _multi_output_study(args)
     spec = _load(args)
     if spec is None:
         return 2

@@ -170,3 +170,30 @@ def test_study_killed_after_its_first_formulation_resumes(tmp_path, capsys, writ
         pd.read_csv(killed / "table.csv", index_col=0),
         pd.read_csv(whole / "table.csv", index_col=0),
     )
+
+
+def test_a_multi_output_study_file_runs_through_the_study_command(tmp_path, capsys):
+    """``output = ["u", "strain"]``: the study command writes one table row per output and
+    a combined row per formulation, and an error still names the key at fault."""
+    from pathlib import Path
+
+    import kohpymc
+
+    example = Path(kohpymc.__file__).parent / "examples" / "beam_multi_output_study.toml"
+    text = example.read_text()
+    text = text.replace("data/beam_multi", str(example.parent / "data" / "beam_multi"))
+    study = tmp_path / "study.toml"
+    start = text.index("[formulations]")
+    end = text.index("[sampling]")
+    study.write_text(text[:start] + '[formulations]\nM0 = "none"\n\n' + text[end:])
+    code = main(["study", str(study), "--out", str(tmp_path / "out"), "--draws", "200",
+                 "--tune", "200", "--quiet"])  # fmt: skip
+    assert code == 0
+    table = pd.read_csv(tmp_path / "out" / "table.csv")
+    assert table["output"].tolist() == ["u", "strain", "combined"]
+    assert (tmp_path / "out" / "M0.nc").is_file()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(study.read_text().replace("strain = 1e-3 }", "strain = 1e-3, w = 1.0 }", 1))
+    capsys.readouterr()
+    assert main(["study", str(bad), "--dry-run"]) == 2
+    assert "noise_sd" in capsys.readouterr().err

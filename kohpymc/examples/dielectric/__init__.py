@@ -155,6 +155,7 @@ from kohpymc.examples.dielectric.current import (
     charging_current,
     charging_current_batch,
     charging_current_jacobian,
+    charging_current_sensitivities,
     polarization_current,
     true_current,
 )
@@ -185,6 +186,7 @@ __all__ = [
     "charging_current",
     "charging_current_batch",
     "charging_current_jacobian",
+    "charging_current_sensitivities",
     "polarization_current",
     "true_current",
     "physics_model",

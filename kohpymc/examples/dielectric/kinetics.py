@@ -226,11 +226,18 @@ def _solve(inputs: Mapping[str, Any], params: Mapping[str, float]):
     return _solve_settings(_Kinetics(Vs, Ts, params), t, inv)
 
 
-def _solve_settings(kin: _Kinetics, t: np.ndarray, inv: np.ndarray, sensitivities: bool = False):
+def _solve_settings(
+    kin: _Kinetics,
+    t: np.ndarray,
+    inv: np.ndarray,
+    sensitivities: bool = False,
+    keep: dict | None = None,
+):
     """``n_t`` at times ``t`` of rows in settings ``inv``, and the rows' kinetics.
 
     With ``sensitivities`` also ``∂n_t/∂θ`` at fixed t, shape ``(rows, 7)`` (see
-    :func:`_charge_sensitivities`).
+    :func:`_charge_sensitivities`).  ``keep`` receives what
+    :func:`_charge_sensitivities` needs, to compute them later without solving again.
     """
     n_settings = kin.E_app.shape[0]
     n_ss = _steady_state(kin)
@@ -291,10 +298,14 @@ def _solve_settings(kin: _Kinetics, t: np.ndarray, inv: np.ndarray, sensitivitie
         n[late] = nss_row[late] * (1.0 - gap)
     n = np.where(live[inv, 0], n, 0.0)
     kin_rows = kin.take(inv)
-    if not sensitivities:
+    if not sensitivities and keep is None:
         return n, kin_rows
     grid = {"n": n_grid, "f": f, "g": g, "f0": f0, "safe": safe, "live": live}
     rows = {"inv": inv, "j": j, "jc": jc, "s": s, "n": n, "t": t}
+    if keep is not None:
+        keep.update(kin=kin, kin_rows=kin_rows, grid=grid, rows=rows)
+    if not sensitivities:
+        return n, kin_rows
     return n, kin_rows, _charge_sensitivities(kin, kin_rows, grid, rows)
 
 

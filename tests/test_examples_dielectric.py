@@ -545,3 +545,48 @@ def test_sensitivities_reuse_the_solution_of_the_value_call():
     )
     shifted = dict(rows, t=np.asarray(rows["t"]) + 1.0)
     assert not np.array_equal(d.charging_current_sensitivities(shifted, FIT_2026)[1], fresh)
+
+
+# ------------------------------------------------ issue 15: the study at defaults
+#: parameters whose marginal the data inform (Φ_B and m* individually lie on the
+#: Fowler–Nordheim ridge: only Φ_B³·m* is informed, checked as a combination)
+INFORMED = ["ln_NT", "ln_sigma", "ln_gamma", "eps_inf", "E_A"]
+
+
+@pytest.mark.slow
+def test_six_formulations_converge_at_default_settings():
+    """Issue 15: M0–M5 at default sampler settings, started from the least-squares fit.
+
+    Every physics parameter r̂ ≤ 1.01 and bulk ESS ≥ 400, no divergences, all six
+    under 20 minutes; the identifiability report at the fit names the informed
+    power law of the (Φ_B, m*) ridge.
+    """
+    import arviz as az
+
+    import kohpymc as kp
+
+    cal, _ = d.split_calibration_validation(d.generate_data(seed=2026))
+    begin = time.perf_counter()
+    fit = d.least_squares_fit(cal)
+    physics = d.physics_model()
+    report = kp.check_formulation(physics, cal, d.formulations()["M0"], point=fit)
+    assert report.identifiable and "(phi_B^3·m_eff)^(1/3)" in report.weakly_informed()
+    rows = {}
+    for label, form in d.formulations().items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            c = kp.calibrate(physics, cal, form, random_seed=2026, initvals=fit)
+        s = az.summary(c.idata, var_names=NAMES)
+        rows[label] = (
+            float(s["r_hat"].max()),
+            float(s["ess_bulk"].min()),
+            int(c.idata.sample_stats["diverging"].sum()),
+        )
+        print(
+            f"\n{label}: r_hat {rows[label][0]:.3f}, ESS_bulk {rows[label][1]:.0f}, "
+            f"divergences {rows[label][2]}, {time.perf_counter() - begin:.0f} s so far"
+        )
+    total = time.perf_counter() - begin
+    for label, (r_hat, ess, div) in rows.items():
+        assert r_hat <= 1.01 and ess >= 400 and div == 0, (label, rows[label])
+    assert total < 20 * 60, total

@@ -545,6 +545,15 @@ def test_sensitivities_reuse_the_solution_of_the_value_call():
     )
     shifted = dict(rows, t=np.asarray(rows["t"]) + 1.0)
     assert not np.array_equal(d.charging_current_sensitivities(shifted, FIT_2026)[1], fresh)
+    # inputs changed in place after the value call: not mistaken for the kept rows
+    times = np.array(rows["t"], dtype=float)
+    mutable = dict(rows, t=times)
+    d.charging_current(mutable, FIT_2026)
+    times += 1.0
+    np.testing.assert_array_equal(
+        d.charging_current_sensitivities(mutable, FIT_2026)[1],
+        d.charging_current_sensitivities(shifted, FIT_2026)[1],
+    )
 
 
 # ------------------------------------------------ issue 15: the study at defaults

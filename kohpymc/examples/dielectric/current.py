@@ -60,7 +60,8 @@ def charging_current(inputs: Mapping[str, Any], params: Mapping[str, float]) -> 
         n, kin = _solve_settings(_Kinetics(Vs, Ts, params), t, inv, keep=state)
         with _LAST_LOCK:
             _LAST.clear()
-            _LAST.update(state, key=theta, V=V, T=T, t=t)
+            # copies: the caller may change its input arrays in place afterwards
+            _LAST.update(state, key=theta, V=V.copy(), T=T.copy(), t=t.copy())
     f, _, J = kin.rhs(n[:, None])
     return CURRENT_UNIT * (J[:, 0] - 0.5 * _Q * THICKNESS * f[:, 0])
 
@@ -222,7 +223,16 @@ def charging_current_sensitivities(
     ``J = J_FN(E_inj(n)) - (q d / 2) f(n)`` is differentiated by the chain rule through
     the coefficients and the trapped charge, whose sensitivity at fixed t comes from
     the semi-analytic solution (``∂n/∂θ = f(n) ∫_0^n f_θ / f² dn'``, see the package
-    docstring, Numerics).
+    docstring, Sampling).  Right after :func:`charging_current` at the same inputs and
+    parameters the solution of that call is reused.
+
+    Examples
+    --------
+    >>> from kohpymc.examples.dielectric import TRUE_PARAMS
+    >>> x = {"V": [20.0, 30.0], "T": [360.0, 300.0], "t": [2.5, 50.0]}
+    >>> J, dJ = charging_current_sensitivities(x, TRUE_PARAMS)
+    >>> dJ.shape, bool(np.allclose(J, charging_current(x, TRUE_PARAMS), rtol=0, atol=0))
+    ((2, 7), True)
     """
     V, T, t = _rows(inputs)
     theta = tuple(float(_param(params, k)) for k in PRIOR_RANGES)

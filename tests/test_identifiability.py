@@ -336,3 +336,25 @@ def test_fisher_verdict_does_not_depend_on_the_units_of_a_parameter(unit):
     report = fisher_information_check(physics, CalibrationData({"x": x}, y))
     assert report.identifiable, report.confounded()
     assert report.rank == 2
+
+
+def test_weak_direction_names_a_power_law_ridge():
+    """Full rank but ill-conditioned: the output depends on a³·b, weakly on a alone."""
+    from kohpymc.identifiability.rank import analyse_matrix
+
+    x = np.linspace(1.0, 3.0, 20)
+    a, b = 1.3, 0.1
+    c = a**3 * b
+    # G = exp(-c / x) + 1e-5 · a · x
+    dG_dc = -np.exp(-c / x) / x
+    A = np.column_stack([dG_dc * 3 * a**2 * b + 1e-5 * x, dG_dc * a**3, np.ones_like(x)])
+    report = analyse_matrix(A, ["a", "b", "offset"], point={"a": a, "b": b, "offset": 0.0})
+    assert report.identifiable and report.condition_number > 1e3
+    assert set(report.weak_direction) == {"a", "b"}
+    text = report.weakly_informed()
+    assert "Δln a : Δln b = 1 : -3" in text, text
+    assert "(a^3·b)^(1/3)" in text and "practically, not structurally" in text
+    assert text in str(report) and report.to_dict()["weakly_informed"] == text
+    # well conditioned: nothing to name
+    well = analyse_matrix(np.column_stack([x, x**2]), ["p", "q"])
+    assert well.weak_direction == {} and well.weakly_informed() == ""

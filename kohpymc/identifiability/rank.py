@@ -36,6 +36,8 @@ __all__ = [
 
 #: singular values below RTOL · σ_max of the column-scaled matrix count as zero
 RTOL = 1e-7
+#: condition number above which a full-rank report names its weakest direction
+WEAK_CONDITION = 1e3
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -69,6 +71,11 @@ class IdentifiabilityReport:
     structural : bool or None
         ``True`` when the deficit persists on a denser design, ``False`` when it
         disappears (practical), ``None`` when not tested or full rank.
+    weak_direction : dict
+        At full rank with a condition number above :data:`WEAK_CONDITION`: the direction
+        (own units, largest coefficient ±1; parameters contributing less than a tenth of
+        the largest scaled coefficient left out) along which the output changes least —
+        the practically non-identifiable combination (see :meth:`weakly_informed`).
     point : dict
         The expansion point.
     kind : str
@@ -87,6 +94,7 @@ class IdentifiabilityReport:
     point: dict[str, float] = field(default_factory=dict)
     structural: bool | None = None
     kind: str = "taylor"
+    weak_direction: dict[str, float] = field(default_factory=dict)
 
     @property
     def identifiable(self) -> bool:
@@ -132,6 +140,46 @@ class IdentifiabilityReport:
             out.append(text)
         return out
 
+    def weakly_informed(self) -> str:
+        """The weakest direction of a full-rank but ill-conditioned matrix, in words.
+
+        A practical (not structural) non-identifiability: along ``weak_direction`` the
+        output changes ``condition_number`` times less than along the best-informed
+        direction (column-scaled), so the data inform mostly the orthogonal combination.
+        For two positive parameters ``a, b`` moving as ``Δln a : Δln b = 1 : r`` the
+        informed combination is the power law ``a·b^k``, ``k = -1/r``, shown also with
+        small integer exponents when ``k`` is within 10 % of a fraction ``p/q``, q ≤ 4.
+        Empty when there is no weak direction.
+        """
+        if not self.weak_direction:
+            return ""
+        names = list(self.weak_direction)
+        coefs = np.array([self.weak_direction[n] for n in names], dtype=float)
+        ratio = " : ".join(_number(c) for c in coefs / coefs[0])
+        text = (
+            f"weakest direction (output sensitivity {self.condition_number:.2g}× below the "
+            f"strongest): {' : '.join(f'Δ{n}' for n in names)} = {ratio}"
+        )
+        if len(names) != 2 or not all(float(self.point.get(n, 0.0)) > 0 for n in names):
+            return text + "; the data inform mostly the orthogonal combination"
+        (a, ca), (b, cb) = self.weak_direction.items()
+        log_a, log_b = ca / float(self.point[a]), cb / float(self.point[b])
+        k = -log_a / log_b
+        text += (
+            f" (Δln {a} : Δln {b} = 1 : {_number(log_b / log_a)}); the data inform mostly "
+            f"{a}·{b}^{k:.3g}"
+        )
+        for q in (1, 2, 3, 4):
+            p = round(k * q)
+            if p != 0 and abs(p / q - k) <= 0.1 * abs(k):
+                text += (
+                    f" ≈ ({_power(a, q)}·{_power(b, p)})^(1/{q})"
+                    if q > 1
+                    else (f" ≈ {a}·{_power(b, p)}")
+                )
+                break
+        return text + " (practically, not structurally, non-identifiable)"
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly summary."""
         return {
@@ -147,6 +195,8 @@ class IdentifiabilityReport:
             "null_directions": [{k: float(c) for k, c in d.items()} for d in self.null_directions],
             "confounded": self.confounded(),
             "structural": self.structural,
+            "weak_direction": {k: float(c) for k, c in self.weak_direction.items()},
+            "weakly_informed": self.weakly_informed(),
             "point": {k: float(v) for k, v in self.point.items()},
         }
 
@@ -164,6 +214,8 @@ class IdentifiabilityReport:
             lines.append(f"  cannot be identified together: {{{', '.join(s)}}}")
         for c in self.confounded():
             lines.append(f"  {c}")
+        if self.weak_direction:
+            lines.append(f"  {self.weakly_informed()}")
         if self.structural is not None:
             lines.append(
                 "  deficit persists on a denser design: structural"
@@ -184,6 +236,11 @@ def _combination(coefs: Mapping[str, float]) -> str:
         op = ("-" if c < 0 else "") if k == 0 else (" - " if c < 0 else " + ")
         parts.append(f"{op}{mag}{name}")
     return "".join(parts)
+
+
+def _power(name: str, p: int) -> str:
+    """``a``, ``a^3``, ``a^-2``."""
+    return name if p == 1 else f"{name}^{p}"
 
 
 def _number(c: float) -> str:
@@ -345,6 +402,13 @@ def analyse_matrix(
         v = vt_c[-1] / scale[cols]
         v = v / v[np.argmax(np.abs(v))]
         directions.append({names[j]: float(c) for j, c in zip(cols, v, strict=True)})
+    weak: dict[str, float] = {}
+    if rank == len(names) and len(names) > 1 and cond > WEAK_CONDITION:
+        w = vt[-1]
+        keep = np.flatnonzero(np.abs(w) >= 0.1 * np.abs(w).max())
+        v = w[keep] / scale[keep]
+        v = v / v[np.argmax(np.abs(v))]
+        weak = {names[j]: float(c) for j, c in zip(keep, v, strict=True)}
     return IdentifiabilityReport(
         names=names,
         matrix=A,
@@ -357,4 +421,5 @@ def analyse_matrix(
         non_identifiable_sets=[[names[i] for i in c] for c in circuits],
         point=dict(point or {}),
         kind=kind,
+        weak_direction=weak,
     )

@@ -11,8 +11,10 @@ from typing import Any
 import numpy as np
 
 from kohpymc.examples.dielectric.constants import (
+    _EPS0,
     _FEEDBACK,
     _H,
+    _KB,
     _M0,
     _Q,
     MOBILITY,
@@ -37,11 +39,31 @@ class _Kinetics:
     used to solve several parameter sets at once).
     """
 
+    _ARRAYS = (
+        "E_app",
+        "a",
+        "b",
+        "N_T",
+        "kappa",
+        "e",
+        "log_e",
+        "n_max",
+        "phi",
+        "mass",
+        "T",
+        "eps_inf",
+        "E_A",
+        "_lowering",
+    )
+
     def __init__(self, V: np.ndarray, T: np.ndarray, params: Mapping[str, Any]) -> None:
         def column(name: str) -> np.ndarray:
             return np.broadcast_to(_param(params, name), V.shape)[:, None]
 
         phi, mass = column("phi_B"), column("m_eff")
+        self.phi, self.mass = phi, mass
+        self.T = np.broadcast_to(T, V.shape)[:, None]
+        self.eps_inf, self.E_A = column("eps_inf"), column("E_A")
         self.E_app = (V / THICKNESS)[:, None]
         self.a = _Q**2 / (8.0 * np.pi * _H * phi * mass)
         self.b = 8.0 * np.pi * np.sqrt(2.0 * mass * _M0) * (_Q * phi) ** 1.5 / (3.0 * _Q * _H)
@@ -49,6 +71,8 @@ class _Kinetics:
         drift = MOBILITY * np.maximum(np.abs(self.E_app), 1.0)
         self.kappa = np.exp(column("ln_sigma")) * THERMAL_VELOCITY * THICKNESS / drift
         self.log_e = _log_emission(V, T, params)[:, None]
+        #: Poole–Frenkel barrier lowering at the applied field, eV
+        self._lowering = np.sqrt(_Q * np.abs(self.E_app) / (np.pi * _EPS0 * self.eps_inf))
         self.e = np.exp(self.log_e)
         #: largest charge: traps full or injecting field screened to zero
         self.n_max = np.minimum(self.N_T, np.maximum(self.E_app, 0.0) / _FEEDBACK)
@@ -56,7 +80,7 @@ class _Kinetics:
     def take(self, idx: np.ndarray) -> _Kinetics:
         new = object.__new__(_Kinetics)
         new.__dict__.update(self.__dict__)
-        for name in ("E_app", "a", "b", "N_T", "kappa", "e", "log_e", "n_max"):
+        for name in _Kinetics._ARRAYS:
             setattr(new, name, getattr(self, name)[idx])
         return new
 
@@ -72,6 +96,55 @@ class _Kinetics:
         f = scale * J * capture - self.e * n
         fp = scale * (dJ * capture + J * dcapture) - self.e
         return f, fp, J
+
+    def bases(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The five functions ``φ_k(n)`` that ``∂f/∂θ`` combines, shape ``(5,) + n.shape``.
+
+        ``∂f/∂θ_i = Σ_k C_ik φ_k`` (``C``: :meth:`coefficients`) with ``φ_A = J P_c / (q d)``,
+        ``φ_B = φ_A b / E``, ``φ_C = J (1 - P_c) κ / (q d)``, ``φ_D = φ_C n`` and
+        ``φ_E = -e n``; note ``φ_A = f - φ_E``.  Also returns ``J_FN(E_inj)``.
+        """
+        E = np.maximum(self.E_app - _FEEDBACK * n, 1.0)
+        J = self.a * E**2 * np.exp(-self.b / E)
+        z = self.kappa * (self.N_T - n)
+        scale = 1.0 / (_Q * THICKNESS)
+        phi_a = scale * J * -np.expm1(-z)
+        phi_c = scale * J * self.kappa * np.exp(-z)
+        return np.stack([phi_a, phi_a * self.b / E, phi_c, phi_c * n, -self.e * n]), J
+
+    def coefficients(self) -> np.ndarray:
+        """``C`` of :meth:`bases`, shape ``(G, 7, 5)``; θ in the order of PRIOR_RANGES.
+
+        ``ln a = const - ln Φ_B - ln m*``, ``ln b = const + 1.5 ln Φ_B + 0.5 ln m*``,
+        ``∂P_c/∂ln σ = (1 - P_c) κ (N_T - n)``, ``∂P_c/∂ln N_T = (1 - P_c) κ N_T`` and
+        ``ln e = ln γ - ln(1 + e^x)``, ``x = q (E_A - β √E / √ε_∞) / (k T)``.
+        """
+        G = self.E_app.shape[0]
+        C = np.zeros((G, 7, 5))
+        inv_phi, inv_m = 1.0 / self.phi[:, 0], 1.0 / self.mass[:, 0]
+        x = (self.E_A - self._lowering) * _Q / (_KB * self.T)
+        dloge_dx = -0.5 * (1.0 + np.tanh(0.5 * x[:, 0]))  # -expit(x) without overflow
+        qkT = _Q / (_KB * self.T[:, 0])
+        C[:, 0, 2] = self.N_T[:, 0]  # ln_NT
+        C[:, 1, 0], C[:, 1, 1] = -inv_phi, -1.5 * inv_phi  # phi_B
+        C[:, 2, 2], C[:, 2, 3] = self.N_T[:, 0], -1.0  # ln_sigma
+        C[:, 3, 4] = 1.0  # ln_gamma
+        C[:, 4, 4] = dloge_dx * 0.5 * qkT * self._lowering[:, 0] / self.eps_inf[:, 0]  # eps_inf
+        C[:, 5, 0], C[:, 5, 1] = -inv_m, -0.5 * inv_m  # m_eff
+        C[:, 6, 4] = dloge_dx * qkT  # E_A
+        return C
+
+    def sensitivities(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``∂f/∂θ`` and ``∂J_FN/∂θ`` at fixed ``n`` of shape ``(G, 1)``: ``(G, 7)`` each."""
+        phis, J = self.bases(n)
+        C = self.coefficients()
+        df = np.einsum("gik,kg->gi", C, phis[:, :, 0])
+        dJ = np.zeros_like(df)
+        E = np.maximum(self.E_app - _FEEDBACK * n, 1.0)
+        b_over_E = (self.b / E)[:, 0]
+        dJ[:, 1] = J[:, 0] * (-1.0 - 1.5 * b_over_E) / self.phi[:, 0]
+        dJ[:, 5] = J[:, 0] * (-1.0 - 0.5 * b_over_E) / self.mass[:, 0]
+        return df, dJ
 
     def log_balance(self, n: np.ndarray, at_zero: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """``h = ln(J_FN P_c / (q d)) - ln(e n)`` and ``dh/d ln n`` (V > 0 only).
@@ -153,8 +226,19 @@ def _solve(inputs: Mapping[str, Any], params: Mapping[str, float]):
     return _solve_settings(_Kinetics(Vs, Ts, params), t, inv)
 
 
-def _solve_settings(kin: _Kinetics, t: np.ndarray, inv: np.ndarray):
-    """``n_t`` at times ``t`` of rows in settings ``inv``, and the rows' kinetics."""
+def _solve_settings(
+    kin: _Kinetics,
+    t: np.ndarray,
+    inv: np.ndarray,
+    sensitivities: bool = False,
+    keep: dict | None = None,
+):
+    """``n_t`` at times ``t`` of rows in settings ``inv``, and the rows' kinetics.
+
+    With ``sensitivities`` also ``∂n_t/∂θ`` at fixed t, shape ``(rows, 7)`` (see
+    :func:`_charge_sensitivities`).  ``keep`` receives what
+    :func:`_charge_sensitivities` needs, to compute them later without solving again.
+    """
     n_settings = kin.E_app.shape[0]
     n_ss = _steady_state(kin)
     # settings without injection (V = 0, or a current below ~1e-240 A/m²) stay empty
@@ -213,7 +297,75 @@ def _solve_settings(kin: _Kinetics, t: np.ndarray, inv: np.ndarray):
         gap = (1.0 - _U[-1]) * np.exp(-rate_ss[inv[late]] * dt)
         n[late] = nss_row[late] * (1.0 - gap)
     n = np.where(live[inv, 0], n, 0.0)
-    return n, kin.take(inv)
+    kin_rows = kin.take(inv)
+    if not sensitivities and keep is None:
+        return n, kin_rows
+    grid = {"n": n_grid, "f": f, "g": g, "f0": f0, "safe": safe, "live": live}
+    rows = {"inv": inv, "j": j, "jc": jc, "s": s, "n": n, "t": t}
+    if keep is not None:
+        keep.update(kin=kin, kin_rows=kin_rows, grid=grid, rows=rows)
+    if not sensitivities:
+        return n, kin_rows
+    return n, kin_rows, _charge_sensitivities(kin, kin_rows, grid, rows)
+
+
+def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows: dict):
+    """``∂n/∂θ`` at fixed t for every row, shape ``(rows, 7)``.
+
+    The solution satisfies ``t = ∫_0^n dn'/f(n'; θ)``; differentiating at fixed t gives
+    ``∂n/∂θ = f(n) Q(n)``, ``Q(n) = ∫_0^n f_θ / f² dn' = ∫ (f_θ / f) g ds`` on the
+    quadrature grid of the solution.  ``f_θ = Σ_k C_k φ_k`` (:meth:`_Kinetics.bases`),
+    so four integrals per setting suffice (the fifth, of ``φ_A = f - φ_E``, is
+    ``t - Q_E``): the same Euler–Maclaurin-corrected trapezoid as ``t(s)`` (its end
+    corrections telescope; the integrands' slopes from second-order differences) and
+    cubic Hermite interpolation in ``s`` (slopes: the integrands).  Below the first node
+    ``Q`` is the trapezoid in n from 0; beyond the last node (``n_ss - n < 2e-8 n_ss``)
+    ``∂n/∂θ`` is that of the steady state, ``-f_θ / f_n`` at ``n_ss`` (its limit).
+    """
+    live = grid["live"]
+    f, g = grid["f"], grid["g"]
+    phis, _ = kin.bases(grid["n"])
+    q = phis[1:] * (g / f)  # (4, G, K)
+    f0 = grid["f0"]
+    phis0, _ = kin.bases(np.zeros_like(grid["safe"]))  # (5, G, 1)
+    q_first = 0.5 * grid["n"][:, :1] * (phis0[1:] / f0**2 + phis[1:, :, :1] / f[:, :1] ** 2)
+    trap = np.cumsum(0.5 * _H_S * (q[..., 1:] + q[..., :-1]), axis=-1)
+    dq = np.empty_like(q)
+    dq[..., 1:-1] = (q[..., 2:] - q[..., :-2]) / (2.0 * _H_S)
+    dq[..., 0] = (-3.0 * q[..., 0] + 4.0 * q[..., 1] - q[..., 2]) / (2.0 * _H_S)
+    dq[..., -1] = (3.0 * q[..., -1] - 4.0 * q[..., -2] + q[..., -3]) / (2.0 * _H_S)
+    Q = np.concatenate(
+        [q_first, q_first + trap + _H_S**2 / 12.0 * (dq[..., :1] - dq[..., 1:])], axis=-1
+    )
+    inv, j, jc, s, n, t = rows["inv"], rows["j"], rows["jc"], rows["s"], rows["n"], rows["t"]
+    x = (s - _S[jc]) / _H_S
+    x2, x3 = x * x, x * x * x
+    Q_row = (
+        (2 * x3 - 3 * x2 + 1) * Q[:, inv, jc]
+        + (x3 - 2 * x2 + x) * _H_S * q[:, inv, jc]
+        + (3 * x2 - 2 * x3) * Q[:, inv, jc + 1]
+        + (x3 - x2) * _H_S * q[:, inv, jc + 1]
+    )  # (4, rows)
+    f_row, _, _ = kin_rows.rhs(n[:, None])
+    early = j < 0
+    if np.any(early):
+        ie = inv[early]
+        phis_e, _ = kin_rows.take(np.flatnonzero(early)).bases(n[early, None])
+        with np.errstate(divide="ignore", invalid="ignore"):  # settings without charge
+            Q_row[:, early] = (
+                0.5
+                * n[early]
+                * (phis0[1:, ie, 0] / f0[ie, 0] ** 2 + phis_e[1:, :, 0] / f_row[early, 0] ** 2)
+            )
+    Q_all = np.concatenate([(t - Q_row[3])[None], Q_row])  # (5, rows), φ_A first
+    C = kin.coefficients()  # (G, 7, 5)
+    dn = f_row * np.einsum("rik,kr->ri", C[inv], Q_all)
+    late = j >= _S.size - 1
+    if np.any(late):
+        _, fp_ss, _ = kin.rhs(grid["safe"])
+        df_ss, _ = kin.sensitivities(grid["safe"])  # (G, 7)
+        dn[late] = -df_ss[inv[late]] / fp_ss[inv[late]]
+    return np.where(live[inv], dn, 0.0)
 
 
 def trapped_charge(inputs: Mapping[str, Any], params: Mapping[str, float]) -> np.ndarray:

@@ -41,7 +41,7 @@ from kohpymc.multi_output.model import (
     variable,
 )
 from kohpymc.multi_output.physics import MultiOutputPhysics
-from kohpymc.sampling import sample_posterior
+from kohpymc.sampling import one_blas_thread, sample_posterior
 
 __all__ = [
     "MultiOutputCalibration",
@@ -192,6 +192,7 @@ def _variance_pairs(built: MultiOutputModel) -> list[tuple[str, ...]]:
     return pairs
 
 
+@one_blas_thread()
 def calibrate_outputs(
     physics: MultiOutputPhysics,
     data: MultiOutputData,
@@ -301,6 +302,7 @@ def calibrate_outputs(
     )
 
 
+@one_blas_thread()
 def predict_output(
     calibration: MultiOutputCalibration,
     output: str,

@@ -189,7 +189,12 @@ def _multi_output_study(args: argparse.Namespace) -> int:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
     for label, cal in result.calibrations.items():
-        folder.save_formulation(label, lambda p, cal=cal: cal.idata.to_netcdf(str(p)))
+        idata = cal.idata
+
+        def write_netcdf(path: Path, idata=idata) -> object:
+            return idata.to_netcdf(str(path))
+
+        folder.save_formulation(label, write_netcdf)
     table = result.table
     write_table(folder, table)
     print()

@@ -181,7 +181,7 @@ def _identifiability(plain: MultiOutputModel, physics: MultiOutputPhysics):
     return report
 
 
-def _variance_pairs(built: MultiOutputModel) -> list[tuple[str, ...]]:
+def _variance_pairs(built: MultiOutputModel) -> list[tuple[str, str, str]]:
     """Each output's σ_obs with its formulation's variance partner, when both are free."""
     pairs = []
     for name, part in built.parts.items():

@@ -128,7 +128,7 @@ def output_reliability(
         pred = (predictions or {}).get(k)
         if pred is None:
             pred = predict_output(calibration, k, val, random_seed=random_seed)
-        da = pred.predictions["y_model"]
+        da = pred.predictions["y_model"]  # type: ignore[attr-defined]  # arviz adds groups at run time
         ym = da.transpose("chain", "draw", "pred").values
         if ym.shape[-1] != val.n:
             raise ValueError(f"output {k!r}: {ym.shape[-1]} predictions for {val.n} rows")
@@ -155,7 +155,7 @@ def output_reliability(
     w = np.asarray(weights, dtype=float) / np.sum(weights)
     q_comb = sum(wk * qk for wk, qk in zip(w, per_draw, strict=True))
     rows.append(
-        {"output": COMBINED, "n": sum(r["n"] for r in rows), "tolerance": np.nan,
+        {"output": COMBINED, "n": sum(validation[k].n for k in outputs), "tolerance": np.nan,
          "mu_r": float(q_comb.mean()), "mu_r_mcse": _mcse(q_comb),
          "noise": f"mean over {'all rows' if combine == 'rows' else 'outputs'}"}
     )  # fmt: skip

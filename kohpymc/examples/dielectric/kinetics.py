@@ -301,12 +301,12 @@ def _solve_settings(
     if not sensitivities and keep is None:
         return n, kin_rows
     grid = {"n": n_grid, "f": f, "g": g, "f0": f0, "safe": safe, "live": live}
-    rows = {"inv": inv, "j": j, "jc": jc, "s": s, "n": n, "t": t}
+    row_data = {"inv": inv, "j": j, "jc": jc, "s": s, "n": n, "t": t}
     if keep is not None:
-        keep.update(kin=kin, kin_rows=kin_rows, grid=grid, rows=rows)
+        keep.update(kin=kin, kin_rows=kin_rows, grid=grid, rows=row_data)
     if not sensitivities:
         return n, kin_rows
-    return n, kin_rows, _charge_sensitivities(kin, kin_rows, grid, rows)
+    return n, kin_rows, _charge_sensitivities(kin, kin_rows, grid, row_data)
 
 
 def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows: dict):

@@ -46,7 +46,7 @@ def _emulator(n, **kwargs):
     return FunctionalEmulator(runs, physics, **kwargs), physics
 
 
-def test_run_curves_gives_one_curve_per_design_row():
+def test_run_curves_gives_one_curve_per_design_row(tmp_path):
     physics = _physics()
     design = pd.DataFrame({"x": [0.0, 1.0], "a": [1.0, 2.0], "k": [0.5, 1.0], "c": [0.0, 0.5]})
     runs = run_curves(physics, design, _GRID)
@@ -56,6 +56,14 @@ def test_run_curves_gives_one_curve_per_design_row():
     np.testing.assert_allclose(runs.curves[1], expected)
     with pytest.raises(KeyError, match="not inputs"):
         run_curves(physics, design, {"s": [0.0]})
+    first = run_curves(physics, design, _GRID, cache=tmp_path)
+    again = run_curves(physics, design, _GRID, cache=tmp_path)
+    assert (first.simulated, again.simulated, again.cached) == (2, 0, 2)
+    np.testing.assert_allclose(again.curves, runs.curves)
+    other = run_curves(physics, design, {"t": _GRID["t"][:5]}, cache=tmp_path)
+    assert other.simulated == 2  # another grid is another cache entry
+    bad = run_curves(physics, design.assign(a=[1.0, np.inf]).iloc[:1], _GRID)
+    assert bad.n_runs == 1
 
 
 def test_pca_basis_matches_an_svd_by_hand():

@@ -41,6 +41,8 @@ when the model is built (they are, in :func:`~kohpymc.model.compose_model`).
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,7 +65,14 @@ from kohpymc.emulator.gp import (
     _is_numeric,
     _kernel_numpy,
 )
-from kohpymc.emulator.runs import run_design
+from kohpymc.emulator.runs import (
+    _read_cache,
+    _simulate,
+    _write_record,
+    point_key,
+    simulator_identity,
+)
+from kohpymc.execution import run_tasks
 from kohpymc.physics import PhysicsModel
 
 __all__ = [
@@ -92,7 +101,7 @@ class FunctionalRuns:
     failed : pandas.DataFrame
         Design rows of which at least one grid point failed.
     simulated, cached : int
-        Grid points run in this call / read from the cache.
+        Curves run in this call / read from the cache.
     seconds : float
         Wall time of the simulator tasks of this call (summed over tasks).
 
@@ -147,10 +156,12 @@ def run_curves(
 ) -> FunctionalRuns:
     """Run the simulator on the whole grid at every row of ``design``.
 
-    Every design row (scalar inputs and θ) is crossed with every grid row and run
-    through :func:`~kohpymc.emulator.runs.run_design` (rows sharing θ form one task, one
-    simulator call; ``cache``, ``workers``, ``scheduler`` and ``progress`` are passed on).
-    A design row with a failed grid point is dropped into ``failed``.
+    Every design row (scalar inputs and θ) is one task, one simulator call over the
+    whole grid, run by :func:`kohpymc.run_tasks` (``workers``, ``scheduler`` and
+    ``progress`` are passed on).  With ``cache`` a folder, every finished curve is
+    written there as one JSON file named by a hash of (design row, simulator identity,
+    grid), and a rerun only runs the rows not there yet.  A row whose call failed or
+    gave a non-finite value goes to ``failed`` (with its error).
 
     Parameters
     ----------
@@ -188,42 +199,71 @@ def run_curves(
     if missing:
         raise KeyError(f"run_curves: the design lacks column(s) {missing}")
     design = design[columns].reset_index(drop=True).astype(float)
+    values = design.to_numpy(float)
+    if not np.all(np.isfinite(values)):
+        raise ValueError("run_curves: the design contains NaN/inf")
     n, P = len(design), len(grid)
-    rows = pd.DataFrame(
-        {
-            **{k: np.repeat(design[k].to_numpy(), P) for k in columns},
-            **{k: np.tile(grid[k].to_numpy(), n) for k in functional},
-        }
-    )
-    runs = run_design(
-        physics,
-        rows,
-        cache=cache,
-        simulator_label=simulator_label,
-        workers=workers,
-        scheduler=scheduler,
-        progress=progress,
-    )
-    key_columns = list(physics.inputs) + list(params)
-    done = {
-        tuple(r): y
-        for r, y in zip(
-            runs.points[key_columns].to_numpy(float).tolist(), runs.y.tolist(), strict=True
-        )
-    }
-    values = rows[key_columns].to_numpy(float).tolist()
-    out = np.array([done.get(tuple(v), np.nan) for v in values]).reshape(n, P)
-    ok = np.all(np.isfinite(out), axis=1)
+    grid_values = grid.to_numpy(float)
+    digest = hashlib.sha256(
+        json.dumps(
+            [list(functional), [[repr(v) for v in r] for r in grid_values.tolist()]]
+        ).encode()
+    ).hexdigest()[:16]
+    simulator = f"{simulator_identity(physics, simulator_label)}:grid:{digest}"
+    folder = None if cache is None else Path(cache)
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+    curves = np.full((n, P), np.nan)
+    keys = [point_key(dict(zip(columns, row.tolist(), strict=True)), simulator) for row in values]
+    tasks: dict[str, Any] = {}
+    cached = 0
+    for r, key in enumerate(keys):
+        hit = None if folder is None else _read_cache(folder / f"{key}.json")
+        if hit is not None and hit.get("curve") is not None:
+            curves[r] = hit["curve"]
+            cached += 1
+            continue
+        if key in tasks:
+            continue
+        row = dict(zip(columns, values[r].tolist(), strict=True))
+        inputs = {k: grid_values[:, j].tolist() for j, k in enumerate(functional)}
+        inputs.update({k: [row[k]] * P for k in scalar})
+        tasks[key] = (physics, inputs, {k: row[k] for k in params})
+    done: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    seconds = 0.0
+    for outcome in run_tasks(
+        _simulate, tasks, workers=workers, scheduler=scheduler, progress=progress
+    ):
+        seconds += outcome.seconds
+        if outcome.error is None:
+            done[outcome.key] = outcome.value
+        else:
+            errors[outcome.key] = str(outcome.error)
+        if folder is not None:
+            record = {
+                "point": tasks[outcome.key][2] | {k: tasks[outcome.key][1][k][0] for k in scalar},
+                "curve": done.get(outcome.key),
+                "error": errors.get(outcome.key),
+                "simulator": simulator,
+            }
+            _write_record(folder / f"{outcome.key}.json", record)
+    for r, key in enumerate(keys):
+        if key in done:
+            curves[r] = done[key]
+    ok = np.all(np.isfinite(curves), axis=1)
+    failed = design[~ok].reset_index(drop=True)
+    failed["error"] = [errors.get(keys[r], "non-finite output") for r in np.flatnonzero(~ok)]
     return FunctionalRuns(
         design=design[ok].reset_index(drop=True),
         grid=grid,
-        curves=out[ok],
+        curves=curves[ok],
         inputs=scalar,
         parameters=params,
-        failed=design[~ok].reset_index(drop=True),
-        simulated=runs.simulated,
-        cached=runs.cached,
-        seconds=runs.seconds,
+        failed=failed,
+        simulated=len(tasks),
+        cached=cached,
+        seconds=seconds,
     )
 
 
@@ -313,6 +353,14 @@ class FunctionalEmulator:
     box : mapping, optional
         Column -> ``(lower, upper)`` of the unit box of the scalar inputs and θ (default:
         the runs' range); columns spanning two decades or more are log-scaled.
+    log_parameters : sequence of str
+        Columns to log-scale in any case (positive parameters whose posterior is a
+        power law, e.g. ``B ∝ √m* Φ_B^{3/2}``, is a straight line in logs).
+    rotation : (center, matrix), optional
+        GP coordinates of θ ``u = M (h(θ) - c)`` (``h`` the log-scaling above), e.g.
+        whitened by a Laplace covariance at a first fit (``M = Λ^{-1/2} Vᵀ``), so that
+        a design in ``u`` covers a thin, tilted posterior and the ARD length scales act
+        along its principal axes; the unit box is then the runs' range of ``u``.
     restarts, seed :
         Starts of the hyperparameter search of each weight GP, and their seed.
 
@@ -356,6 +404,8 @@ class FunctionalEmulator:
         log_output: bool = False,
         kernel: Literal["se", "matern52"] = "matern52",
         box: Mapping[str, tuple[float, float]] | None = None,
+        log_parameters: Sequence[str] = (),
+        rotation: tuple[Any, Any] | None = None,
         restarts: int = 3,
         seed: int = 0,
     ) -> None:
@@ -390,11 +440,26 @@ class FunctionalEmulator:
         hi = np.array(
             [box[k][1] if k in box else X[:, j].max() for j, k in enumerate(self.columns)]
         )
-        self.log_columns = log_scaled(lo, hi)
-        lo, hi = self._transform(lo), self._transform(hi)
+        self.log_columns = log_scaled(lo, hi) | np.isin(self.columns, list(log_parameters))
+        ds = len(self.scalar_inputs)
+        self.rotation = None
+        if rotation is not None:
+            center, matrix = (np.asarray(a, dtype=float) for a in rotation)
+            p = len(runs.parameters)
+            if center.shape != (p,) or matrix.shape != (p, p):
+                raise ValueError(
+                    f"rotation must be (center ({p},), matrix ({p}, {p})), got "
+                    f"{center.shape} and {matrix.shape}"
+                )
+            self.rotation = (center, matrix)
+            H = self._coordinates(X)  # rotated: the unit box is the runs' range there
+            lo[ds:], hi[ds:] = H[:, ds:].min(axis=0), H[:, ds:].max(axis=0)
+            lo[:ds], hi[:ds] = self._transform(lo)[:ds], self._transform(hi)[:ds]
+        else:
+            lo, hi = self._transform(lo), self._transform(hi)
         self.lower = lo.astype(float)
         self.width = np.where(hi > lo, hi - lo, 1.0).astype(float)
-        self.U = (self._transform(X) - self.lower) / self.width
+        self.U = (self._coordinates(X) - self.lower) / self.width
         self.log_output = bool(log_output)
         curves = np.asarray(runs.curves, dtype=float)
         if self.log_output and not np.all(curves > 0):
@@ -444,6 +509,15 @@ class FunctionalEmulator:
         values = np.asarray(values, dtype=float)
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(self.log_columns, np.log(np.abs(values)), values)
+
+    def _coordinates(self, X: np.ndarray) -> np.ndarray:
+        """GP coordinates of rows (scalar inputs, θ) before the unit-box scaling."""
+        H = np.atleast_2d(self._transform(X)).copy()
+        if self.rotation is not None:
+            ds = len(self.scalar_inputs)
+            center, matrix = self.rotation
+            H[:, ds:] = (H[:, ds:] - center) @ matrix.T
+        return H
 
     def _locate(self, X: np.ndarray) -> _Rows:
         """Settings, grid interpolation and the same-point mask of rows ``X``."""
@@ -509,7 +583,8 @@ class FunctionalEmulator:
         """Latent (standardised-space transformed back) mean ``(n,)`` and cov ``(n, n)``."""
         loc = self._locate(X)
         ds = len(self.scalar_inputs)
-        t_unit = (self._transform_cols(theta, slice(ds, None)) - self.lower[ds:]) / self.width[ds:]
+        coords = self._coordinates(np.r_[np.zeros(ds), np.asarray(theta, dtype=float)][None, :])
+        t_unit = (coords[0, ds:] - self.lower[ds:]) / self.width[ds:]
         Us = np.column_stack(
             [self._unit_settings(loc.settings), np.tile(t_unit, (len(loc.settings), 1))]
         )
@@ -623,11 +698,12 @@ class FunctionalEmulator:
         loc = self._locate(X)
         ds = len(self.scalar_inputs)
         theta = pt.as_tensor_variable(theta)
-        theta_cols = []
-        for i in range(len(self.physics.parameters)):
-            j = ds + i
-            v = pt.log(theta[i]) if self.log_columns[j] else theta[i]
-            theta_cols.append((v - self.lower[j]) / self.width[j])
+        p = len(self.physics.parameters)
+        h = [pt.log(theta[i]) if self.log_columns[ds + i] else theta[i] for i in range(p)]
+        if self.rotation is not None:
+            center, matrix = self.rotation
+            h = [sum(matrix[r, i] * (h[i] - center[i]) for i in range(p)) for r in range(p)]
+        theta_cols = [(h[i] - self.lower[ds + i]) / self.width[ds + i] for i in range(p)]
         settings = self._unit_settings(loc.settings)
         B = loc.interp @ self.basis
         idx = loc.setting_index

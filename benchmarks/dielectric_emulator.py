@@ -133,6 +133,7 @@ def main() -> None:
     parser.add_argument("--out", default="benchmarks/results")
     parser.add_argument("--direct", default="/tmp/pca/direct_M0.nc")
     parser.add_argument("--direct-only", action="store_true")
+    parser.add_argument("--emulated", default="/tmp/pca/emulated_M0.nc")
     parser.add_argument("--runs", type=int, default=250)
     parser.add_argument("--held-out", type=int, default=50)
     parser.add_argument("--half-width", type=float, default=5.0)
@@ -161,6 +162,7 @@ def main() -> None:
         variance=args.variance,
         log_parameters=LOG_PARAMS,
         rotation=(center, matrix),
+        kernel="se",
         restarts=2,
     )
     t_emulator = time.perf_counter() - t0 - t_fit - t_runs
@@ -187,6 +189,9 @@ def main() -> None:
     t_cal = time.perf_counter() - t1
     wall = time.perf_counter() - t0
     emulated = res.idata
+    az.InferenceData(posterior=emulated.posterior, sample_stats=emulated.sample_stats).to_netcdf(
+        args.emulated
+    )
     print(az.summary(emulated, var_names=PARAMS), flush=True)
     result = {
         "runs": runs.n_runs + held.n_runs,

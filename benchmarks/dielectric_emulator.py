@@ -257,7 +257,7 @@ def main() -> None:
         return
     t1 = time.perf_counter()
     res = kp.calibrate(
-        em.physics_model(),
+        em.physics_model(confine=True),
         cal,
         d.formulations()["M0"],
         initvals=fit,

@@ -216,6 +216,11 @@ def compose_model(
     with pm.Model(coords={OBS_DIM: np.arange(data.n)}) as model:
         thetas = [prior.create(name) for name, prior in physics.parameters.items()]
         theta = pt.stack([pt.as_tensor_variable(t, dtype="float64") for t in thetas])
+        # a surrogate valid only in a region of θ (an emulator's design) confines the prior
+        support = getattr(physics, "support_logp", None)
+        support_term = support(theta) if support is not None else None
+        if support_term is not None:
+            pm.Potential("physics_support", support_term)
 
         def physics_mean(Xt: pt.TensorVariable) -> pt.TensorVariable:
             return physics.tensor(theta, Xt[:, :n_phys])

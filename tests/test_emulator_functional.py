@@ -173,6 +173,31 @@ def test_the_likelihood_uses_the_dense_emulator_covariance():
     mean, cov = em.predict_covariance(data.inputs, [1.7, 0.8, 0.4])
     expected = stats.multivariate_normal(mean, cov + _NOISE**2 * np.eye(data.n)).logpdf(data.y)
     assert logp == pytest.approx(expected, rel=1e-8)
+    assert "physics_support" not in model.named_vars
+    confined = build_model(em.physics_model(confine=True), data)
+    support = confined.compile_fn(
+        confined["physics_support"], inputs=confined.value_vars, on_unused_input="ignore"
+    )
+    assert support(point) == 0.0  # the truth lies inside the design
+
+
+def test_a_confined_emulator_keeps_theta_in_its_design():
+    physics = _physics()
+    box = {"x": (0.0, 1.0), "a": (1.5, 2.0), "k": (0.6, 1.0), "c": (0.2, 0.6)}
+    runs = run_curves(physics, space_filling_design(box, 12, seed=2), _GRID)
+    em = FunctionalEmulator(runs, physics, box=box, restarts=1)
+    assert float(em.support_logp(pt.as_tensor([1.7, 0.8, 0.4])).eval()) == 0.0
+    outside = float(em.support_logp(pt.as_tensor([2.5, 0.8, 0.4])).eval())
+    assert outside == pytest.approx(-0.5 * (1.0 / 0.01) ** 2)  # 0.5 box widths out
+    # rotated coordinates: the box of the runs' u
+    center, matrix = np.array([1.7, 0.8, 0.4]), np.diag([10.0, 10.0, 10.0])
+    rotated = FunctionalEmulator(runs, physics, rotation=(center, matrix), restarts=1)
+    u = (runs.X[:, 1:] - center) @ matrix.T
+    np.testing.assert_allclose(rotated.U[:, 1:], (u - u.min(0)) / (u.max(0) - u.min(0)))
+    inside = runs.X[0, 1:]
+    assert float(rotated.support_logp(pt.as_tensor(inside)).eval()) == 0.0
+    mean, _ = rotated.predict({"x": [0.5], "t": [1.0]}, [1.7, 0.8, 0.4])
+    assert mean[0] == pytest.approx(1.7 * np.exp(-0.8) + 0.2, abs=0.05)
 
 
 def _posterior(cal):

@@ -278,13 +278,6 @@ class _WeightGP:
         self.alpha = linalg.cho_solve((chol, True), z)
         self.chol_inv = linalg.solve_triangular(chol, np.eye(len(z)), lower=True)
 
-    def _kernel_tensor(self, r2: Any) -> Any:
-        amp = self.hyper.amplitude
-        if self.kernel == "se":
-            return amp * pt.exp(-0.5 * r2)
-        r = pt.sqrt(r2 + 1e-12)
-        return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * pt.exp(-_SQRT5 * r)
-
     def predict(self, Us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean ``(m,)`` and covariance ``(m, m)`` (latent plus nugget) at rows ``Us``."""
         h = self.hyper
@@ -293,33 +286,6 @@ class _WeightGP:
         V = self.chol_inv @ Ks.T
         cov = prior - V.T @ V + h.nugget * np.eye(len(Us))
         return Ks @ self.alpha, cov
-
-    def tensors(self, scalar_cols: np.ndarray, theta_cols: Any) -> tuple[Any, Any]:
-        """Symbolic mean ``(m,)`` and covariance ``(m, m)`` at ``m`` scalar settings, one θ.
-
-        ``scalar_cols`` ``(m, d_s)`` unit-box values (numbers), ``theta_cols`` a list of
-        unit-box θ tensors.
-        """
-        h = self.hyper
-        ds = scalar_cols.shape[1]
-        m = scalar_cols.shape[0]
-        # the scalar inputs are numbers: their part of the distances is a constant
-        r2_s = np.zeros((m, len(self.z)))
-        prior_r2 = np.zeros((m, m))
-        for j in range(ds):
-            r2_s += ((scalar_cols[:, None, j] - self.U[None, :, j]) / h.lengthscales[j]) ** 2
-            prior_r2 += (
-                (scalar_cols[:, None, j] - scalar_cols[None, :, j]) / h.lengthscales[j]
-            ) ** 2
-        r2_t = 0.0
-        for i, col in enumerate(theta_cols):
-            r2_t = r2_t + ((col - self.U[:, ds + i]) / h.lengthscales[ds + i]) ** 2
-        Ks = self._kernel_tensor(pt.as_tensor_variable(r2_s) + r2_t[None, :])  # (m, N)
-        mean = pt.dot(Ks, self.alpha)
-        prior = self._kernel_tensor(pt.as_tensor_variable(prior_r2))
-        V = pt.dot(self.chol_inv, Ks.T)
-        cov = prior - pt.dot(V.T, V) + h.nugget * np.eye(m)
-        return mean, cov
 
 
 @dataclass(frozen=True)
@@ -695,33 +661,53 @@ class FunctionalEmulator:
 
     # ----------------------------------------------------------------- pytensor
     def _latent_tensor(self, theta: Any, X: np.ndarray) -> tuple[Any, Any]:
+        """Latent mean and covariance at the rows: all K weight GPs as batched tensors."""
         loc = self._locate(X)
         ds = len(self.scalar_inputs)
-        theta = pt.as_tensor_variable(theta)
-        p = len(self.physics.parameters)
-        h = [pt.log(theta[i]) if self.log_columns[ds + i] else theta[i] for i in range(p)]
-        if self.rotation is not None:
-            center, matrix = self.rotation
-            h = [sum(matrix[r, i] * (h[i] - center[i]) for i in range(p)) for r in range(p)]
-        theta_cols = [(h[i] - self.lower[ds + i]) / self.width[ds + i] for i in range(p)]
-        settings = self._unit_settings(loc.settings)
-        B = loc.interp @ self.basis
+        u = self._theta_unit_tensor(pt.as_tensor_variable(theta))  # (p,)
+        settings = self._unit_settings(loc.settings)  # (m, d_s) numbers
+        m = len(settings)
+        LS = np.array([h_.lengthscales for h_ in self.hypers])  # (K, q)
+        amp = np.array([h_.amplitude for h_ in self.hypers])
+        nug = np.array([h_.nugget for h_ in self.hypers])
+        alpha = np.array([gp.alpha for gp in self._gps])  # (K, N)
+        chol_inv = np.array([gp.chol_inv for gp in self._gps])  # (K, N, N)
+        U = self.U
+        # squared distances (K, m, N): the scalar part is a constant, θ's part is shared
+        r2_s = np.sum(
+            ((settings[None, :, None, :] - U[None, None, :, :ds]) / LS[:, None, None, :ds]) ** 2,
+            axis=-1,
+        )
+        r2_t = pt.sum(((U[None, :, ds:] - u[None, None, :]) / LS[:, None, ds:]) ** 2, axis=-1)
+        Kc = self._batched_kernel(r2_s + r2_t[:, None, :], amp[:, None, None])  # (K, m, N)
+        w_mean = pt.sum(Kc * alpha[:, None, :], axis=-1)  # (K, m)
+        V = pt.matmul(chol_inv, Kc.transpose(0, 2, 1))  # (K, N, m)
+        B = loc.interp @ self.basis  # (n, K)
         idx = loc.setting_index
-        w_mean = 0.0
-        cov = pt.as_tensor_variable(self._truncation(loc))
-        single = len(loc.settings) == 1
-        for k, gp in enumerate(self._gps):
-            m, c = gp.tensors(settings, theta_cols)
-            b = B[:, k]
-            if single:
-                w_mean = w_mean + b * m[0]
-                cov = cov + np.outer(b, b) * c[0, 0]
-            else:
-                w_mean = w_mean + b * m[idx]
-                cov = cov + np.outer(b, b) * c[idx][:, idx]
+        trunc = self._truncation(loc)
+        if m == 1:
+            var = amp + nug - pt.sum(V[:, :, 0] ** 2, axis=1)  # (K,)
+            w_rows = pt.dot(B, w_mean[:, 0])
+            cov = trunc + pt.dot(B * var[None, :], B.T)
+        else:
+            prior_r2 = np.sum(
+                ((settings[None, :, None, :] - settings[None, None, :, :]) / LS[:, None, None, :ds])
+                ** 2,
+                axis=-1,
+            )
+            prior = self._batched_kernel(prior_r2, amp[:, None, None], lib=np)
+            cov_w = prior - pt.matmul(V.transpose(0, 2, 1), V) + nug[:, None, None] * np.eye(m)
+            w_rows = pt.sum(B.T * w_mean[:, idx], axis=0)
+            outer = B.T[:, :, None] * B.T[:, None, :]  # (K, n, n)
+            cov = trunc + pt.sum(outer * cov_w[:, idx][:, :, idx], axis=0)
         s = self.curve_scale
-        mean = loc.interp @ self.mean_curve + s * w_mean
-        return mean, s**2 * cov
+        return loc.interp @ self.mean_curve + s * w_rows, s**2 * cov
+
+    def _batched_kernel(self, r2: Any, amp: Any, lib: Any = pt) -> Any:
+        if self.kernel == "se":
+            return amp * lib.exp(-0.5 * r2)
+        r = lib.sqrt(r2 + 1e-12)
+        return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * lib.exp(-_SQRT5 * r)
 
     def mean_tensor(self, theta: Any, X: Any) -> Any:
         """Symbolic predictive mean at rows ``X`` (numbers, input order) as a function of θ.
@@ -757,8 +743,52 @@ class FunctionalEmulator:
         """Symbolic predictive variance at the rows (the diagonal of the covariance)."""
         return pt.diagonal(self.covariance_tensor(theta, X))
 
+    def support_logp(self, theta: Any, margin: float = 0.0, softness: float = 0.01) -> Any:
+        """Log-density term confining θ to the design: 0 inside, quadratic wall outside.
+
+        In the GP coordinates of θ scaled to the runs' unit box (``u``, rotated when
+        ``rotation`` is given), ``-½ Σ_i (max(0, |u_i - ½| - ½ - margin) / softness)²``.
+        Outside its design the emulator reverts to its mean curve with the GPs' prior
+        variance along the basis, a broad likelihood that explains the data about as
+        well as the best fit; over a prior box much larger than the design that volume
+        would dominate the posterior.  Confining the prior to the design (chosen by a first
+        pass to contain the posterior) avoids it.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> design = space_filling_design({"a": (1.2, 1.8), "k": (0.6, 0.9)}, 10, seed=1)
+        >>> em = FunctionalEmulator(run_curves(decay, design, {"t": [0.0, 1.0, 2.0]}), decay,
+        ...                         box={"a": (1.2, 1.8), "k": (0.6, 0.9)})
+        >>> float(em.support_logp(pt.as_tensor([1.5, 0.7])).eval()) == 0
+        True
+        >>> bool(em.support_logp(pt.as_tensor([1.9, 0.7])).eval() < -100)
+        True
+        """
+        u = self._theta_unit_tensor(pt.as_tensor_variable(theta))
+        excess = pt.maximum(pt.abs(u - 0.5) - 0.5 - margin, 0.0)
+        return -0.5 * pt.sum((excess / softness) ** 2)
+
+    def _theta_unit_tensor(self, theta: Any) -> Any:
+        """θ's GP coordinates scaled to the unit box, as a tensor ``(p,)``."""
+        ds = len(self.scalar_inputs)
+        logged = self.log_columns[ds:]
+        h = pt.where(logged, pt.log(pt.where(logged, theta, 1.0)), theta) if logged.any() else theta
+        if self.rotation is not None:
+            center, matrix = self.rotation
+            h = pt.dot(matrix, h - center)
+        return (h - self.lower[ds:]) / self.width[ds:]
+
     def physics_model(
-        self, *, covariance: Literal["full", "diagonal"] = "full", name: str | None = None
+        self,
+        *,
+        covariance: Literal["full", "diagonal"] = "full",
+        name: str | None = None,
+        confine: bool = False,
     ) -> FunctionalEmulatedPhysics:
         """The emulator as a physics model (priors of the simulator's parameters).
 
@@ -771,6 +801,10 @@ class FunctionalEmulator:
             which overstates the information in the data).
         name : str, optional
             Default: the simulator's name + " (PCA emulated)".
+        confine : bool
+            Add :meth:`support_logp` to the model (``compose_model`` makes it a
+            ``pm.Potential`` named ``"physics_support"``): the prior confined to the
+            design.  Use it when the design covers only part of the prior box.
 
         Examples
         --------
@@ -787,7 +821,7 @@ class FunctionalEmulator:
         """
         if covariance not in ("full", "diagonal"):
             raise ValueError(f"covariance must be 'full' or 'diagonal', got {covariance!r}")
-        return FunctionalEmulatedPhysics(self, covariance=covariance, name=name)
+        return FunctionalEmulatedPhysics(self, covariance=covariance, name=name, confine=confine)
 
     def __repr__(self) -> str:
         return (
@@ -829,9 +863,11 @@ class FunctionalEmulatedPhysics(PhysicsModel):
         *,
         covariance: Literal["full", "diagonal"] = "full",
         name: str | None = None,
+        confine: bool = False,
     ) -> None:
         self.emulator = emulator
         self.covariance = covariance
+        self.confine = bool(confine)
         source = emulator.physics
         super().__init__(
             self._emulated,
@@ -858,7 +894,13 @@ class FunctionalEmulatedPhysics(PhysicsModel):
             "mean_curve": em.mean_curve.round(12).tolist(),
             "hypers": [repr(h) for h in em.hypers],
             "log_output": em.log_output,
+            "confine": self.confine,
+            "rotation": None if em.rotation is None else [a.tolist() for a in em.rotation],
         }
+
+    def support_logp(self, theta: Any) -> Any:
+        """The emulator's :meth:`~FunctionalEmulator.support_logp` when confined, else None."""
+        return self.emulator.support_logp(theta) if self.confine else None
 
     def _emulated(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> Any:
         if all(_is_numeric(v) for v in params.values()):

@@ -220,7 +220,7 @@ def direct_posterior():
 def test_the_pca_emulator_gives_the_direct_posterior(direct_posterior):
     import kohpymc as kp
 
-    em, _ = _emulator(60)
+    em, _ = _emulator(120, restarts=2)
     emulated = _posterior(kp.calibrate(em.physics_model(), _data(), **_SAMPLING))
     for name, (mean, sd) in direct_posterior.items():
         assert abs(emulated[name][0] - mean) < 0.1 * sd, (name, emulated[name], mean, sd)
@@ -231,7 +231,7 @@ def test_the_pca_emulator_gives_the_direct_posterior(direct_posterior):
 def test_a_poor_pca_emulator_widens_rather_than_shifts(direct_posterior):
     import kohpymc as kp
 
-    em, _ = _emulator(10, n_components=2)
+    em, _ = _emulator(12)
     poor = _posterior(kp.calibrate(em.physics_model(), _data(), **_SAMPLING, warn=False))
     for name, (mean, sd) in direct_posterior.items():
         assert poor[name][1] > 1.3 * sd, (name, poor[name], sd)  # wider

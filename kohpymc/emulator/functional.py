@@ -285,6 +285,8 @@ class _WeightGP:
         prior, _ = _kernel_numpy(self.kernel, Us, Us, h.lengthscales, h.amplitude)
         V = self.chol_inv @ Ks.T
         cov = prior - V.T @ V + h.nugget * np.eye(len(Us))
+        if len(Us) == 1:  # as the tensors: a variance lost to rounding is the nugget
+            cov = np.maximum(cov, h.nugget)
         return Ks @ self.alpha, cov
 
 
@@ -686,7 +688,7 @@ class FunctionalEmulator:
         idx = loc.setting_index
         trunc = self._truncation(loc)
         if m == 1:
-            var = amp + nug - pt.sum(V[:, :, 0] ** 2, axis=1)  # (K,)
+            var = pt.maximum(amp + nug - pt.sum(V[:, :, 0] ** 2, axis=1), nug)  # (K,)
             w_rows = pt.dot(B, w_mean[:, 0])
             cov = trunc + pt.dot(B * var[None, :], B.T)
         else:

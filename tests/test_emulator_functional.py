@@ -43,6 +43,9 @@ def _emulator(n, **kwargs):
     physics = _physics()
     runs = run_curves(physics, space_filling_design(_BOX, n, seed=1), _GRID)
     kwargs.setdefault("restarts", 1)
+    kwargs.setdefault(
+        "box", _BOX
+    )  # x from 0: not log-scaled as the runs' range (0.007, 0.99) would be
     return FunctionalEmulator(runs, physics, **kwargs), physics
 
 

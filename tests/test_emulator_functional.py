@@ -240,3 +240,25 @@ def test_a_poor_pca_emulator_widens_rather_than_shifts(direct_posterior):
         assert poor[name][1] > 1.3 * sd, (name, poor[name], sd)  # wider
         assert abs(poor[name][0] - mean) < 1.0 * poor[name][1], (name, poor[name], mean)
         assert abs(poor[name][0] - _TRUTH[name]) < 2.5 * poor[name][1]
+
+
+def test_every_formulation_builds_with_the_functional_emulator():
+    import kohpymc as kp
+    from kohpymc.model import compose_model
+
+    em, _ = _emulator(15)
+    emulated = em.physics_model()
+    data = _data()
+    for formulation in (
+        kp.NoDiscrepancy(),
+        kp.ConstantBias(),
+        kp.IIDGaussian(),
+        kp.InputDependentGaussian(mean=["t"]),
+        kp.GaussianProcess(["x", "t"]),
+        kp.NonStationaryGP(["x", "t"], time="t"),
+    ):
+        built = compose_model(emulated, data, formulation)
+        assert "y" in built.model.named_vars, formulation.label
+        if formulation.label in ("M0", "M1", "M4"):
+            point = built.model.initial_point()
+            assert np.isfinite(built.model.compile_logp()(point)), formulation.label

@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test test-slow bench bench-discovery bench-discovery-mcmc bench-slow-simulator lint format typecheck clean
+.PHONY: demo test test-slow bench bench-discovery bench-discovery-mcmc bench-slow-simulator bench-dielectric-emulator lint format typecheck clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -51,6 +51,13 @@ bench-discovery-mcmc: $(STAMP)
 # in-process (~10 min); table in benchmarks/results/slow_simulator.md
 bench-slow-simulator: $(STAMP)
 	$(PY) -m benchmarks.slow_simulator
+
+# the dielectric stand-in (M0) through the principal-component emulator, 250 + 50 runs, against a
+# direct calibration (first target: the direct run, ~1 h on 2 busy cores; then the emulated one,
+# a few minutes); table in benchmarks/results/dielectric_emulator.md
+bench-dielectric-emulator: $(STAMP)
+	@test -f benchmarks/results/dielectric_direct_M0.nc || $(PY) -m benchmarks.dielectric_emulator --direct-only --direct benchmarks/results/dielectric_direct_M0.nc
+	$(PY) -m benchmarks.dielectric_emulator --direct benchmarks/results/dielectric_direct_M0.nc
 
 LINT_PATHS := kohpymc tests benchmarks notebooks tools
 

@@ -268,6 +268,11 @@ def compose_model(
     with pm.Model(coords={OBS_DIM: np.arange(data.n)}) as model:
         thetas = [prior.create(name) for name, prior in physics.parameters.items()]
         theta = pt.stack([pt.as_tensor_variable(t, dtype="float64") for t in thetas])
+        # a surrogate valid only in a region of θ (an emulator's design) confines the prior
+        support = getattr(physics, "support_logp", None)
+        support_term = support(theta) if support is not None else None
+        if support_term is not None:
+            pm.Potential("physics_support", support_term)
         sigma_obs = _noise_sd(data, noise_sd_prior, y_scale)
         before = set(model.named_vars)
         ctx, physics_mean, physics_variance = formulation_context(

@@ -6,6 +6,8 @@
   (:func:`kohpymc.run_tasks`), cached on disk, failures recorded and skipped;
 * :mod:`~kohpymc.emulator.gp`: :class:`Emulator`, a GP over (inputs, θ) whose mean and
   variance enter the calibration as an :class:`EmulatedPhysics` model;
+* :mod:`~kohpymc.emulator.functional`: :class:`FunctionalEmulator`, curves on a fixed
+  grid through a principal-component basis with a GP per weight (GPMSA / SEPIA);
 * :mod:`~kohpymc.emulator.checking`: leave-one-out or held-out scores, a figure and an
   :class:`EmulatorWarning` when the emulator is not fit for calibration;
 * :mod:`~kohpymc.emulator.sequential`: :func:`emulate` (design, run, fit) and
@@ -18,6 +20,12 @@ from kohpymc.emulator.design import (
     extend_design,
     maximin_distance,
     space_filling_design,
+)
+from kohpymc.emulator.functional import (
+    FunctionalEmulatedPhysics,
+    FunctionalEmulator,
+    FunctionalRuns,
+    run_curves,
 )
 from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
 from kohpymc.emulator.runs import SimulatorRuns, run_design
@@ -35,6 +43,10 @@ __all__ = [
     "Emulator",
     "EmulatedPhysics",
     "GPHyperparameters",
+    "FunctionalEmulator",
+    "FunctionalEmulatedPhysics",
+    "FunctionalRuns",
+    "run_curves",
     "design_box",
     "extend_design",
     "maximin_distance",

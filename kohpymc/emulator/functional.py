@@ -1,0 +1,938 @@
+r"""Functional outputs: a principal-component basis with independent GPs on the weights.
+
+A simulator that computes a whole curve per run (a current against time, a profile
+against depth) is emulated as in GPMSA / SEPIA (Higdon et al. 2008, *J. Am. Stat.
+Assoc.* 103:570): every run gives its output on one fixed **grid** of the functional
+input(s); the curves are centred and scaled, their principal components (an SVD) give a
+basis, and each of the ``K`` kept component weights is emulated by its own ARD GP over
+the **scalar inputs** (the physics inputs not on the grid) and the parameters θ.
+
+Notation: ``g_r`` the output curve of run ``r`` on the ``P`` grid points (``ln`` of the
+output with ``log_output=True``), ``μ`` the mean curve, ``s`` the overall sd,
+``Y = (G - μ) / s = U S Vᵀ``.  The basis ``Φ = V_K S_K / √n`` (``P × K``) and weights
+``W = √n U_K`` (unit variance), so ``Y ≈ W Φᵀ``; ``K`` is the smallest number of
+components whose share of ``Σ S²`` reaches ``variance`` (default 0.999).  The part
+the basis misses is the truncation error, with variance ``τ_p`` per grid point (the mean
+squared residual of the training curves; GPMSA uses one such variance for the whole
+curve).  At scalar inputs ``x`` and θ, with GP means ``ŵ_k`` and covariances
+``c_k(x, x')`` of the weights (each GP is an :class:`~kohpymc.emulator.gp.Emulator`-style
+fit: unit-box columns, Matérn 5/2 or SE kernel, nugget, MAP hyperparameters)::
+
+    E[g(x, p)]        = μ_p + s Σ_k Φ_pk ŵ_k(x, θ)
+    Cov[g(x,p), g(x',p')] = s² (Σ_k Φ_pk Φ_p'k c_k(x, x') + τ_p 1[x = x', p = p'])
+
+so the emulator's covariance between the rows of one curve is dense (rank ``K`` plus
+the truncation diagonal), and rows at different scalar settings are correlated through
+``c_k``.  With ``log_output=True`` the mean and covariance are those of the log-normal
+``exp(g)``.  Data rows off the grid: with one functional input the basis, mean and
+truncation variance are interpolated linearly between the neighbouring grid points
+(outside the grid is an error); with several functional inputs every data row must lie
+on the grid (to a relative 1e-9).
+
+:meth:`FunctionalEmulator.physics_model` wraps it as a
+:class:`FunctionalEmulatedPhysics`, a :class:`~kohpymc.PhysicsModel` like
+:class:`~kohpymc.emulator.gp.EmulatedPhysics`: its mean is a PyTensor expression of θ
+(exact gradients) and :meth:`~FunctionalEmulatedPhysics.covariance_tensor` the full
+``Σ_η(θ)`` between the calibration rows, which :func:`kohpymc.model.compose_model` adds
+to the likelihood covariance of every formulation that accepts it (the others get its
+diagonal added to the noise variance).  The rows' input values must be known numbers
+when the model is built (they are, in :func:`~kohpymc.model.compose_model`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+import pytensor
+import pytensor.tensor as pt
+from pytensor.graph.basic import Constant
+from pytensor.graph.traversal import graph_inputs
+from scipy import linalg, stats
+
+from kohpymc.emulator.design import log_scaled
+from kohpymc.emulator.gp import (
+    _SQRT5,
+    KERNELS,
+    GPHyperparameters,
+    _fit_hyperparameters,
+    _is_numeric,
+    _kernel_numpy,
+)
+from kohpymc.emulator.runs import (
+    _read_cache,
+    _simulate,
+    _write_record,
+    point_key,
+    simulator_identity,
+)
+from kohpymc.execution import run_tasks
+from kohpymc.physics import PhysicsModel
+
+__all__ = [
+    "FunctionalEmulatedPhysics",
+    "FunctionalEmulator",
+    "FunctionalRuns",
+    "run_curves",
+]
+
+
+@dataclass
+class FunctionalRuns:
+    """Simulator curves: one row of scalar inputs and θ per run, its output on a grid.
+
+    Attributes
+    ----------
+    design : pandas.DataFrame
+        Successful runs: one column per scalar input (physics inputs not on the grid),
+        then per parameter.
+    grid : pandas.DataFrame
+        The functional input(s), one row per grid point (``P`` rows).
+    curves : numpy.ndarray
+        ``(n_runs, P)`` outputs.
+    inputs, parameters : tuple of str
+        The scalar inputs and the parameters (the columns of ``design``).
+    failed : pandas.DataFrame
+        Design rows of which at least one grid point failed.
+    simulated, cached : int
+        Curves run in this call / read from the cache.
+    seconds : float
+        Wall time of the simulator tasks of this call (summed over tasks).
+
+    Examples
+    --------
+    See :func:`run_curves`.
+    """
+
+    design: pd.DataFrame
+    grid: pd.DataFrame
+    curves: np.ndarray
+    inputs: tuple[str, ...]
+    parameters: tuple[str, ...]
+    failed: pd.DataFrame
+    simulated: int = 0
+    cached: int = 0
+    seconds: float = 0.0
+
+    @property
+    def n_runs(self) -> int:
+        """Number of successful curves."""
+        return len(self.curves)
+
+    @property
+    def X(self) -> np.ndarray:
+        """``(n_runs, d_s + p)``: scalar-input columns, then parameter columns."""
+        return self.design[list(self.inputs + self.parameters)].to_numpy(float)
+
+    def subset(self, rows: Any) -> FunctionalRuns:
+        """The runs at ``rows`` (a boolean mask or integer positions)."""
+        idx = np.arange(self.n_runs)[rows]
+        return FunctionalRuns(
+            self.design.iloc[idx].reset_index(drop=True),
+            self.grid,
+            self.curves[idx],
+            self.inputs,
+            self.parameters,
+            self.failed.iloc[:0],
+        )
+
+
+def run_curves(
+    physics: PhysicsModel,
+    design: pd.DataFrame,
+    grid: pd.DataFrame | Mapping[str, Any],
+    *,
+    cache: str | Path | None = None,
+    simulator_label: str | None = None,
+    workers: int = 1,
+    scheduler: Any = None,
+    progress: Any = None,
+) -> FunctionalRuns:
+    """Run the simulator on the whole grid at every row of ``design``.
+
+    Every design row (scalar inputs and θ) is one task, one simulator call over the
+    whole grid, run by :func:`kohpymc.run_tasks` (``workers``, ``scheduler`` and
+    ``progress`` are passed on).  With ``cache`` a folder, every finished curve is
+    written there as one JSON file named by a hash of (design row, simulator identity,
+    grid), and a rerun only runs the rows not there yet.  A row whose call failed or
+    gave a non-finite value goes to ``failed`` (with its error).
+
+    Parameters
+    ----------
+    physics : PhysicsModel
+        The simulator; its inputs are the grid's columns plus the scalar inputs.
+    design : pandas.DataFrame
+        One column per scalar input and per parameter.
+    grid : DataFrame or mapping
+        The functional input(s): one column per functional input, one row per point.
+
+    Returns
+    -------
+    FunctionalRuns
+
+    Examples
+    --------
+    >>> import pytensor.tensor as pt
+    >>> from kohpymc import PhysicsModel, Uniform
+    >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+    ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+    >>> runs = run_curves(decay, pd.DataFrame({"a": [1.0, 2.0], "k": [0.5, 1.0]}),
+    ...                   {"t": [0.0, 1.0, 2.0]})
+    >>> runs.curves.shape, float(runs.curves[1, 0])
+    ((2, 3), 2.0)
+    """
+    grid = pd.DataFrame(grid).reset_index(drop=True).astype(float)
+    functional = tuple(grid.columns)
+    unknown = [k for k in functional if k not in physics.inputs]
+    if unknown:
+        raise KeyError(f"run_curves: grid column(s) {unknown} are not inputs of {physics.name!r}")
+    scalar = tuple(k for k in physics.inputs if k not in functional)
+    params = tuple(physics.parameters)
+    columns = list(scalar + params)
+    missing = [k for k in columns if k not in design.columns]
+    if missing:
+        raise KeyError(f"run_curves: the design lacks column(s) {missing}")
+    design = design[columns].reset_index(drop=True).astype(float)
+    values = design.to_numpy(float)
+    if not np.all(np.isfinite(values)):
+        raise ValueError("run_curves: the design contains NaN/inf")
+    n, P = len(design), len(grid)
+    grid_values = grid.to_numpy(float)
+    digest = hashlib.sha256(
+        json.dumps(
+            [list(functional), [[repr(v) for v in r] for r in grid_values.tolist()]]
+        ).encode()
+    ).hexdigest()[:16]
+    simulator = f"{simulator_identity(physics, simulator_label)}:grid:{digest}"
+    folder = None if cache is None else Path(cache)
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+    curves = np.full((n, P), np.nan)
+    keys = [point_key(dict(zip(columns, row.tolist(), strict=True)), simulator) for row in values]
+    tasks: dict[str, Any] = {}
+    cached = 0
+    for r, key in enumerate(keys):
+        hit = None if folder is None else _read_cache(folder / f"{key}.json")
+        if hit is not None and hit.get("curve") is not None:
+            curves[r] = hit["curve"]
+            cached += 1
+            continue
+        if key in tasks:
+            continue
+        row = dict(zip(columns, values[r].tolist(), strict=True))
+        inputs = {k: grid_values[:, j].tolist() for j, k in enumerate(functional)}
+        inputs.update({k: [row[k]] * P for k in scalar})
+        tasks[key] = (physics, inputs, {k: row[k] for k in params})
+    done: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    seconds = 0.0
+    for outcome in run_tasks(
+        _simulate, tasks, workers=workers, scheduler=scheduler, progress=progress
+    ):
+        seconds += outcome.seconds
+        if outcome.error is None:
+            done[outcome.key] = outcome.value
+        else:
+            errors[outcome.key] = str(outcome.error)
+        if folder is not None:
+            record = {
+                "point": tasks[outcome.key][2] | {k: tasks[outcome.key][1][k][0] for k in scalar},
+                "curve": done.get(outcome.key),
+                "error": errors.get(outcome.key),
+                "simulator": simulator,
+            }
+            _write_record(folder / f"{outcome.key}.json", record)
+    for r, key in enumerate(keys):
+        if key in done:
+            curves[r] = done[key]
+    ok = np.all(np.isfinite(curves), axis=1)
+    failed = design[~ok].reset_index(drop=True)
+    failed["error"] = [errors.get(keys[r], "non-finite output") for r in np.flatnonzero(~ok)]
+    return FunctionalRuns(
+        design=design[ok].reset_index(drop=True),
+        grid=grid,
+        curves=curves[ok],
+        inputs=scalar,
+        parameters=params,
+        failed=failed,
+        simulated=len(tasks),
+        cached=cached,
+        seconds=seconds,
+    )
+
+
+class _WeightGP:
+    """One GP on one component weight (fixed hyperparameters after the fit)."""
+
+    def __init__(self, kernel: str, U: np.ndarray, z: np.ndarray, hyper: GPHyperparameters):
+        self.kernel, self.U, self.z, self.hyper = kernel, U, z, hyper
+        R, _ = _kernel_numpy(kernel, U, U, hyper.lengthscales, hyper.amplitude)
+        K = R + (hyper.nugget + 1e-10) * np.eye(len(z))
+        chol = linalg.cholesky(K, lower=True)
+        self.alpha = linalg.cho_solve((chol, True), z)
+        self.chol_inv = linalg.solve_triangular(chol, np.eye(len(z)), lower=True)
+
+    def predict(self, Us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean ``(m,)`` and covariance ``(m, m)`` (latent plus nugget) at rows ``Us``."""
+        h = self.hyper
+        Ks, _ = _kernel_numpy(self.kernel, Us, self.U, h.lengthscales, h.amplitude)
+        prior, _ = _kernel_numpy(self.kernel, Us, Us, h.lengthscales, h.amplitude)
+        V = self.chol_inv @ Ks.T
+        cov = prior - V.T @ V + h.nugget * np.eye(len(Us))
+        if len(Us) == 1:  # as the tensors: a variance lost to rounding is the nugget
+            cov = np.maximum(cov, h.nugget)
+        return Ks @ self.alpha, cov
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """Where calibration rows sit: scalar settings and interpolation onto the grid."""
+
+    settings: np.ndarray  # (m, d_s) distinct scalar-input values (raw)
+    setting_index: np.ndarray  # (n,) row -> setting
+    interp: np.ndarray  # (n, P) row -> grid weights
+
+
+class FunctionalEmulator:
+    r"""A principal-component emulator of a simulator's curves (GPMSA / SEPIA style).
+
+    Parameters
+    ----------
+    runs : FunctionalRuns
+        Training curves (:func:`run_curves`).
+    physics : PhysicsModel
+        The simulator: its priors become those of :meth:`physics_model`.
+    variance : float
+        Keep the fewest components whose share of the curves' variance reaches this
+        (default 0.999).
+    n_components : int, optional
+        Keep exactly this many components instead.
+    log_output : bool
+        Build the basis from ln output (every output must be positive); predictions
+        are log-normal means and covariances in output units.
+    kernel : {"matern52", "se"}
+        Kernel of the weight GPs (see :class:`~kohpymc.emulator.gp.Emulator`).
+    box : mapping, optional
+        Column -> ``(lower, upper)`` of the unit box of the scalar inputs and θ (default:
+        the runs' range); columns spanning two decades or more are log-scaled.
+    log_parameters : sequence of str
+        Columns to log-scale in any case (positive parameters whose posterior is a
+        power law, e.g. ``B ∝ √m* Φ_B^{3/2}``, is a straight line in logs).
+    rotation : (center, matrix), optional
+        GP coordinates of θ ``u = M (h(θ) - c)`` (``h`` the log-scaling above), e.g.
+        whitened by a Laplace covariance at a first fit (``M = Λ^{-1/2} Vᵀ``), so that
+        a design in ``u`` covers a thin, tilted posterior and the ARD length scales act
+        along its principal axes; the unit box is then the runs' range of ``u``.
+    restarts, seed :
+        Starts of the hyperparameter search of each weight GP, and their seed.
+
+    Attributes
+    ----------
+    basis : numpy.ndarray
+        ``Φ``, ``(P, K)``.
+    weights : numpy.ndarray
+        ``W``, ``(n_runs, K)``, the training weights (unit variance).
+    mean_curve, curve_scale : numpy.ndarray, float
+        ``μ`` and ``s``.
+    truncation_variance : numpy.ndarray
+        ``τ``, ``(P,)``, in standardised units.
+    explained : float
+        Share of the variance the kept components carry.
+    hypers : list of GPHyperparameters
+
+    Examples
+    --------
+    >>> import pytensor.tensor as pt
+    >>> from kohpymc import PhysicsModel, Uniform
+    >>> from kohpymc.emulator import space_filling_design
+    >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+    ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+    >>> design = space_filling_design({"a": (1, 2), "k": (0.5, 1)}, 20, seed=1)
+    >>> em = FunctionalEmulator(run_curves(decay, design, {"t": np.linspace(0, 3, 16)}), decay)
+    >>> em.n_components <= 4
+    True
+    >>> mean, var = em.predict({"t": [0.5, 1.1]}, {"a": 1.5, "k": 0.7})
+    >>> bool(np.allclose(mean, 1.5 * np.exp(-0.7 * np.array([0.5, 1.1])), atol=1e-2))
+    True
+    """
+
+    def __init__(
+        self,
+        runs: FunctionalRuns,
+        physics: PhysicsModel,
+        *,
+        variance: float = 0.999,
+        n_components: int | None = None,
+        log_output: bool = False,
+        kernel: Literal["se", "matern52"] = "matern52",
+        box: Mapping[str, tuple[float, float]] | None = None,
+        log_parameters: Sequence[str] = (),
+        rotation: tuple[Any, Any] | None = None,
+        restarts: int = 3,
+        seed: int = 0,
+    ) -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
+        if not 0.0 < variance <= 1.0:
+            raise ValueError(f"variance must be in (0, 1], got {variance}")
+        functional = tuple(runs.grid.columns)
+        if tuple(physics.parameters) != tuple(runs.parameters) or set(physics.inputs) != set(
+            runs.inputs + functional
+        ):
+            raise ValueError(
+                f"FunctionalEmulator: the runs have scalar inputs {list(runs.inputs)}, grid "
+                f"{list(functional)} and parameters {list(runs.parameters)}; the physics "
+                f"model {physics.name!r} has inputs {list(physics.inputs)} and parameters "
+                f"{list(physics.parameters)}"
+            )
+        if runs.n_runs < 3:
+            raise ValueError(f"FunctionalEmulator needs at least 3 curves, got {runs.n_runs}")
+        self.physics = physics
+        self.runs = runs
+        self.kernel = kernel
+        self.functional = functional
+        self.scalar_inputs = tuple(runs.inputs)
+        self.columns = tuple(runs.inputs + runs.parameters)
+        self.grid = runs.grid[list(functional)].to_numpy(float)
+        X = runs.X
+        box = dict(box or {})
+        lo = np.array(
+            [box[k][0] if k in box else X[:, j].min() for j, k in enumerate(self.columns)]
+        )
+        hi = np.array(
+            [box[k][1] if k in box else X[:, j].max() for j, k in enumerate(self.columns)]
+        )
+        self.log_columns = log_scaled(lo, hi) | np.isin(self.columns, list(log_parameters))
+        ds = len(self.scalar_inputs)
+        self.rotation = None
+        if rotation is not None:
+            center, matrix = (np.asarray(a, dtype=float) for a in rotation)
+            p = len(runs.parameters)
+            if center.shape != (p,) or matrix.shape != (p, p):
+                raise ValueError(
+                    f"rotation must be (center ({p},), matrix ({p}, {p})), got "
+                    f"{center.shape} and {matrix.shape}"
+                )
+            self.rotation = (center, matrix)
+            H = self._coordinates(X)  # rotated: the unit box is the runs' range there
+            lo[ds:], hi[ds:] = H[:, ds:].min(axis=0), H[:, ds:].max(axis=0)
+            lo[:ds], hi[:ds] = self._transform(lo)[:ds], self._transform(hi)[:ds]
+        else:
+            lo, hi = self._transform(lo), self._transform(hi)
+        self.lower = lo.astype(float)
+        self.width = np.where(hi > lo, hi - lo, 1.0).astype(float)
+        self.U = (self._coordinates(X) - self.lower) / self.width
+        self.log_output = bool(log_output)
+        curves = np.asarray(runs.curves, dtype=float)
+        if self.log_output and not np.all(curves > 0):
+            raise ValueError(
+                f"FunctionalEmulator(log_output=True): {int(np.sum(curves <= 0))} output(s) "
+                f"of {physics.name!r} are <= 0"
+            )
+        G = np.log(curves) if self.log_output else curves
+        self.mean_curve = G.mean(axis=0)
+        sd = float(np.std(G - self.mean_curve))
+        self.curve_scale = sd if sd > 0 else 1.0
+        Y = (G - self.mean_curve) / self.curve_scale
+        n = len(Y)
+        u, svals, vt = np.linalg.svd(Y, full_matrices=False)
+        share = np.cumsum(svals**2) / max(np.sum(svals**2), 1e-300)
+        if n_components is None:
+            K = int(np.searchsorted(share, variance - 1e-12) + 1)
+        else:
+            K = int(n_components)
+        K = max(1, min(K, len(svals)))
+        self.explained = float(share[K - 1])
+        self.singular_values = svals
+        self.basis = vt[:K].T * svals[:K] / np.sqrt(n)
+        self.weights = u[:, :K] * np.sqrt(n)
+        residual = Y - self.weights @ self.basis.T
+        self.truncation_variance = np.mean(residual**2, axis=0)
+        self.hypers = [
+            _fit_hyperparameters(kernel, self.U, self.weights[:, k], restarts, seed + k)
+            for k in range(K)
+        ]
+        self._gps = [
+            _WeightGP(kernel, self.U, self.weights[:, k], h) for k, h in enumerate(self.hypers)
+        ]
+
+    @property
+    def n_components(self) -> int:
+        """``K``, the number of principal components kept."""
+        return self.basis.shape[1]
+
+    @property
+    def n_runs(self) -> int:
+        """Number of training curves."""
+        return len(self.weights)
+
+    # ------------------------------------------------------------------- numpy
+    def _transform(self, values: np.ndarray) -> np.ndarray:
+        values = np.asarray(values, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.log_columns, np.log(np.abs(values)), values)
+
+    def _coordinates(self, X: np.ndarray) -> np.ndarray:
+        """GP coordinates of rows (scalar inputs, θ) before the unit-box scaling."""
+        H = np.atleast_2d(self._transform(X)).copy()
+        if self.rotation is not None:
+            ds = len(self.scalar_inputs)
+            center, matrix = self.rotation
+            H[:, ds:] = (H[:, ds:] - center) @ matrix.T
+        return H
+
+    def _locate(self, X: np.ndarray) -> _Rows:
+        """Settings, grid interpolation and the same-point mask of rows ``X``."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        order = list(self.physics.inputs)
+        f_idx = [order.index(k) for k in self.functional]
+        s_idx = [order.index(k) for k in self.scalar_inputs]
+        F, S = X[:, f_idx], X[:, s_idx]
+        n, P = len(X), len(self.grid)
+        interp = np.zeros((n, P))
+        scale = np.maximum(np.abs(self.grid).max(axis=0), 1.0)
+        if len(self.functional) == 1:
+            g = self.grid[:, 0]
+            order_g = np.argsort(g)
+            gs = g[order_g]
+            f = F[:, 0]
+            tol = 1e-9 * scale[0]
+            outside = (f < gs[0] - tol) | (f > gs[-1] + tol)
+            if np.any(outside):
+                bad = f[outside][0]
+                raise ValueError(
+                    f"FunctionalEmulator: {self.functional[0]} = {bad:g} is outside the "
+                    f"emulator's grid [{gs[0]:g}, {gs[-1]:g}]"
+                )
+            pos = np.clip(np.searchsorted(gs, f, side="right") - 1, 0, max(P - 2, 0))
+            if P == 1:
+                interp[:, order_g[0]] = 1.0
+            else:
+                a = np.clip((f - gs[pos]) / (gs[pos + 1] - gs[pos]), 0.0, 1.0)
+                rows = np.arange(n)
+                interp[rows, order_g[pos]] += 1.0 - a
+                interp[rows, order_g[pos + 1]] += a
+        else:
+            diff = np.abs(F[:, None, :] - self.grid[None, :, :]) / scale
+            hit = np.all(diff <= 1e-9, axis=-1)
+            missing = ~hit.any(axis=1)
+            if np.any(missing):
+                bad = dict(zip(self.functional, F[np.argmax(missing)].tolist(), strict=True))
+                raise ValueError(
+                    f"FunctionalEmulator: {int(missing.sum())} row(s) are not on the grid of "
+                    f"{list(self.functional)} (first: {bad}); with several functional inputs "
+                    "the data must lie on the grid"
+                )
+            interp[np.arange(n), np.argmax(hit, axis=1)] = 1.0
+        if S.shape[1]:
+            settings, index = np.unique(S, axis=0, return_inverse=True)
+        else:
+            settings, index = np.zeros((1, 0)), np.zeros(n, dtype=int)
+        return _Rows(settings, np.asarray(index).reshape(-1), interp)
+
+    def _unit_settings(self, settings: np.ndarray) -> np.ndarray:
+        ds = len(self.scalar_inputs)
+        if ds == 0:
+            return np.zeros((len(settings), 0))
+        return (self._transform_cols(settings, slice(0, ds)) - self.lower[:ds]) / self.width[:ds]
+
+    def _transform_cols(self, values: np.ndarray, cols: slice) -> np.ndarray:
+        values = np.asarray(values, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.log_columns[cols], np.log(np.abs(values)), values)
+
+    def _latent_numpy(self, X: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Latent (standardised-space transformed back) mean ``(n,)`` and cov ``(n, n)``."""
+        loc = self._locate(X)
+        ds = len(self.scalar_inputs)
+        coords = self._coordinates(np.r_[np.zeros(ds), np.asarray(theta, dtype=float)][None, :])
+        t_unit = (coords[0, ds:] - self.lower[ds:]) / self.width[ds:]
+        Us = np.column_stack(
+            [self._unit_settings(loc.settings), np.tile(t_unit, (len(loc.settings), 1))]
+        )
+        B = loc.interp @ self.basis  # (n, K)
+        mean = loc.interp @ self.mean_curve
+        idx = loc.setting_index
+        w_mean = np.zeros(len(X))
+        cov_w = np.zeros((len(X), len(X)))
+        for k, gp in enumerate(self._gps):
+            m, c = gp.predict(Us)
+            w_mean += B[:, k] * m[idx]
+            cov_w += np.outer(B[:, k], B[:, k]) * c[np.ix_(idx, idx)]
+        trunc = self._truncation(loc)
+        s = self.curve_scale
+        return mean + s * w_mean, s**2 * (cov_w + trunc)
+
+    def _truncation(self, loc: _Rows) -> np.ndarray:
+        """``A diag(τ) Aᵀ`` restricted to rows at the same scalar setting (standardised)."""
+        A = loc.interp
+        same_setting = loc.setting_index[:, None] == loc.setting_index[None, :]
+        return (A * self.truncation_variance) @ A.T * same_setting
+
+    def _output(self, mean: Any, cov: Any, lib: Any = np) -> tuple[Any, Any]:
+        if not self.log_output:
+            return mean, cov
+        diag = lib.diagonal(cov) if lib is pt else np.diag(cov)
+        half = mean + diag / 2.0
+        return lib.exp(half), lib.exp(half[:, None] + half[None, :]) * lib.expm1(cov)
+
+    def _rows(self, inputs: Mapping[str, Any]) -> np.ndarray:
+        arrays, _ = self.physics._as_inputs(inputs)
+        return np.column_stack([arrays[k] for k in self.physics.inputs])
+
+    def predict_covariance(
+        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean ``(n,)`` and covariance ``(n, n)`` at input rows and one θ.
+
+        Examples
+        --------
+        See :class:`FunctionalEmulator`; ``predict`` returns the diagonal.
+        """
+        theta = np.array(list(self.physics._as_params(params).values()))
+        mean, cov = self._latent_numpy(self._rows(inputs), theta)
+        return self._output(mean, cov)
+
+    def predict(
+        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean and variance (output units²) at input rows and one θ.
+
+        Examples
+        --------
+        See :class:`FunctionalEmulator`.
+        """
+        mean, cov = self.predict_covariance(inputs, params)
+        return mean, np.diag(cov).copy()
+
+    def predict_curves(self, design: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Latent mean and sd ``(n, P)`` of the curves at every design row, on the grid.
+
+        Latent: ln output with ``log_output=True`` (a Gaussian band there is the
+        log-normal band in output units).
+        """
+        means, sds = [], []
+        grid = {k: self.grid[:, j] for j, k in enumerate(self.functional)}
+        P = len(self.grid)
+        for _, row in design.iterrows():
+            inputs = {**grid, **{k: np.full(P, row[k]) for k in self.scalar_inputs}}
+            theta = np.array([row[k] for k in self.physics.parameters], dtype=float)
+            m, c = self._latent_numpy(self._rows(inputs), theta)
+            means.append(m)
+            sds.append(np.sqrt(np.maximum(np.diag(c), 0.0)))
+        return np.array(means), np.array(sds)
+
+    def held_out(self, runs: FunctionalRuns, level: float = 0.9) -> dict[str, float]:
+        """Scores on held-out curves: band coverage, RMSE over sd, mean squared z.
+
+        ``coverage``: share of the held-out grid values inside the central ``level``
+        predictive band (in the latent scale, the same band in output units);
+        ``rmse_sd``: RMSE of the predictive mean over the sd of the held-out values;
+        ``mean_z2``: mean of the squared standardised errors (about 1 when calibrated).
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> box, grid = {"a": (1, 2), "k": (0.5, 1)}, {"t": np.linspace(0, 3, 16)}
+        >>> em = FunctionalEmulator(run_curves(decay, space_filling_design(box, 20), grid),
+        ...                         decay)
+        >>> test = run_curves(decay, space_filling_design(box, 10, method="sobol"), grid)
+        >>> bool(em.held_out(test)["rmse_sd"] < 0.01)
+        True
+        """
+        mean, sd = self.predict_curves(runs.design)
+        truth = np.log(runs.curves) if self.log_output else np.asarray(runs.curves, float)
+        z = (truth - mean) / np.maximum(sd, 1e-300)
+        half = stats.norm.ppf(0.5 + level / 2.0)
+        return {
+            "coverage": float(np.mean(np.abs(z) <= half)),
+            "rmse_sd": float(np.sqrt(np.mean((truth - mean) ** 2)) / max(np.std(truth), 1e-300)),
+            "mean_z2": float(np.mean(z**2)),
+            "n_curves": float(len(truth)),
+        }
+
+    # ----------------------------------------------------------------- pytensor
+    def _latent_tensor(self, theta: Any, X: np.ndarray) -> tuple[Any, Any]:
+        """Latent mean and covariance at the rows: all K weight GPs as batched tensors."""
+        loc = self._locate(X)
+        ds = len(self.scalar_inputs)
+        u = self._theta_unit_tensor(pt.as_tensor_variable(theta))  # (p,)
+        settings = self._unit_settings(loc.settings)  # (m, d_s) numbers
+        m = len(settings)
+        LS = np.array([h_.lengthscales for h_ in self.hypers])  # (K, q)
+        amp = np.array([h_.amplitude for h_ in self.hypers])
+        nug = np.array([h_.nugget for h_ in self.hypers])
+        alpha = np.array([gp.alpha for gp in self._gps])  # (K, N)
+        chol_inv = np.array([gp.chol_inv for gp in self._gps])  # (K, N, N)
+        U = self.U
+        # squared distances (K, m, N): the scalar part is a constant, θ's part is shared
+        r2_s = np.sum(
+            ((settings[None, :, None, :] - U[None, None, :, :ds]) / LS[:, None, None, :ds]) ** 2,
+            axis=-1,
+        )
+        r2_t = pt.sum(((U[None, :, ds:] - u[None, None, :]) / LS[:, None, ds:]) ** 2, axis=-1)
+        Kc = self._batched_kernel(r2_s + r2_t[:, None, :], amp[:, None, None])  # (K, m, N)
+        w_mean = pt.sum(Kc * alpha[:, None, :], axis=-1)  # (K, m)
+        V = pt.matmul(chol_inv, Kc.transpose(0, 2, 1))  # (K, N, m)
+        B = loc.interp @ self.basis  # (n, K)
+        idx = loc.setting_index
+        trunc = self._truncation(loc)
+        if m == 1:
+            var = pt.maximum(amp + nug - pt.sum(V[:, :, 0] ** 2, axis=1), nug)  # (K,)
+            w_rows = pt.dot(B, w_mean[:, 0])
+            cov = trunc + pt.dot(B * var[None, :], B.T)
+        else:
+            prior_r2 = np.sum(
+                ((settings[None, :, None, :] - settings[None, None, :, :]) / LS[:, None, None, :ds])
+                ** 2,
+                axis=-1,
+            )
+            prior = self._batched_kernel(prior_r2, amp[:, None, None], lib=np)
+            cov_w = prior - pt.matmul(V.transpose(0, 2, 1), V) + nug[:, None, None] * np.eye(m)
+            w_rows = pt.sum(B.T * w_mean[:, idx], axis=0)
+            outer = B.T[:, :, None] * B.T[:, None, :]  # (K, n, n)
+            cov = trunc + pt.sum(outer * cov_w[:, idx][:, :, idx], axis=0)
+        s = self.curve_scale
+        return loc.interp @ self.mean_curve + s * w_rows, s**2 * cov
+
+    def _batched_kernel(self, r2: Any, amp: Any, lib: Any = pt) -> Any:
+        if self.kernel == "se":
+            return amp * lib.exp(-0.5 * r2)
+        r = lib.sqrt(r2 + 1e-12)
+        return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * lib.exp(-_SQRT5 * r)
+
+    def mean_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic predictive mean at rows ``X`` (numbers, input order) as a function of θ.
+
+        Examples
+        --------
+        See :meth:`covariance_tensor`.
+        """
+        mean, cov = self._latent_tensor(theta, _numbers(X))
+        return self._output(mean, cov, pt)[0]
+
+    def covariance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic predictive covariance ``Σ_η(θ)`` ``(n, n)`` between the rows ``X``.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> design = space_filling_design({"a": (1, 2), "k": (0.5, 1)}, 12, seed=1)
+        >>> em = FunctionalEmulator(run_curves(decay, design, {"t": [0.0, 1.0, 2.0]}), decay)
+        >>> X = np.array([[0.5], [1.5]])
+        >>> C = em.covariance_tensor(pt.as_tensor([1.5, 0.7]), X).eval()
+        >>> bool(np.allclose(C, em.predict_covariance({"t": [0.5, 1.5]}, [1.5, 0.7])[1]))
+        True
+        """
+        mean, cov = self._latent_tensor(theta, _numbers(X))
+        return self._output(mean, cov, pt)[1]
+
+    def variance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic predictive variance at the rows (the diagonal of the covariance)."""
+        return pt.diagonal(self.covariance_tensor(theta, X))
+
+    def support_logp(self, theta: Any, margin: float = 0.0, softness: float = 0.01) -> Any:
+        """Log-density term confining θ to the design: 0 inside, quadratic wall outside.
+
+        In the GP coordinates of θ scaled to the runs' unit box (``u``, rotated when
+        ``rotation`` is given), ``-½ Σ_i (max(0, |u_i - ½| - ½ - margin) / softness)²``.
+        Outside its design the emulator reverts to its mean curve with the GPs' prior
+        variance along the basis, a broad likelihood that explains the data about as
+        well as the best fit; over a prior box much larger than the design that volume
+        would dominate the posterior.  Confining the prior to the design (chosen by a first
+        pass to contain the posterior) avoids it.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> design = space_filling_design({"a": (1.2, 1.8), "k": (0.6, 0.9)}, 10, seed=1)
+        >>> em = FunctionalEmulator(run_curves(decay, design, {"t": [0.0, 1.0, 2.0]}), decay,
+        ...                         box={"a": (1.2, 1.8), "k": (0.6, 0.9)})
+        >>> float(em.support_logp(pt.as_tensor([1.5, 0.7])).eval()) == 0
+        True
+        >>> bool(em.support_logp(pt.as_tensor([1.9, 0.7])).eval() < -100)
+        True
+        """
+        u = self._theta_unit_tensor(pt.as_tensor_variable(theta))
+        excess = pt.maximum(pt.abs(u - 0.5) - 0.5 - margin, 0.0)
+        return -0.5 * pt.sum((excess / softness) ** 2)
+
+    def _theta_unit_tensor(self, theta: Any) -> Any:
+        """θ's GP coordinates scaled to the unit box, as a tensor ``(p,)``."""
+        ds = len(self.scalar_inputs)
+        logged = self.log_columns[ds:]
+        h = pt.where(logged, pt.log(pt.where(logged, theta, 1.0)), theta) if logged.any() else theta
+        if self.rotation is not None:
+            center, matrix = self.rotation
+            h = pt.dot(matrix, h - center)
+        return (h - self.lower[ds:]) / self.width[ds:]
+
+    def physics_model(
+        self,
+        *,
+        covariance: Literal["full", "diagonal"] = "full",
+        name: str | None = None,
+        confine: bool = False,
+    ) -> FunctionalEmulatedPhysics:
+        """The emulator as a physics model (priors of the simulator's parameters).
+
+        Parameters
+        ----------
+        covariance : {"full", "diagonal"}
+            ``"full"`` (default): ``Σ_η(θ)`` between the calibration rows enters the
+            likelihood covariance; ``"diagonal"``: only its diagonal, added to the
+            noise variance (ignores that the emulator errors of one curve move together,
+            which overstates the information in the data).
+        name : str, optional
+            Default: the simulator's name + " (PCA emulated)".
+        confine : bool
+            Add :meth:`support_logp` to the model (``compose_model`` makes it a
+            ``pm.Potential`` named ``"physics_support"``): the prior confined to the
+            design.  Use it when the design covers only part of the prior box.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"],
+        ...                      name="decay")
+        >>> design = space_filling_design({"a": (1, 2), "k": (0.5, 1)}, 12, seed=1)
+        >>> em = FunctionalEmulator(run_curves(decay, design, {"t": [0.0, 1.0, 2.0]}), decay)
+        >>> em.physics_model().name
+        'decay (PCA emulated)'
+        """
+        if covariance not in ("full", "diagonal"):
+            raise ValueError(f"covariance must be 'full' or 'diagonal', got {covariance!r}")
+        return FunctionalEmulatedPhysics(self, covariance=covariance, name=name, confine=confine)
+
+    def __repr__(self) -> str:
+        return (
+            f"FunctionalEmulator({self.physics.name!r}, runs={self.n_runs}, grid="
+            f"{list(self.functional)} x {len(self.grid)}, components={self.n_components} "
+            f"({100 * self.explained:.3g} %), kernel={self.kernel!r}"
+            + (", log_output=True)" if self.log_output else ")")
+        )
+
+
+def _numbers(X: Any) -> np.ndarray:
+    """The values of rows given as numbers or as a tensor of constants."""
+    if isinstance(X, np.ndarray | list | tuple):
+        return np.asarray(X, dtype=float)
+    X = pt.as_tensor_variable(X)
+    if not all(isinstance(v, Constant) for v in graph_inputs([X])):
+        raise TypeError(
+            "FunctionalEmulator: the input rows must be known numbers (they select "
+            "points of the emulator's grid), not a function of random variables"
+        )
+    return np.asarray(pytensor.function([], X, mode="FAST_COMPILE")(), dtype=float)
+
+
+class FunctionalEmulatedPhysics(PhysicsModel):
+    """A physics model whose ``G`` is a :class:`FunctionalEmulator`'s mean.
+
+    :meth:`covariance_tensor` is the emulator's full covariance between the calibration
+    rows (dense within a curve), which :func:`kohpymc.model.compose_model` puts into
+    the likelihood covariance of the formulations that accept it.
+
+    Examples
+    --------
+    See :meth:`FunctionalEmulator.physics_model`.
+    """
+
+    def __init__(
+        self,
+        emulator: FunctionalEmulator,
+        *,
+        covariance: Literal["full", "diagonal"] = "full",
+        name: str | None = None,
+        confine: bool = False,
+    ) -> None:
+        self.emulator = emulator
+        self.covariance = covariance
+        self.confine = bool(confine)
+        source = emulator.physics
+        super().__init__(
+            self._emulated,
+            dict(source.parameters),
+            source.inputs,
+            backend="pytensor",
+            name=name or f"{source.name} (PCA emulated)",
+        )
+
+    def fingerprint_parts(self) -> dict[str, Any]:
+        """The emulator's training data, basis, scaling and hyperparameters."""
+        from kohpymc.fingerprint import physics_fingerprint
+
+        em = self.emulator
+        return {
+            "simulator": physics_fingerprint(em.physics),
+            "kernel": em.kernel,
+            "covariance": self.covariance,
+            "U": np.asarray(em.U, dtype=float).round(12).tolist(),
+            "weights": np.asarray(em.weights, dtype=float).round(12).tolist(),
+            "basis": np.asarray(em.basis, dtype=float).round(12).tolist(),
+            "grid": em.grid.round(12).tolist(),
+            "scaling": [em.lower.tolist(), em.width.tolist(), em.curve_scale],
+            "mean_curve": em.mean_curve.round(12).tolist(),
+            "hypers": [repr(h) for h in em.hypers],
+            "log_output": em.log_output,
+            "confine": self.confine,
+            "rotation": None if em.rotation is None else [a.tolist() for a in em.rotation],
+        }
+
+    def support_logp(self, theta: Any) -> Any:
+        """The emulator's :meth:`~FunctionalEmulator.support_logp` when confined, else None."""
+        return self.emulator.support_logp(theta) if self.confine else None
+
+    def _emulated(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> Any:
+        if all(_is_numeric(v) for v in params.values()):
+            return self.emulator.predict(inputs, params)[0]
+        theta = pt.stack([pt.as_tensor_variable(params[k]) for k in self.parameters])
+        X = pt.stack([pt.as_tensor_variable(inputs[k]) for k in self.inputs], axis=1)
+        return self.emulator.mean_tensor(theta, X)
+
+    def evaluate(
+        self,
+        inputs: Mapping[str, Any],
+        params: Mapping[str, float] | Sequence[float],
+        *,
+        check_finite: bool = True,
+    ) -> np.ndarray:
+        """The emulator mean at the rows (numpy, no compilation)."""
+        return self.emulator.predict(inputs, params)[0]
+
+    def jacobian_matrix(
+        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+    ) -> np.ndarray:
+        """Finite-difference ``∂η̂/∂θ`` of the emulator mean (numpy)."""
+        return self.finite_difference_jacobian(inputs, self._as_params(params))
+
+    def variance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic emulator variance at the rows."""
+        return self.emulator.variance_tensor(theta, X)
+
+    def covariance_tensor(self, theta: Any, X: Any) -> Any:
+        """Symbolic emulator covariance between the rows (``None`` in diagonal mode)."""
+        if self.covariance == "diagonal":
+            return None
+        return self.emulator.covariance_tensor(theta, X)

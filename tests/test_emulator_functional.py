@@ -1,0 +1,264 @@
+"""The principal-component emulator of functional outputs (GPMSA / SEPIA style)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytensor.tensor as pt
+import pytest
+
+from kohpymc import CalibrationData, PhysicsModel, Uniform
+from kohpymc.emulator import FunctionalEmulator, run_curves, space_filling_design
+
+# y(x, t) = a exp(-k t) + c x: scalar input x, functional input t
+_PRIORS = {"a": Uniform(0.5, 3.0), "k": Uniform(0.2, 2.0), "c": Uniform(-1.0, 1.0)}
+_BOX = {"x": (0.0, 1.0), "a": (0.5, 3.0), "k": (0.2, 2.0), "c": (-1.0, 1.0)}
+_GRID = {"t": np.linspace(0.0, 3.0, 31)}
+_TRUTH = {"a": 1.7, "k": 0.8, "c": 0.4}
+_NOISE = 0.05
+
+
+def _curve(x, p):
+    return p["a"] * np.exp(-p["k"] * x["t"]) + p["c"] * x["x"]
+
+
+def _curve_tensor(x, p):
+    return p["a"] * pt.exp(-p["k"] * x["t"]) + p["c"] * x["x"]
+
+
+def _physics():
+    return PhysicsModel(_curve, _PRIORS, inputs=["x", "t"], name="decay_curve")
+
+
+def _data(seed=1):
+    """3 settings of x, 10 times each, half of them off the grid."""
+    t = np.linspace(0.15, 2.85, 10)
+    x, t = np.meshgrid([0.0, 0.5, 1.0], t, indexing="ij")
+    inputs = {"x": x.ravel(), "t": t.ravel()}
+    y = _curve(inputs, _TRUTH) + np.random.default_rng(seed).normal(0, _NOISE, x.size)
+    return CalibrationData(inputs, y, noise_sd=_NOISE)
+
+
+def _emulator(n, **kwargs):
+    physics = _physics()
+    runs = run_curves(physics, space_filling_design(_BOX, n, seed=1), _GRID)
+    kwargs.setdefault("restarts", 1)
+    kwargs.setdefault(
+        "box", _BOX
+    )  # x from 0: not log-scaled as the runs' range (0.007, 0.99) would be
+    return FunctionalEmulator(runs, physics, **kwargs), physics
+
+
+def test_run_curves_gives_one_curve_per_design_row(tmp_path):
+    physics = _physics()
+    design = pd.DataFrame({"x": [0.0, 1.0], "a": [1.0, 2.0], "k": [0.5, 1.0], "c": [0.0, 0.5]})
+    runs = run_curves(physics, design, _GRID)
+    assert runs.curves.shape == (2, 31) and runs.inputs == ("x",)
+    assert runs.parameters == ("a", "k", "c") and len(runs.failed) == 0
+    expected = _curve({"x": 1.0, "t": _GRID["t"]}, {"a": 2.0, "k": 1.0, "c": 0.5})
+    np.testing.assert_allclose(runs.curves[1], expected)
+    with pytest.raises(KeyError, match="not inputs"):
+        run_curves(physics, design, {"s": [0.0]})
+    first = run_curves(physics, design, _GRID, cache=tmp_path)
+    again = run_curves(physics, design, _GRID, cache=tmp_path)
+    assert (first.simulated, again.simulated, again.cached) == (2, 0, 2)
+    np.testing.assert_allclose(again.curves, runs.curves)
+    other = run_curves(physics, design, {"t": _GRID["t"][:5]}, cache=tmp_path)
+    assert other.simulated == 2  # another grid is another cache entry
+    bad = run_curves(physics, design.assign(a=[1.0, np.inf]).iloc[:1], _GRID)
+    assert bad.n_runs == 1
+
+
+def test_pca_basis_matches_an_svd_by_hand():
+    em, _ = _emulator(14, variance=0.9999)
+    G = em.runs.curves
+    mu = G.mean(axis=0)
+    s = np.std(G - mu)
+    _, svals, vt = np.linalg.svd((G - mu) / s, full_matrices=False)
+    K = em.n_components
+    share = np.cumsum(svals**2) / np.sum(svals**2)
+    assert share[K - 1] >= 0.9999 and (K == 1 or share[K - 2] < 0.9999)
+    np.testing.assert_allclose(em.mean_curve, mu)
+    # the subspace is the same (signs of singular vectors are arbitrary)
+    P_em = em.basis @ np.linalg.pinv(em.basis)
+    P_np = vt[:K].T @ vt[:K]
+    np.testing.assert_allclose(P_em, P_np, atol=1e-10)
+    # the weights have unit variance and reconstruct the curves up to the truncation
+    np.testing.assert_allclose(np.mean(em.weights**2, axis=0), 1.0)
+    recon = mu + s * em.weights @ em.basis.T
+    resid = ((G - mu) / s) - em.weights @ em.basis.T
+    np.testing.assert_allclose(em.truncation_variance, np.mean(resid**2, axis=0))
+    assert np.sqrt(np.mean((recon - G) ** 2)) < 0.01 * np.std(G)
+    # with all components, reconstruction is exact
+    full = FunctionalEmulator(em.runs, em.physics, n_components=14, restarts=1)
+    recon = full.mean_curve + full.curve_scale * full.weights @ full.basis.T
+    np.testing.assert_allclose(recon, G, atol=1e-10)
+
+
+def test_held_out_bands_cover_about_90_percent():
+    em, physics = _emulator(40)
+    test = run_curves(physics, space_filling_design(_BOX, 32, method="sobol", seed=5), _GRID)
+    score = em.held_out(test)
+    assert 0.85 <= score["coverage"] <= 0.95, score
+    assert score["rmse_sd"] < 0.1
+
+
+def test_tensors_match_numpy_and_interpolate_off_the_grid():
+    em, _ = _emulator(25)
+    theta = [1.5, 0.7, 0.3]
+    X = np.array([[0.2, 0.5], [0.2, 1.05], [0.7, 1.05], [0.7, 3.0]])
+    inputs = {"x": X[:, 0], "t": X[:, 1]}
+    mean, cov = em.predict_covariance(inputs, theta)
+    truth = _curve(inputs, dict(zip("akc", theta, strict=True)))
+    assert np.all(np.abs(mean - truth) < 3 * np.sqrt(np.diag(cov)))
+    C = em.covariance_tensor(pt.as_tensor(theta), pt.as_tensor(X)).eval()
+    m = em.mean_tensor(pt.as_tensor(theta), X).eval()
+    np.testing.assert_allclose(C, cov, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(m, mean, rtol=1e-10)
+    assert np.all(np.linalg.eigvalsh(cov) > -1e-12) and abs(cov[0, 1]) > 0  # dense
+    # t = 1.05 lies halfway between grid points 1.0 and 1.1
+    lo, hi = em.predict({"x": [0.2, 0.2], "t": [1.0, 1.1]}, theta)[0]
+    assert mean[1] == pytest.approx((lo + hi) / 2)
+    with pytest.raises(ValueError, match="outside the emulator's grid"):
+        em.predict({"x": [0.2], "t": [3.5]}, theta)
+    with pytest.raises(TypeError, match="known numbers"):
+        em.mean_tensor(pt.as_tensor(theta), pt.dmatrix("X"))
+
+
+def test_log_output_gives_lognormal_moments():
+    physics = PhysicsModel(
+        lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        {"a": Uniform(0.5, 3.0), "k": Uniform(0.2, 2.0)},
+        inputs=["t"],
+    )
+    runs = run_curves(physics, space_filling_design({"a": (0.5, 3), "k": (0.2, 2)}, 20), _GRID)
+    em = FunctionalEmulator(runs, physics, log_output=True)
+    assert em.n_components <= 3  # ln y = ln a - k t spans two directions
+    X = np.array([[0.3], [2.0]])
+    mean, cov = em.predict_covariance({"t": X[:, 0]}, [1.2, 0.9])
+    np.testing.assert_allclose(mean, 1.2 * np.exp(-0.9 * X[:, 0]), rtol=1e-3)
+    C = em.covariance_tensor(pt.as_tensor([1.2, 0.9]), X).eval()
+    np.testing.assert_allclose(C, cov, rtol=1e-3)  # Matérn r = √(r² + 1e-12) in the graph
+    bad = run_curves(physics, pd.DataFrame({"a": [-1.0, 1.0, 2.0], "k": [1.0] * 3}), _GRID)
+    with pytest.raises(ValueError, match="<= 0"):
+        FunctionalEmulator(bad, physics, log_output=True)
+
+
+def test_several_functional_inputs_need_data_on_the_grid():
+    physics = _physics()
+    grid = pd.DataFrame({"x": [0.0, 0.0, 1.0, 1.0], "t": [0.0, 1.0, 0.0, 1.0]})
+    box = {k: v for k, v in _BOX.items() if k != "x"}
+    runs = run_curves(physics, space_filling_design(box, 12), grid)
+    em = FunctionalEmulator(runs, physics)
+    assert em.scalar_inputs == () and em.functional == ("x", "t")
+    mean, _ = em.predict({"x": [1.0], "t": [1.0]}, [1.0, 1.0, 0.5])
+    assert mean[0] == pytest.approx(np.exp(-1.0) + 0.5, abs=0.05)
+    with pytest.raises(ValueError, match="not on the grid"):
+        em.predict({"x": [0.5], "t": [1.0]}, [1.0, 1.0, 0.5])
+
+
+def test_the_likelihood_uses_the_dense_emulator_covariance():
+    from scipy import stats
+
+    from kohpymc.model import build_model
+
+    em, _ = _emulator(20)
+    data = _data()
+    model = build_model(em.physics_model(), data)
+    point = model.initial_point()
+    theta = {k: 1.0 for k in "akc"} | {"a": 1.7, "k": 0.8, "c": 0.4}
+    for name, value in model.rvs_to_values.items():
+        if name.name in theta:
+            tr = model.rvs_to_transforms[name]
+            v = np.asarray(theta[name.name])
+            point[value.name] = tr.forward(v, *name.owner.inputs).eval() if tr else v
+    logp = model.compile_logp(vars=model.observed_RVs)(point)
+    mean, cov = em.predict_covariance(data.inputs, [1.7, 0.8, 0.4])
+    expected = stats.multivariate_normal(mean, cov + _NOISE**2 * np.eye(data.n)).logpdf(data.y)
+    assert logp == pytest.approx(expected, rel=1e-8)
+    assert "physics_support" not in model.named_vars
+    confined = build_model(em.physics_model(confine=True), data)
+    support = confined.compile_fn(
+        confined["physics_support"], inputs=confined.value_vars, on_unused_input="ignore"
+    )
+    assert support(point) == 0.0  # the truth lies inside the design
+
+
+def test_a_confined_emulator_keeps_theta_in_its_design():
+    physics = _physics()
+    box = {"x": (0.0, 1.0), "a": (1.5, 2.0), "k": (0.6, 1.0), "c": (0.2, 0.6)}
+    runs = run_curves(physics, space_filling_design(box, 12, seed=2), _GRID)
+    em = FunctionalEmulator(runs, physics, box=box, restarts=1)
+    assert float(em.support_logp(pt.as_tensor([1.7, 0.8, 0.4])).eval()) == 0.0
+    outside = float(em.support_logp(pt.as_tensor([2.5, 0.8, 0.4])).eval())
+    assert outside == pytest.approx(-0.5 * (1.0 / 0.01) ** 2)  # 0.5 box widths out
+    # rotated coordinates: the box of the runs' u
+    center, matrix = np.array([1.7, 0.8, 0.4]), np.diag([10.0, 10.0, 10.0])
+    rotated = FunctionalEmulator(runs, physics, rotation=(center, matrix), restarts=1)
+    u = (runs.X[:, 1:] - center) @ matrix.T
+    np.testing.assert_allclose(rotated.U[:, 1:], (u - u.min(0)) / (u.max(0) - u.min(0)))
+    inside = runs.X[0, 1:]
+    assert float(rotated.support_logp(pt.as_tensor(inside)).eval()) == 0.0
+    mean, _ = rotated.predict({"x": [0.5], "t": [1.0]}, [1.7, 0.8, 0.4])
+    assert mean[0] == pytest.approx(1.7 * np.exp(-0.8) + 0.2, abs=0.05)
+
+
+def _posterior(cal):
+    post = cal.posterior
+    return {k: (float(post[k].mean()), float(post[k].std())) for k in "akc"}
+
+
+_SAMPLING = {"draws": 1000, "tune": 1000, "chains": 2, "random_seed": 1}
+
+
+@pytest.fixture(scope="module")
+def direct_posterior():
+    import kohpymc as kp
+
+    direct = PhysicsModel(_curve_tensor, _PRIORS, inputs=["x", "t"], backend="pytensor")
+    return _posterior(kp.calibrate(direct, _data(), **_SAMPLING))
+
+
+@pytest.mark.slow
+def test_the_pca_emulator_gives_the_direct_posterior(direct_posterior):
+    import kohpymc as kp
+
+    em, _ = _emulator(120, restarts=2)
+    emulated = _posterior(kp.calibrate(em.physics_model(), _data(), **_SAMPLING))
+    for name, (mean, sd) in direct_posterior.items():
+        assert abs(emulated[name][0] - mean) < 0.1 * sd, (name, emulated[name], mean, sd)
+        assert 0.85 < emulated[name][1] / sd < 1.15, (name, emulated[name], sd)
+
+
+@pytest.mark.slow
+def test_a_poor_pca_emulator_widens_rather_than_shifts(direct_posterior):
+    import kohpymc as kp
+
+    em, _ = _emulator(12)
+    poor = _posterior(kp.calibrate(em.physics_model(), _data(), **_SAMPLING, warn=False))
+    for name, (mean, sd) in direct_posterior.items():
+        assert poor[name][1] > 1.3 * sd, (name, poor[name], sd)  # wider
+        assert abs(poor[name][0] - mean) < 1.0 * poor[name][1], (name, poor[name], mean)
+        assert abs(poor[name][0] - _TRUTH[name]) < 2.5 * poor[name][1]
+
+
+def test_every_formulation_builds_with_the_functional_emulator():
+    import kohpymc as kp
+    from kohpymc.model import compose_model
+
+    em, _ = _emulator(15)
+    emulated = em.physics_model()
+    data = _data()
+    for formulation in (
+        kp.NoDiscrepancy(),
+        kp.ConstantBias(),
+        kp.IIDGaussian(),
+        kp.InputDependentGaussian(mean=["t"]),
+        kp.GaussianProcess(["x", "t"]),
+        kp.NonStationaryGP(["x", "t"], time="t"),
+    ):
+        built = compose_model(emulated, data, formulation)
+        assert "y" in built.model.named_vars, formulation.label
+        if formulation.label in ("M0", "M1", "M4"):
+            point = built.model.initial_point()
+            assert np.isfinite(built.model.compile_logp()(point)), formulation.label

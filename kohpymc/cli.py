@@ -150,8 +150,8 @@ def _lists_outputs(path: str) -> bool:
     try:
         with open(path, "rb") as handle:
             doc = tomllib.load(handle)
-    except (OSError, tomllib.TOMLDecodeError):
-        return False  # load_study reports it, naming the file
+    except (OSError, ValueError):  # unreadable, not UTF-8, not TOML
+        return False  # load_study reports each of these, naming the file
     physics = doc.get("physics")
     return isinstance(physics, dict) and isinstance(physics.get("output"), list)
 

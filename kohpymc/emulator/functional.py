@@ -60,9 +60,9 @@ from kohpymc.emulator.design import log_scaled
 from kohpymc.emulator.gp import (
     _SQRT5,
     KERNELS,
+    EmulatedPhysics,
     GPHyperparameters,
     _fit_hyperparameters,
-    _is_numeric,
     _kernel_numpy,
 )
 from kohpymc.emulator.runs import (
@@ -847,8 +847,11 @@ def _numbers(X: Any) -> np.ndarray:
     return np.asarray(pytensor.function([], X, mode="FAST_COMPILE")(), dtype=float)
 
 
-class FunctionalEmulatedPhysics(PhysicsModel):
+class FunctionalEmulatedPhysics(EmulatedPhysics):
     """A physics model whose ``G`` is a :class:`FunctionalEmulator`'s mean.
+
+    An :class:`~kohpymc.emulator.gp.EmulatedPhysics` over the functional emulator (same
+    evaluation, Jacobian, variance and covariance), confined to the design on request.
 
     :meth:`covariance_tensor` is the emulator's full covariance between the calibration
     rows (dense within a curve), which :func:`kohpymc.model.compose_model` puts into
@@ -859,6 +862,8 @@ class FunctionalEmulatedPhysics(PhysicsModel):
     See :meth:`FunctionalEmulator.physics_model`.
     """
 
+    emulator: FunctionalEmulator  # type: ignore[assignment]  # narrows the base's Emulator
+
     def __init__(
         self,
         emulator: FunctionalEmulator,
@@ -867,16 +872,11 @@ class FunctionalEmulatedPhysics(PhysicsModel):
         name: str | None = None,
         confine: bool = False,
     ) -> None:
-        self.emulator = emulator
-        self.covariance = covariance
         self.confine = bool(confine)
-        source = emulator.physics
         super().__init__(
-            self._emulated,
-            dict(source.parameters),
-            source.inputs,
-            backend="pytensor",
-            name=name or f"{source.name} (PCA emulated)",
+            emulator,  # type: ignore[arg-type]  # the same mean/variance/covariance interface
+            covariance=covariance,
+            name=name or f"{emulator.physics.name} (PCA emulated)",
         )
 
     def fingerprint_parts(self) -> dict[str, Any]:
@@ -903,36 +903,3 @@ class FunctionalEmulatedPhysics(PhysicsModel):
     def support_logp(self, theta: Any) -> Any:
         """The emulator's :meth:`~FunctionalEmulator.support_logp` when confined, else None."""
         return self.emulator.support_logp(theta) if self.confine else None
-
-    def _emulated(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> Any:
-        if all(_is_numeric(v) for v in params.values()):
-            return self.emulator.predict(inputs, params)[0]
-        theta = pt.stack([pt.as_tensor_variable(params[k]) for k in self.parameters])
-        X = pt.stack([pt.as_tensor_variable(inputs[k]) for k in self.inputs], axis=1)
-        return self.emulator.mean_tensor(theta, X)
-
-    def evaluate(
-        self,
-        inputs: Mapping[str, Any],
-        params: Mapping[str, float] | Sequence[float],
-        *,
-        check_finite: bool = True,
-    ) -> np.ndarray:
-        """The emulator mean at the rows (numpy, no compilation)."""
-        return self.emulator.predict(inputs, params)[0]
-
-    def jacobian_matrix(
-        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
-    ) -> np.ndarray:
-        """Finite-difference ``∂η̂/∂θ`` of the emulator mean (numpy)."""
-        return self.finite_difference_jacobian(inputs, self._as_params(params))
-
-    def variance_tensor(self, theta: Any, X: Any) -> Any:
-        """Symbolic emulator variance at the rows."""
-        return self.emulator.variance_tensor(theta, X)
-
-    def covariance_tensor(self, theta: Any, X: Any) -> Any:
-        """Symbolic emulator covariance between the rows (``None`` in diagonal mode)."""
-        if self.covariance == "diagonal":
-            return None
-        return self.emulator.covariance_tensor(theta, X)

@@ -191,6 +191,7 @@ def test_a_multi_output_study_file_runs_through_the_study_command(tmp_path, caps
     assert code == 0
     table = pd.read_csv(tmp_path / "out" / "table.csv")
     assert table["output"].tolist() == ["u", "strain", "combined"]
+    assert table["sampler_problems"].notna().all()  # reported per formulation, "none" if clean
     assert (tmp_path / "out" / "M0.nc").is_file()
     bad = tmp_path / "bad.toml"
     bad.write_text(study.read_text().replace("strain = 1e-3 }", "strain = 1e-3, w = 1.0 }", 1))

@@ -36,7 +36,7 @@ class MultiOutputStudyResult:
 
     @property
     def table(self) -> pd.DataFrame:
-        """μ_r per (formulation, output) and combined, with each formulation's θ means/sds."""
+        """μ_r per (formulation, output) and combined, θ means/sds and sampler problems."""
         frames = []
         for label, rel in self.reliabilities.items():
             frame = rel.table[["n", "tolerance", "mu_r", "mu_r_mcse"]].copy()
@@ -44,6 +44,7 @@ class MultiOutputStudyResult:
             for name in self.calibrations[label].physics.parameter_names:
                 frame[f"{name} mean"] = float(post[name].mean())
                 frame[f"{name} sd"] = float(post[name].std())
+            frame["sampler_problems"] = "; ".join(self.calibrations[label].problems) or "none"
             frames.append(frame.assign(formulation=label).reset_index())
         return pd.concat(frames).set_index(["formulation", "output"])
 

@@ -60,7 +60,7 @@ from kohpymc.multi_output import (
     run_multi_output_study,
 )
 from kohpymc.physics import PhysicsModel, PhysicsModelError
-from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
+from kohpymc.priors import Custom, HalfNormal, LogNormal, LogUniform, Normal, Prior, Uniform
 from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
 from kohpymc.sbc import CalibrationCheck, check_calibration
 from kohpymc.study import StudyResult, run_study
@@ -79,6 +79,7 @@ __all__ = [
     "pooled_replicate_sd",
     "Prior",
     "Uniform",
+    "LogUniform",
     "Normal",
     "LogNormal",
     "HalfNormal",

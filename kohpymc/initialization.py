@@ -82,7 +82,7 @@ def _quantile_box(prior: Prior, coverage: float) -> tuple[float, float]:
 
     a = prior.args
     tails = (0.5 * (1.0 - coverage), 0.5 * (1.0 + coverage))
-    if prior.kind == "uniform":
+    if prior.kind in ("uniform", "loguniform"):
         return a["lower"], a["upper"]
     if prior.kind == "normal":
         lo, hi = stats.norm.ppf(tails, loc=a["mu"], scale=a["sigma"])

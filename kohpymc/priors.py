@@ -3,8 +3,10 @@
 A :class:`Prior` is a small, validated description of a PyMC distribution that knows
 its support, its mean (the paper's default Taylor expansion point, Section 4) and a
 typical magnitude (used to size finite-difference steps).  The factories
-:func:`Uniform`, :func:`Normal`, :func:`LogNormal`, :func:`HalfNormal` cover the
-common cases; :func:`Custom` accepts any PyMC distribution factory as an escape hatch.
+:func:`Uniform`, :func:`LogUniform`, :func:`Normal`, :func:`LogNormal`, :func:`HalfNormal`
+cover the common cases (:func:`LogUniform` for a positive parameter known only to within
+orders of magnitude, such as a rate constant or a trap density); :func:`Custom` accepts
+any PyMC distribution factory as an escape hatch.
 """
 
 from __future__ import annotations
@@ -14,11 +16,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import pymc as pm
+import pytensor.tensor as pt
+from pymc.distributions.transforms import Interval
 
 __all__ = [
     "Prior",
     "Uniform",
+    "LogUniform",
     "Normal",
     "LogNormal",
     "HalfNormal",
@@ -34,7 +40,8 @@ class Prior:
     Parameters
     ----------
     kind : str
-        One of ``"uniform"``, ``"normal"``, ``"lognormal"``, ``"halfnormal"``, ``"custom"``.
+        One of ``"uniform"``, ``"loguniform"``, ``"normal"``, ``"lognormal"``,
+        ``"halfnormal"``, ``"custom"``.
     args : dict
         Distribution arguments (``lower``/``upper``, ``mu``/``sigma``, ...).
     factory : callable, optional
@@ -60,6 +67,8 @@ class Prior:
         a = self.args
         if self.kind == "uniform":
             return pm.Uniform(name, lower=a["lower"], upper=a["upper"], **kwargs)
+        if self.kind == "loguniform":
+            return _log_uniform(name, a["lower"], a["upper"], **kwargs)
         if self.kind == "normal":
             return pm.Normal(name, mu=a["mu"], sigma=a["sigma"], **kwargs)
         if self.kind == "lognormal":
@@ -76,6 +85,8 @@ class Prior:
         a = self.args
         if self.kind == "uniform":
             return 0.5 * (a["lower"] + a["upper"])
+        if self.kind == "loguniform":
+            return (a["upper"] - a["lower"]) / math.log(a["upper"] / a["lower"])
         if self.kind == "normal":
             return a["mu"]
         if self.kind == "lognormal":
@@ -95,6 +106,9 @@ class Prior:
         a = self.args
         if self.kind == "uniform":
             return (a["upper"] - a["lower"]) / math.sqrt(12.0)
+        if self.kind == "loguniform":
+            second = (a["upper"] ** 2 - a["lower"] ** 2) / (2.0 * math.log(a["upper"] / a["lower"]))
+            return math.sqrt(max(second - self.mean() ** 2, 0.0))
         if self.kind == "normal":
             return a["sigma"]
         if self.kind == "lognormal":
@@ -111,7 +125,7 @@ class Prior:
             return max(abs(a["lower"]), abs(a["upper"]), a["upper"] - a["lower"])
         if self.kind == "normal":
             return max(abs(a["mu"]), a["sigma"])
-        if self.kind in ("lognormal", "halfnormal"):
+        if self.kind in ("loguniform", "lognormal", "halfnormal"):
             return self.mean()
         return 1.0 if self.typical is None else float(self.typical)
 
@@ -119,7 +133,7 @@ class Prior:
         """Whether ``value`` lies in the support of the prior."""
         if not math.isfinite(value):
             return False
-        if self.kind == "uniform":
+        if self.kind in ("uniform", "loguniform"):
             return self.args["lower"] <= value <= self.args["upper"]
         if self.kind in ("lognormal", "halfnormal"):
             return value > 0
@@ -168,6 +182,52 @@ def Uniform(lower: float, upper: float) -> Prior:  # noqa: N802 - reads like a d
     if not args["lower"] < args["upper"]:
         raise ValueError(f"uniform prior: lower={lower!r} must be < upper={upper!r}")
     return _representable(Prior("uniform", args))
+
+
+def LogUniform(lower: float, upper: float) -> Prior:  # noqa: N802
+    """Log-uniform prior on ``[lower, upper]``, ``0 < lower``: density ∝ 1/value.
+
+    Every decade of the range is equally likely a priori (the natural choice for a
+    positive parameter known only to within orders of magnitude).
+
+    Examples
+    --------
+    >>> p = LogUniform(1e6, 1e10)
+    >>> p.in_support(1e8), p.in_support(1e11)
+    (True, False)
+    """
+    args = _finite("loguniform", lower=lower, upper=upper)
+    if not 0 < args["lower"] < args["upper"]:
+        raise ValueError(f"loguniform prior: need 0 < lower={lower!r} < upper={upper!r}")
+    return _representable(Prior("loguniform", args))
+
+
+def _log_uniform_logp(value, lower, upper):
+    inside = pt.and_(pt.ge(value, lower), pt.le(value, upper))
+    return pt.switch(inside, -pt.log(value) - pt.log(pt.log(upper) - pt.log(lower)), -np.inf)
+
+
+def _log_uniform_random(lower, upper, rng=None, size=None):
+    return np.exp(rng.uniform(np.log(lower), np.log(upper), size=size))
+
+
+def _log_uniform(name: str, lower: float, upper: float, **kwargs: Any):
+    """A log-uniform random variable (a ``CustomDist``: PyMC has none).
+
+    It has the interval transform (the unconstrained space of ``pm.Uniform``) and the
+    geometric mean of the bounds as its initial point.
+    """
+    # float64 bounds: PyTensor types a Python float that float32 holds exactly as float32
+    return pm.CustomDist(
+        name,
+        np.float64(lower),
+        np.float64(upper),
+        logp=_log_uniform_logp,
+        random=_log_uniform_random,
+        support_point=lambda rv, size, lo, hi: pt.full_like(rv, pt.sqrt(lo * hi)),
+        transform=Interval(lower, upper),
+        **kwargs,
+    )
 
 
 def Normal(mu: float, sigma: float) -> Prior:  # noqa: N802
@@ -238,6 +298,7 @@ def Custom(factory: Callable[..., Any], *, mean: float = 0.0, scale: float = 1.0
 
 _FACTORIES: dict[str, Callable[..., Prior]] = {
     "uniform": Uniform,
+    "loguniform": LogUniform,
     "normal": Normal,
     "lognormal": LogNormal,
     "halfnormal": HalfNormal,

@@ -53,3 +53,31 @@ def test_custom_prior_creates_the_given_distribution():
         prior.create("E")
     assert model["E"].owner.op.name == "gamma"
     assert prior.mean() == 200
+
+
+def test_log_uniform_density_moments_and_draws_match_scipy():
+    import numpy as np
+    from scipy import stats
+
+    from kohpymc.priors import LogUniform
+
+    prior = LogUniform(1e6, 1e10)
+    reference = stats.loguniform(1e6, 1e10)
+    assert math.isclose(prior.mean(), reference.mean(), rel_tol=1e-12)
+    assert math.isclose(prior.sd(), reference.std(), rel_tol=1e-9)
+    with pm.Model() as model:
+        rv = prior.create("A")
+    for value in (1e6, 3.7e7, 9.9e9, 1e10):
+        assert math.isclose(
+            float(pm.logp(rv, value).eval()), reference.logpdf(value), rel_tol=1e-12
+        )
+    assert float(pm.logp(rv, 1.1e10).eval()) == -math.inf
+    assert math.isclose(
+        float(model.initial_point()["A_interval__"]), np.log(1e8 - 1e6) - np.log(1e10 - 1e8)
+    )
+    draws = pm.draw(rv, draws=4000, random_seed=7)
+    # log10 of the draws is uniform on [6, 10]: Kolmogorov–Smirnov against U(6, 10)
+    assert stats.kstest(np.log10(draws), stats.uniform(6, 4).cdf).pvalue > 0.01
+    assert as_prior({"prior": "loguniform", "lower": 1e6, "upper": 1e10}, name="A") == prior
+    with pytest.raises(ValueError, match="'A'.*0 < lower"):
+        as_prior({"prior": "loguniform", "lower": 0, "upper": 1}, name="A")

@@ -327,6 +327,32 @@ def candidate_library(
     >>> len(lib)
     17
     """
+    names = _library_inputs(inputs, names, exponents, max_inputs, shapes)
+    arrays = {k: np.asarray(inputs[k], dtype=float) for k in names}
+    varying = [k for k in names if np.ptp(arrays[k]) > 0]
+    terms = _monomials(arrays, varying, sorted(set(exponents)), max_inputs)
+    for k in varying:
+        if logarithms and np.min(arrays[k]) > 0:
+            log_k = lambda d, k=k: np.log(d[k])  # type: ignore[misc]  # noqa: E731
+            terms.append(CandidateTerm(f"log({k})", (k,), log_k, kind="log", powers={}))
+        terms += _single_input_shapes(k, arrays[k], shapes, dict(references or {}))
+    terms += _user_terms(extra)
+    if not terms:
+        raise ValueError(
+            "the candidate library is empty: no input varies in the data and no extra terms"
+        )
+    _check_unique_names(terms)
+    return terms
+
+
+def _library_inputs(
+    inputs: Mapping[str, np.ndarray],
+    names: Sequence[str] | None,
+    exponents: Sequence[float],
+    max_inputs: int,
+    shapes: Sequence[str],
+) -> list[str]:
+    """The inputs to build terms from, after checking the library's options."""
     names = list(inputs) if names is None else list(names)
     missing = [k for k in names if k not in inputs]
     if missing:
@@ -338,28 +364,28 @@ def candidate_library(
     unknown = set(shapes) - {"saturation", "threshold", "decay"}
     if unknown:
         raise ValueError(f"unknown shape(s) {sorted(unknown)}")
-    arrays = {k: np.asarray(inputs[k], dtype=float) for k in names}
-    varying = [k for k in names if np.ptp(arrays[k]) > 0]
-    terms = _monomials(arrays, varying, sorted(set(exponents)), max_inputs)
-    for k in varying:
-        if logarithms and np.min(arrays[k]) > 0:
-            log_k = lambda d, k=k: np.log(d[k])  # type: ignore[misc]  # noqa: E731
-            terms.append(CandidateTerm(f"log({k})", (k,), log_k, kind="log", powers={}))
-        terms += _single_input_shapes(k, arrays[k], shapes, dict(references or {}))
+    return names
+
+
+def _user_terms(
+    extra: Mapping[str, tuple[Sequence[str], TermFunction]] | None,
+) -> list[CandidateTerm]:
+    """The user's terms (each function must be callable)."""
+    terms = []
     for name, (term_inputs, function) in (extra or {}).items():
         if not callable(function):
             raise TypeError(f"candidate term {name!r}: function is not callable")
         terms.append(CandidateTerm(str(name), tuple(term_inputs), function))
-    if not terms:
-        raise ValueError(
-            "the candidate library is empty: no input varies in the data and no extra terms"
-        )
+    return terms
+
+
+def _check_unique_names(terms: Sequence[CandidateTerm]) -> None:
+    """No two terms may share a name."""
     seen: set[str] = set()
     for t in terms:
         if t.name in seen:
             raise ValueError(f"candidate library: duplicate term name {t.name!r}")
         seen.add(t.name)
-    return terms
 
 
 def design_matrix(terms: Sequence[CandidateTerm], inputs: Mapping[str, np.ndarray]) -> np.ndarray:

@@ -17,6 +17,7 @@ observation there too.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import arviz as az
 import numpy as np
@@ -94,7 +95,7 @@ def loo_weights(
     return table.loc[list(results)]
 
 
-def _counts(weights: Sequence[float], total: int) -> np.ndarray:
+def _counts(weights: Sequence[float] | np.ndarray, total: int) -> np.ndarray:
     raw = np.asarray(weights, dtype=float) * total
     counts = np.floor(raw).astype(int)
     short = total - counts.sum()
@@ -149,6 +150,26 @@ def combine_posteriors(
     >>> float(mix.posterior["E"].mean())
     2.5
     """
+    labels, w = _mixture_weights(results, weights)
+    posts = {k: _stack(results[k].posterior) for k in labels}
+    var_names = _combined_vars(results[labels[0]], posts, var_names)
+    sizes = {k: p.sizes["sample"] for k, p in posts.items()}
+    total = int(draws or min(sizes.values()))
+    draw = _draw_plan(labels, w, sizes, total, random_seed)
+    groups = {"posterior": draw.mix(posts, var_names)}
+    if predictions is not None:
+        preds = {k: _stack(predictions[k].predictions) for k in labels}
+        pred_vars = [v for v in preds[labels[0]].data_vars if all(v in p for p in preds.values())]
+        groups["predictions"] = draw.mix(preds, pred_vars)
+    combined = az.InferenceData(**groups)
+    combined.attrs["weights"] = str({k: float(x) for k, x in zip(labels, w, strict=True)})
+    return combined
+
+
+def _mixture_weights(
+    results: Mapping[str, az.InferenceData], weights: Mapping[str, float]
+) -> tuple[list[str], np.ndarray]:
+    """The formulations with a positive weight and their normalised weights."""
     labels = [k for k in results if weights.get(k, 0.0) > 0]
     if not labels:
         raise ValueError("no formulation has a positive weight")
@@ -156,18 +177,51 @@ def combine_posteriors(
     if missing:
         raise KeyError(f"weights name formulations without results: {missing}")
     w = np.array([weights[k] for k in labels], dtype=float)
-    w = w / w.sum()
-    posts = {k: _stack(results[k].posterior) for k in labels}
+    return labels, w / w.sum()
+
+
+def _combined_vars(
+    first: az.InferenceData, posts: Mapping[str, xr.Dataset], var_names: Sequence[str] | None
+) -> Sequence[str]:
+    """The variables to combine: ``var_names`` (checked), else those every posterior has."""
     if var_names is None:
         shared = set.intersection(*(set(p.data_vars) for p in posts.values()))
-        var_names = [v for v in results[labels[0]].posterior.data_vars if v in shared]
-    else:
-        for k, p in posts.items():
-            absent = [v for v in var_names if v not in p]
-            if absent:
-                raise KeyError(f"{k}: posterior lacks {absent}")
-    sizes = {k: p.sizes["sample"] for k, p in posts.items()}
-    total = int(draws or min(sizes.values()))
+        return [v for v in first.posterior.data_vars if v in shared]
+    for k, p in posts.items():
+        absent = [v for v in var_names if v not in p]
+        if absent:
+            raise KeyError(f"{k}: posterior lacks {absent}")
+    return var_names
+
+
+@dataclass(frozen=True)
+class _DrawPlan:
+    """Which stacked draws of each formulation make the mixture, and in what order."""
+
+    labels: list[str]
+    picks: dict[str, np.ndarray]  # label -> positions in its stacked draws
+    origin: np.ndarray  # formulation of each picked draw, before the shuffle
+    order: np.ndarray  # the shuffle
+    total: int
+
+    def mix(self, groups: Mapping[str, xr.Dataset], names: Sequence[str]) -> xr.Dataset:
+        """The picked draws of ``names`` as one shuffled chain with a formulation coordinate."""
+        parts = [groups[k][list(names)].isel(sample=self.picks[k]) for k in self.labels]
+        out = xr.concat(parts, dim="sample").isel(sample=self.order).rename({"sample": "draw"})
+        out = out.assign_coords(
+            draw=np.arange(self.total), formulation=("draw", self.origin[self.order].astype(str))
+        )
+        return out.expand_dims(chain=[0]).transpose("chain", "draw", ...)
+
+
+def _draw_plan(
+    labels: list[str],
+    w: np.ndarray,
+    sizes: Mapping[str, int],
+    total: int,
+    random_seed: int | None,
+) -> _DrawPlan:
+    """Pick ``total`` draws, each formulation's share by its weight, and shuffle them."""
     counts = _counts(w, total)
     rng = np.random.default_rng(random_seed)
     picks = {}
@@ -179,20 +233,4 @@ def combine_posteriors(
     # shuffle so the single "chain" is not sorted by formulation (its autocorrelation,
     # hence ArviZ's ESS/MCSE of the mixture, then reflects independent resampling)
     order = rng.permutation(total)
-
-    def mix(groups: Mapping[str, xr.Dataset], names: Sequence[str]) -> xr.Dataset:
-        parts = [groups[k][list(names)].isel(sample=picks[k]) for k in labels]
-        out = xr.concat(parts, dim="sample").isel(sample=order).rename({"sample": "draw"})
-        out = out.assign_coords(
-            draw=np.arange(total), formulation=("draw", origin[order].astype(str))
-        )
-        return out.expand_dims(chain=[0]).transpose("chain", "draw", ...)
-
-    groups = {"posterior": mix(posts, var_names)}
-    if predictions is not None:
-        preds = {k: _stack(predictions[k].predictions) for k in labels}
-        pred_vars = [v for v in preds[labels[0]].data_vars if all(v in p for p in preds.values())]
-        groups["predictions"] = mix(preds, pred_vars)
-    combined = az.InferenceData(**groups)
-    combined.attrs["weights"] = str({k: float(x) for k, x in zip(labels, w, strict=True)})
-    return combined
+    return _DrawPlan(labels, picks, origin, order, total)

@@ -10,6 +10,7 @@ All functions take InferenceData / tables produced by :mod:`kohpymc.study` (or b
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import arviz as az
 import matplotlib.pyplot as plt
@@ -139,11 +140,7 @@ def plot_validation_predictions(
     inputs = {k: np.asarray(v) for k, v in inputs.items()}
     x_input = x_input or _main_input(inputs)
     others = [k for k in inputs if k != x_input]
-    groups = (
-        pd.DataFrame({k: inputs[k] for k in others}).groupby(others, sort=True).indices
-        if others
-        else {(): np.arange(len(y_validation))}
-    )
+    groups = _series_groups(inputs, others, len(y_validation))
     labels = list(predictions)
     ncol = min(3, len(labels))
     nrow = int(np.ceil(len(labels) / ncol))
@@ -153,24 +150,11 @@ def plot_validation_predictions(
     x_all = inputs[x_input]
     scattered = len(groups) > 8 or np.median([len(i) for i in groups.values()]) < 3
     for ax, label in zip(axes.ravel(), labels, strict=False):
-        draws = predictions[label].predictions[var_name].transpose(..., "pred").values
-        draws = draws.reshape(-1, draws.shape[-1])
-        mean = draws.mean(axis=0)
-        lo, hi = np.quantile(draws, [0.05, 0.95], axis=0)
+        mean, lo, hi = _prediction_band(predictions[label], var_name)
         if scattered:
             _pointwise_bands(ax, x_all, mean, lo, hi, np.asarray(y_validation))
-        for j, (key, idx) in enumerate([] if scattered else groups.items()):
-            idx = np.asarray(idx)[np.argsort(x_all[idx], kind="stable")]
-            # one band point per distinct x (replicated rows share their prediction)
-            line = idx[np.unique(x_all[idx], return_index=True)[1]]
-            color = f"C{j % 10}"
-            ax.fill_between(x_all[line], lo[line], hi[line], color=color, alpha=0.25, lw=0)
-            ax.plot(x_all[line], mean[line], color=color, lw=1.5)
-            tag = ", ".join(f"{k}={v:g}" for k, v in zip(others, np.atleast_1d(key), strict=True))
-            ax.plot(
-                x_all[idx], np.asarray(y_validation)[idx], "o", ms=3.5, color=color,
-                mec="k", mew=0.4, label=tag or None,
-            )  # fmt: skip
+        else:
+            _series_bands(ax, x_all, groups, others, mean, lo, hi, np.asarray(y_validation))
         ax.set_title(label)
         ax.set_xlabel(x_input)
         ax.set_ylabel(output_name)
@@ -181,6 +165,40 @@ def plot_validation_predictions(
     fig.suptitle("posterior mean, 90 % band and validation data", fontsize="medium")
     fig.tight_layout()
     return fig
+
+
+def _series_groups(
+    inputs: Mapping[str, np.ndarray], others: list[str], n: int
+) -> dict[Any, np.ndarray]:
+    """Rows of every combination of the ``others`` inputs' values (one series each)."""
+    if not others:
+        return {(): np.arange(n)}
+    return pd.DataFrame({k: inputs[k] for k in others}).groupby(others, sort=True).indices
+
+
+def _prediction_band(idata: az.InferenceData, var_name: str):
+    """Posterior mean and 5 % and 95 % quantiles of ``var_name`` per prediction point."""
+    draws = idata.predictions[var_name].transpose(..., "pred").values
+    draws = draws.reshape(-1, draws.shape[-1])
+    mean = draws.mean(axis=0)
+    lo, hi = np.quantile(draws, [0.05, 0.95], axis=0)
+    return mean, lo, hi
+
+
+def _series_bands(ax, x_all, groups, others, mean, lo, hi, y_validation) -> None:
+    """One band, mean line and data series per group of rows, coloured in turn."""
+    for j, (key, idx) in enumerate(groups.items()):
+        idx = np.asarray(idx)[np.argsort(x_all[idx], kind="stable")]
+        # one band point per distinct x (replicated rows share their prediction)
+        line = idx[np.unique(x_all[idx], return_index=True)[1]]
+        color = f"C{j % 10}"
+        ax.fill_between(x_all[line], lo[line], hi[line], color=color, alpha=0.25, lw=0)
+        ax.plot(x_all[line], mean[line], color=color, lw=1.5)
+        tag = ", ".join(f"{k}={v:g}" for k, v in zip(others, np.atleast_1d(key), strict=True))
+        ax.plot(
+            x_all[idx], y_validation[idx], "o", ms=3.5, color=color,
+            mec="k", mew=0.4, label=tag or None,
+        )  # fmt: skip
 
 
 def _pointwise_bands(ax, x, mean, lo, hi, y) -> None:

@@ -603,46 +603,81 @@ def plan(
     """
     vectors = [s if isinstance(s, np.ndarray) else space.join(dict(s)) for s in starts]
     mode = find_mode(space, vectors, seed=seed, n_design=n_design)
+    pymc_coords, candidates = _candidate_coordinates(space, shares)
+    plans = [p for p in (_whitened(space, c, mode.value, mode) for c in candidates) if p]
+    plans = [p for p in plans if not p.coordinates.walls or _far_from_walls(p)]
+    shared = _shares_text(shares)
+    if not plans:
+        return _flat_plan(space, pymc_coords, mode, shared)
+    best = min(plans, key=lambda p: p.gaussian_score)
+    if not _needs_whitening(best):
+        return _unwhitened_plan(space, pymc_coords, mode, best, shares, shared, seed)
+    return _whitened_plan(space, mode, best, shared, seed)
+
+
+def _candidate_coordinates(
+    space: ValueSpace, shares: VarianceShare | None
+) -> tuple[Coordinates, list[Coordinates]]:
+    """PyMC's coordinates, and every coordinate system to try (PyMC's, then the logs)."""
     pymc_coords = Coordinates.identity(space.ndim).with_shares(shares)
     candidates = [pymc_coords]
     for walls in (False, True):
         log_coords = log_coordinates(space, walls=walls)
         if log_coords is not None:
             candidates.append(log_coords.with_shares(shares))
-    plans = [p for p in (_whitened(space, c, mode.value, mode) for c in candidates) if p]
-    plans = [p for p in plans if not p.coordinates.walls or _far_from_walls(p)]
-    shared = _shares_text(shares)
-    if not plans:
-        return Reparameterization(
-            "none",
-            pymc_coords.from_value(mode.value),
-            np.eye(space.ndim),
-            pymc_coords,
-            shared + "the Hessian of the log density is not positive definite at the mode "
-            "(a flat direction or a saddle): sampling in PyMC's coordinates from the mode",
-            mode,
-            warnings=(
-                "the posterior is flat in some direction at its mode: a combination of "
-                "parameters the data and priors do not inform (see the identifiability "
-                "report); NUTS may need very long trajectories there",
-            ),
-        )
-    best = min(plans, key=lambda p: p.gaussian_score)
-    if not _needs_whitening(best):
-        return Reparameterization(
-            "none" if shares is None else "variance-share",
-            pymc_coords.from_value(mode.value),
-            np.eye(space.ndim),
-            pymc_coords,
-            shared + f"well conditioned at the mode (condition number {best.condition_number:.3g}, "
-            f"max |correlation| {best.max_correlation:.3f}, sd ratio "
-            f"{_sd_ratio(best):.3g}): PyMC's coordinates, chains started around the mode",
-            mode,
-            condition_number=best.condition_number,
-            max_correlation=best.max_correlation,
-            gaussian_score=best.gaussian_score,
-            warnings=_separated_modes(best, mode) + _gradient_mismatch(space, best, seed),
-        )
+    return pymc_coords, candidates
+
+
+def _flat_plan(
+    space: ValueSpace, pymc_coords: Coordinates, mode: Mode, shared: str
+) -> Reparameterization:
+    """No plan has a positive Hessian: PyMC's coordinates from the mode, with a warning."""
+    return Reparameterization(
+        "none",
+        pymc_coords.from_value(mode.value),
+        np.eye(space.ndim),
+        pymc_coords,
+        shared + "the Hessian of the log density is not positive definite at the mode "
+        "(a flat direction or a saddle): sampling in PyMC's coordinates from the mode",
+        mode,
+        warnings=(
+            "the posterior is flat in some direction at its mode: a combination of "
+            "parameters the data and priors do not inform (see the identifiability "
+            "report); NUTS may need very long trajectories there",
+        ),
+    )
+
+
+def _unwhitened_plan(
+    space: ValueSpace,
+    pymc_coords: Coordinates,
+    mode: Mode,
+    best: Reparameterization,
+    shares: VarianceShare | None,
+    shared: str,
+    seed: int,
+) -> Reparameterization:
+    """Well conditioned at the mode: PyMC's coordinates, with the best plan's diagnostics."""
+    return Reparameterization(
+        "none" if shares is None else "variance-share",
+        pymc_coords.from_value(mode.value),
+        np.eye(space.ndim),
+        pymc_coords,
+        shared + f"well conditioned at the mode (condition number {best.condition_number:.3g}, "
+        f"max |correlation| {best.max_correlation:.3f}, sd ratio "
+        f"{_sd_ratio(best):.3g}): PyMC's coordinates, chains started around the mode",
+        mode,
+        condition_number=best.condition_number,
+        max_correlation=best.max_correlation,
+        gaussian_score=best.gaussian_score,
+        warnings=_separated_modes(best, mode) + _gradient_mismatch(space, best, seed),
+    )
+
+
+def _whitened_plan(
+    space: ValueSpace, mode: Mode, best: Reparameterization, shared: str, seed: int
+) -> Reparameterization:
+    """The best whitened plan, with its reason and warnings."""
     reason = shared + (
         f"whitened by the Laplace covariance at the mode (condition number "
         f"{best.condition_number:.3g}, max |correlation| {best.max_correlation:.4f}"

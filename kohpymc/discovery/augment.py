@@ -67,22 +67,46 @@ def augmented_physics(
     22.0
     """
     from kohpymc.physics import PhysicsModel
-    from kohpymc.priors import Normal
 
+    coefs = _coefficient_names(physics, terms)
+    drifts = [(c, t) for c, t in zip(coefs, terms, strict=True) if t.kind == "drift"]
+    outputs = [(c, t) for c, t in zip(coefs, terms, strict=True) if t.kind == "output"]
+    added = [(c, t) for c, t in zip(coefs, terms, strict=True)
+             if t.kind not in ("drift", "output")]  # fmt: skip
+    exact = _drift_is_exact(physics, drifts, inputs, theta or physics.prior_mean())
+    all_inputs = [*physics.inputs, *(i for t in terms for i in t.inputs)]
+    model_inputs = list(dict.fromkeys(all_inputs))
+    function = _augmented_function(physics, drifts, outputs, added, exact, offset_sd)
+    jacobian = None
+    if physics.jacobian is not None and not drifts and not outputs:
+        jacobian = _augmented_jacobian(physics, added, offset_sd)
+    params = _augmented_priors(physics, coefs, coefficient_sd, offset_sd)
+    pieces = [_named(c, t) for c, t in zip(coefs, terms, strict=True)]
+    pieces += ["c_0"] if offset_sd is not None else []
+    return PhysicsModel(
+        function,
+        params,
+        model_inputs,
+        jacobian=jacobian,
+        fd_scheme=physics.fd_scheme,
+        name=f"{physics.name} + " + " + ".join(pieces),
+    )
+
+
+def _coefficient_names(physics, terms) -> list[str]:
+    """``c_1, c_2, ...``, checked against the model (numpy backend, no clashing names)."""
     if physics.backend != "numpy":
         raise NotImplementedError("augmenting a pytensor-backend physics model is not supported")
     coefs = [f"c_{k + 1}" for k in range(len(terms))]
     clash = (set(coefs) | {"c_0"}) & set(physics.parameters)
     if clash:
         raise ValueError(f"augmented model: parameter name(s) {sorted(clash)} already used")
-    drifts = [(c, t) for c, t in zip(coefs, terms, strict=True) if t.kind == "drift"]
-    outputs = [(c, t) for c, t in zip(coefs, terms, strict=True) if t.kind == "output"]
-    added = [(c, t) for c, t in zip(coefs, terms, strict=True)
-             if t.kind not in ("drift", "output")]  # fmt: skip
-    exact = _drift_is_exact(physics, drifts, inputs, theta or physics.prior_mean())
+    return coefs
+
+
+def _augmented_function(physics, drifts, outputs, added, exact: bool, offset_sd: float | None):
+    """The augmented model's function: drifts inside (or linearised), outputs, added terms."""
     original, own_names = physics.function, list(physics.parameters)
-    all_inputs = [*physics.inputs, *(i for t in terms for i in t.inputs)]
-    model_inputs = list(dict.fromkeys(all_inputs))
 
     def function(x, params):
         own = {k: params[k] for k in own_names}
@@ -100,34 +124,38 @@ def augmented_physics(
         offset = params["c_0"] if offset_sd is not None else 0.0
         return base * factor + extra + offset
 
-    jacobian = None
-    if physics.jacobian is not None and not drifts and not outputs:
-        user = physics.jacobian
+    return function
 
-        def jacobian(x, params):
-            J = user({k: x[k] for k in physics.inputs}, {k: params[k] for k in own_names})
-            if isinstance(J, dict):
-                J = np.column_stack([np.asarray(J[p], dtype=float) for p in own_names])
-            cols = [np.asarray(J, dtype=float).reshape(-1, len(own_names))]
-            cols += [t(x) for _, t in added]
-            if offset_sd is not None:
-                cols.append(np.ones(cols[0].shape[0]))
-            return np.column_stack(cols)
+
+def _augmented_jacobian(physics, added, offset_sd: float | None):
+    """The user Jacobian extended by the added terms' columns (and the offset's)."""
+    own_names = list(physics.parameters)
+    user = physics.jacobian
+
+    def jacobian(x, params):
+        J = user({k: x[k] for k in physics.inputs}, {k: params[k] for k in own_names})
+        if isinstance(J, dict):
+            J = np.column_stack([np.asarray(J[p], dtype=float) for p in own_names])
+        cols = [np.asarray(J, dtype=float).reshape(-1, len(own_names))]
+        cols += [t(x) for _, t in added]
+        if offset_sd is not None:
+            cols.append(np.ones(cols[0].shape[0]))
+        return np.column_stack(cols)
+
+    return jacobian
+
+
+def _augmented_priors(
+    physics, coefs: Sequence[str], coefficient_sd: Sequence[float], offset_sd: float | None
+) -> dict:
+    """The model's priors plus ``Normal(0, sd)`` of every coefficient (and of ``c_0``)."""
+    from kohpymc.priors import Normal
 
     params = dict(physics.parameters)
     params.update({c: Normal(0.0, float(s)) for c, s in zip(coefs, coefficient_sd, strict=True)})
     if offset_sd is not None:
         params["c_0"] = Normal(0.0, float(offset_sd))
-    pieces = [_named(c, t) for c, t in zip(coefs, terms, strict=True)]
-    pieces += ["c_0"] if offset_sd is not None else []
-    return PhysicsModel(
-        function,
-        params,
-        model_inputs,
-        jacobian=jacobian,
-        fd_scheme=physics.fd_scheme,
-        name=f"{physics.name} + " + " + ".join(pieces),
-    )
+    return params
 
 
 def _named(coefficient: str, term) -> str:

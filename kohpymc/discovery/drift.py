@@ -115,6 +115,17 @@ def physics_terms(
     """
     names = list(inputs) if names is None else list(names)
     theta = {k: float(theta[k]) for k in physics.parameters}
+    base = _memoised_base(physics, theta)
+    G0, J0 = base(inputs)
+    uses = _dependence(physics, theta, inputs, G0, J0)
+    terms = _drift_terms(physics, inputs, names, exponents, base, uses)
+    if output:
+        terms += _output_terms(inputs, names, exponents, base, uses)
+    return terms
+
+
+def _memoised_base(physics, theta: Mapping[str, float]):
+    """``d -> (G, ∂G/∂θ)`` at θ̂ on the rows of ``d``, cached for the last inputs."""
     memo: list = []  # [(inputs object, G, ∂G/∂θ)]: the last rows evaluated
 
     def base(d) -> tuple[np.ndarray, np.ndarray]:
@@ -123,9 +134,11 @@ def physics_terms(
             memo[:] = [(d, physics.evaluate(d, theta), physics.jacobian_matrix(d, theta))]
         return memo[0][1], memo[0][2]
 
-    G0, J0 = base(inputs)
-    uses = _dependence(physics, theta, inputs, G0, J0)
+    return base
 
+
+def _drift_terms(physics, inputs, names, exponents, base, uses) -> list[CandidateTerm]:
+    """``(∂G/∂θ_j) · g(x)`` for every parameter and modulation ``g``."""
     terms: list[CandidateTerm] = []
     for j, par in enumerate(physics.parameters):
         for k, p, g in _modulations(inputs, names, exponents):
@@ -139,15 +152,20 @@ def physics_terms(
                     powers={} if p == "log" else {k: float(p)},
                 )
             )  # fmt: skip
-    if output:
-        for k, p, g in _modulations(inputs, names, exponents):
-            label = f"log({k})" if p == "log" else monomial_name({k: float(p)})
-            terms.append(
-                CandidateTerm(
-                    f"G*{label}", tuple(dict.fromkeys([k, *uses["G"]])),
-                    lambda d, g=g: base(d)[0] * g(d), kind="output",  # type: ignore[misc]
-                    modulation=g, meaning=f"the output scales with {k}, {_words(k, p)}",
-                    complexity=2, powers={} if p == "log" else {k: float(p)},
-                )
-            )  # fmt: skip
+    return terms
+
+
+def _output_terms(inputs, names, exponents, base, uses) -> list[CandidateTerm]:
+    """``G · g(x)`` for every modulation ``g``."""
+    terms: list[CandidateTerm] = []
+    for k, p, g in _modulations(inputs, names, exponents):
+        label = f"log({k})" if p == "log" else monomial_name({k: float(p)})
+        terms.append(
+            CandidateTerm(
+                f"G*{label}", tuple(dict.fromkeys([k, *uses["G"]])),
+                lambda d, g=g: base(d)[0] * g(d), kind="output",  # type: ignore[misc]
+                modulation=g, meaning=f"the output scales with {k}, {_words(k, p)}",
+                complexity=2, powers={} if p == "log" else {k: float(p)},
+            )
+        )  # fmt: skip
     return terms

@@ -395,24 +395,31 @@ def check_closed_form(
     cv_closed = kfold_rmse(r, np.column_stack([H, Phi]), folds=folds, seed=seed)
     cv: dict[str, float | None] = {"physics": cv_physics, "closed_form": cv_closed, "gp": None}
     if rel.relevant:
-        X = _scaled(inputs, rel.relevant)
-        err = np.empty(n)
-        for test in _folds(n, folds, seed):
-            train = np.setdiff1d(np.arange(n), test)
-            err[test] = r[test] - _kriging(
-                r[train], H[train], H[test], X[train], X[test], rel.hyper
-            )
-        cv["gp"] = float(np.sqrt(np.mean(err**2)))
+        cv["gp"] = _gp_cv_rmse(inputs, r, H, rel, folds, seed)
     reason = _reason(cv, probability, min_probability, ratio, rel)
     if reason is not None:
         return ClosedFormCheck(True, reason, cv, folds, rel)
+    return ClosedFormCheck(False, _kept_reason(cv_closed, cv_physics, cv["gp"]), cv, folds, rel)
+
+
+def _gp_cv_rmse(inputs, r: np.ndarray, H: np.ndarray, rel, folds: int, seed: int) -> float:
+    """K-fold held-out RMSE of the GP on the relevant inputs (kriging with basis ``H``)."""
+    n = r.size
+    X = _scaled(inputs, rel.relevant)
+    err = np.empty(n)
+    for test in _folds(n, folds, seed):
+        train = np.setdiff1d(np.arange(n), test)
+        err[test] = r[test] - _kriging(r[train], H[train], H[test], X[train], X[test], rel.hyper)
+    return float(np.sqrt(np.mean(err**2)))
+
+
+def _kept_reason(cv_closed: float, cv_physics: float, cv_gp: float | None) -> str:
+    """Why the closed form is kept (no GP beats it on held-out rows)."""
     if cv_closed >= cv_physics:
-        kept = "the closed form does not lower the held-out calibration residual, nor does a GP"
-    elif cv["gp"] is None:
-        kept = "the closed form lowers the held-out calibration residual; no input left for a GP"
-    else:
-        kept = "the closed form predicts held-out calibration rows about as well as a GP"
-    return ClosedFormCheck(False, kept, cv, folds, rel)
+        return "the closed form does not lower the held-out calibration residual, nor does a GP"
+    if cv_gp is None:
+        return "the closed form lowers the held-out calibration residual; no input left for a GP"
+    return "the closed form predicts held-out calibration rows about as well as a GP"
 
 
 def _reason(cv, probability, min_probability, ratio, rel) -> str | None:

@@ -171,26 +171,32 @@ def select_terms(
     r = np.asarray(residual, dtype=float).reshape(-1)
     J = np.asarray(jacobian, dtype=float).reshape(r.size, -1)
     _check(r, J, candidates, names, max_terms, false_alarm)
+    design = _usable_design(J, candidates, names, inputs, rtol)
+    search: dict[str, Any] = dict(max_terms=max_terms, screen=screen, partners=partners, g=g)
+    log_post, log_bf, fitted = explain(design, r, noise_sd=noise_sd, **search)
+    post = _posterior(log_post)
+    p_value = None
+    if null_draws > 0:
+        p_value = _sequential_p_value(
+            design, post[()], noise_sd=noise_sd, draws=null_draws, seed=random_seed, **search
+        )
+    return _selection(design, post, log_bf, fitted, p_value, false_alarm)
+
+
+def _usable_design(J, candidates, names, inputs, rtol: float):
+    """The candidate design (:func:`build_design`); an error when every term was rejected."""
     design = build_design(J, candidates, names, inputs=inputs, rtol=rtol)
     if design.size == 0:
         raise ValueError(
             "every candidate term was rejected: "
             + "; ".join(f"{k}: {v}" for k, v in design.rejected.items())
         )
-    search: dict[str, Any] = {
-        "max_terms": max_terms,
-        "screen": screen,
-        "partners": partners,
-        "g": g,
-    }
-    log_post, log_bf, fitted = explain(design, r, noise_sd=noise_sd, **search)
-    post = _posterior(log_post)
+    return design
+
+
+def _selection(design, post, log_bf, fitted, p_value, false_alarm: float) -> TermSelection:
+    """The selection: explanations ranked by posterior probability, inclusion of each term."""
     ranked = sorted(post.items(), key=lambda kv: -kv[1])
-    p_value = None
-    if null_draws > 0:
-        p_value = _sequential_p_value(
-            design, post[()], noise_sd=noise_sd, draws=null_draws, seed=random_seed, **search
-        )
     inclusion: dict[str, float] = {}
     for subset, p in ranked:
         for name in subset:

@@ -66,6 +66,7 @@ from kohpymc.emulator.gp import (
     _kernel_numpy,
 )
 from kohpymc.emulator.runs import (
+    _cache_folder,
     _read_cache,
     _simulate,
     _write_record,
@@ -188,13 +189,51 @@ def run_curves(
     ((2, 3), 2.0)
     """
     grid = pd.DataFrame(grid).reset_index(drop=True).astype(float)
+    scalar, params = _curve_columns(physics, grid)
+    columns = list(scalar + params)
+    design, values = _curve_design(design, columns)
+    simulator = _grid_simulator(physics, simulator_label, grid)
+    folder = _cache_folder(cache)
+    keys = [point_key(dict(zip(columns, row.tolist(), strict=True)), simulator) for row in values]
+    curves, tasks, cached = _plan_curves(
+        physics, values, keys, columns, grid, scalar, params, folder
+    )
+    done, errors, seconds = _run_curve_tasks(
+        tasks, scalar, simulator, folder, workers, scheduler, progress
+    )
+    for r, key in enumerate(keys):
+        if key in done:
+            curves[r] = done[key]
+    ok = np.all(np.isfinite(curves), axis=1)
+    failed = design[~ok].reset_index(drop=True)
+    failed["error"] = [errors.get(keys[r], "non-finite output") for r in np.flatnonzero(~ok)]
+    return FunctionalRuns(
+        design=design[ok].reset_index(drop=True),
+        grid=grid,
+        curves=curves[ok],
+        inputs=scalar,
+        parameters=params,
+        failed=failed,
+        simulated=len(tasks),
+        cached=cached,
+        seconds=seconds,
+    )
+
+
+def _curve_columns(
+    physics: PhysicsModel, grid: pd.DataFrame
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The scalar inputs (those not on the grid) and the parameters; checks the grid's."""
     functional = tuple(grid.columns)
     unknown = [k for k in functional if k not in physics.inputs]
     if unknown:
         raise KeyError(f"run_curves: grid column(s) {unknown} are not inputs of {physics.name!r}")
     scalar = tuple(k for k in physics.inputs if k not in functional)
-    params = tuple(physics.parameters)
-    columns = list(scalar + params)
+    return scalar, tuple(physics.parameters)
+
+
+def _curve_design(design: pd.DataFrame, columns: list[str]) -> tuple[pd.DataFrame, np.ndarray]:
+    """The design's ``columns`` as floats (frame and array); missing columns or NaN raise."""
     missing = [k for k in columns if k not in design.columns]
     if missing:
         raise KeyError(f"run_curves: the design lacks column(s) {missing}")
@@ -202,19 +241,39 @@ def run_curves(
     values = design.to_numpy(float)
     if not np.all(np.isfinite(values)):
         raise ValueError("run_curves: the design contains NaN/inf")
-    n, P = len(design), len(grid)
-    grid_values = grid.to_numpy(float)
+    return design, values
+
+
+def _grid_simulator(physics: PhysicsModel, simulator_label: str | None, grid: pd.DataFrame) -> str:
+    """The simulator identity of the cache keys, extended by a hash of the grid."""
+    functional, grid_values = tuple(grid.columns), grid.to_numpy(float)
     digest = hashlib.sha256(
         json.dumps(
             [list(functional), [[repr(v) for v in r] for r in grid_values.tolist()]]
         ).encode()
     ).hexdigest()[:16]
-    simulator = f"{simulator_identity(physics, simulator_label)}:grid:{digest}"
-    folder = None if cache is None else Path(cache)
-    if folder is not None:
-        folder.mkdir(parents=True, exist_ok=True)
+    return f"{simulator_identity(physics, simulator_label)}:grid:{digest}"
+
+
+def _plan_curves(
+    physics: PhysicsModel,
+    values: np.ndarray,
+    keys: list[str],
+    columns: list[str],
+    grid: pd.DataFrame,
+    scalar: tuple[str, ...],
+    params: tuple[str, ...],
+    folder: Path | None,
+) -> tuple[np.ndarray, dict[str, Any], int]:
+    """Curves read from the cache (NaN rows elsewhere), one task per other distinct row.
+
+    Returns the ``(n, P)`` curves, the tasks (key -> (physics, inputs, θ)) and the
+    number of curves read from the cache.
+    """
+    n, P = len(values), len(grid)
+    grid_values = grid.to_numpy(float)
+    functional = tuple(grid.columns)
     curves = np.full((n, P), np.nan)
-    keys = [point_key(dict(zip(columns, row.tolist(), strict=True)), simulator) for row in values]
     tasks: dict[str, Any] = {}
     cached = 0
     for r, key in enumerate(keys):
@@ -229,6 +288,19 @@ def run_curves(
         inputs = {k: grid_values[:, j].tolist() for j, k in enumerate(functional)}
         inputs.update({k: [row[k]] * P for k in scalar})
         tasks[key] = (physics, inputs, {k: row[k] for k in params})
+    return curves, tasks, cached
+
+
+def _run_curve_tasks(
+    tasks: dict[str, Any],
+    scalar: tuple[str, ...],
+    simulator: str,
+    folder: Path | None,
+    workers: int,
+    scheduler: Any,
+    progress: Any,
+) -> tuple[dict[str, Any], dict[str, str], float]:
+    """Run the tasks (writing each curve to the cache): curves, errors by key, seconds."""
     done: dict[str, Any] = {}
     errors: dict[str, str] = {}
     seconds = 0.0
@@ -248,23 +320,7 @@ def run_curves(
                 "simulator": simulator,
             }
             _write_record(folder / f"{outcome.key}.json", record)
-    for r, key in enumerate(keys):
-        if key in done:
-            curves[r] = done[key]
-    ok = np.all(np.isfinite(curves), axis=1)
-    failed = design[~ok].reset_index(drop=True)
-    failed["error"] = [errors.get(keys[r], "non-finite output") for r in np.flatnonzero(~ok)]
-    return FunctionalRuns(
-        design=design[ok].reset_index(drop=True),
-        grid=grid,
-        curves=curves[ok],
-        inputs=scalar,
-        parameters=params,
-        failed=failed,
-        simulated=len(tasks),
-        cached=cached,
-        seconds=seconds,
-    )
+    return done, errors, seconds
 
 
 class _WeightGP:
@@ -288,6 +344,50 @@ class _WeightGP:
         if len(Us) == 1:  # as the tensors: a variance lost to rounding is the nugget
             cov = np.maximum(cov, h.nugget)
         return Ks @ self.alpha, cov
+
+
+def _check_emulator_arguments(
+    runs: FunctionalRuns, physics: PhysicsModel, kernel: str, variance: float
+) -> tuple[str, ...]:
+    """Check the arguments of :class:`FunctionalEmulator`; return the functional inputs."""
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
+    if not 0.0 < variance <= 1.0:
+        raise ValueError(f"variance must be in (0, 1], got {variance}")
+    functional = tuple(runs.grid.columns)
+    if tuple(physics.parameters) != tuple(runs.parameters) or set(physics.inputs) != set(
+        runs.inputs + functional
+    ):
+        raise ValueError(
+            f"FunctionalEmulator: the runs have scalar inputs {list(runs.inputs)}, grid "
+            f"{list(functional)} and parameters {list(runs.parameters)}; the physics "
+            f"model {physics.name!r} has inputs {list(physics.inputs)} and parameters "
+            f"{list(physics.parameters)}"
+        )
+    if runs.n_runs < 3:
+        raise ValueError(f"FunctionalEmulator needs at least 3 curves, got {runs.n_runs}")
+    return functional
+
+
+def _box_bounds(
+    columns: tuple[str, ...], X: np.ndarray, box: Mapping[str, tuple[float, float]] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bound of every column: ``box``'s where given, else the runs' range."""
+    box = dict(box or {})
+    lo = np.array([box[k][0] if k in box else X[:, j].min() for j, k in enumerate(columns)])
+    hi = np.array([box[k][1] if k in box else X[:, j].max() for j, k in enumerate(columns)])
+    return lo, hi
+
+
+def _check_rotation(rotation: tuple[Any, Any], p: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(center, matrix)`` of a θ rotation as float arrays of shapes ``(p,)``, ``(p, p)``."""
+    center, matrix = (np.asarray(a, dtype=float) for a in rotation)
+    if center.shape != (p,) or matrix.shape != (p, p):
+        raise ValueError(
+            f"rotation must be (center ({p},), matrix ({p}, {p})), got "
+            f"{center.shape} and {matrix.shape}"
+        )
+    return center, matrix
 
 
 @dataclass(frozen=True)
@@ -377,22 +477,7 @@ class FunctionalEmulator:
         restarts: int = 3,
         seed: int = 0,
     ) -> None:
-        if kernel not in KERNELS:
-            raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
-        if not 0.0 < variance <= 1.0:
-            raise ValueError(f"variance must be in (0, 1], got {variance}")
-        functional = tuple(runs.grid.columns)
-        if tuple(physics.parameters) != tuple(runs.parameters) or set(physics.inputs) != set(
-            runs.inputs + functional
-        ):
-            raise ValueError(
-                f"FunctionalEmulator: the runs have scalar inputs {list(runs.inputs)}, grid "
-                f"{list(functional)} and parameters {list(runs.parameters)}; the physics "
-                f"model {physics.name!r} has inputs {list(physics.inputs)} and parameters "
-                f"{list(physics.parameters)}"
-            )
-        if runs.n_runs < 3:
-            raise ValueError(f"FunctionalEmulator needs at least 3 curves, got {runs.n_runs}")
+        functional = _check_emulator_arguments(runs, physics, kernel, variance)
         self.physics = physics
         self.runs = runs
         self.kernel = kernel
@@ -400,26 +485,25 @@ class FunctionalEmulator:
         self.scalar_inputs = tuple(runs.inputs)
         self.columns = tuple(runs.inputs + runs.parameters)
         self.grid = runs.grid[list(functional)].to_numpy(float)
-        X = runs.X
-        box = dict(box or {})
-        lo = np.array(
-            [box[k][0] if k in box else X[:, j].min() for j, k in enumerate(self.columns)]
-        )
-        hi = np.array(
-            [box[k][1] if k in box else X[:, j].max() for j, k in enumerate(self.columns)]
-        )
+        self._set_unit_box(runs.X, box, log_parameters, rotation)
+        Y = self._standardized_curves(np.asarray(runs.curves, dtype=float), log_output)
+        self._set_basis(Y, variance, n_components)
+        self._fit_weight_gps(restarts, seed)
+
+    def _set_unit_box(
+        self,
+        X: np.ndarray,
+        box: Mapping[str, tuple[float, float]] | None,
+        log_parameters: Sequence[str],
+        rotation: tuple[Any, Any] | None,
+    ) -> None:
+        """Set the log-scaled columns, θ rotation and unit box, and the runs' coordinates ``U``."""
+        lo, hi = _box_bounds(self.columns, X, box)
         self.log_columns = log_scaled(lo, hi) | np.isin(self.columns, list(log_parameters))
         ds = len(self.scalar_inputs)
         self.rotation = None
         if rotation is not None:
-            center, matrix = (np.asarray(a, dtype=float) for a in rotation)
-            p = len(runs.parameters)
-            if center.shape != (p,) or matrix.shape != (p, p):
-                raise ValueError(
-                    f"rotation must be (center ({p},), matrix ({p}, {p})), got "
-                    f"{center.shape} and {matrix.shape}"
-                )
-            self.rotation = (center, matrix)
+            self.rotation = _check_rotation(rotation, len(self.runs.parameters))
             H = self._coordinates(X)  # rotated: the unit box is the runs' range there
             lo[ds:], hi[ds:] = H[:, ds:].min(axis=0), H[:, ds:].max(axis=0)
             lo[:ds], hi[:ds] = self._transform(lo)[:ds], self._transform(hi)[:ds]
@@ -428,18 +512,23 @@ class FunctionalEmulator:
         self.lower = lo.astype(float)
         self.width = np.where(hi > lo, hi - lo, 1.0).astype(float)
         self.U = (self._coordinates(X) - self.lower) / self.width
+
+    def _standardized_curves(self, curves: np.ndarray, log_output: bool) -> np.ndarray:
+        """Set ``μ`` and ``s`` of the (log) curves and return ``Y = (G - μ) / s``."""
         self.log_output = bool(log_output)
-        curves = np.asarray(runs.curves, dtype=float)
         if self.log_output and not np.all(curves > 0):
             raise ValueError(
                 f"FunctionalEmulator(log_output=True): {int(np.sum(curves <= 0))} output(s) "
-                f"of {physics.name!r} are <= 0"
+                f"of {self.physics.name!r} are <= 0"
             )
         G = np.log(curves) if self.log_output else curves
         self.mean_curve = G.mean(axis=0)
         sd = float(np.std(G - self.mean_curve))
         self.curve_scale = sd if sd > 0 else 1.0
-        Y = (G - self.mean_curve) / self.curve_scale
+        return (G - self.mean_curve) / self.curve_scale
+
+    def _set_basis(self, Y: np.ndarray, variance: float, n_components: int | None) -> None:
+        """Set the kept principal components ``Φ``, weights ``W`` and truncation variance."""
         n = len(Y)
         u, svals, vt = np.linalg.svd(Y, full_matrices=False)
         share = np.cumsum(svals**2) / max(np.sum(svals**2), 1e-300)
@@ -454,12 +543,15 @@ class FunctionalEmulator:
         self.weights = u[:, :K] * np.sqrt(n)
         residual = Y - self.weights @ self.basis.T
         self.truncation_variance = np.mean(residual**2, axis=0)
+
+    def _fit_weight_gps(self, restarts: int, seed: int) -> None:
+        """Fit one GP per component weight (hyperparameters by MAP, seed ``seed + k``)."""
         self.hypers = [
-            _fit_hyperparameters(kernel, self.U, self.weights[:, k], restarts, seed + k)
-            for k in range(K)
+            _fit_hyperparameters(self.kernel, self.U, self.weights[:, k], restarts, seed + k)
+            for k in range(self.n_components)
         ]
         self._gps = [
-            _WeightGP(kernel, self.U, self.weights[:, k], h) for k, h in enumerate(self.hypers)
+            _WeightGP(self.kernel, self.U, self.weights[:, k], h) for k, h in enumerate(self.hypers)
         ]
 
     @property

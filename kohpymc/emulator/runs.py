@@ -185,19 +185,61 @@ def run_design(
     """
     inputs, params = tuple(physics.inputs), tuple(physics.parameters)
     columns = list(inputs + params)
+    values = _design_values(physics, design, columns)
+    simulator = simulator_identity(physics, simulator_label)
+    folder = _cache_folder(cache)
+    records, order, todo, cached = _plan_points(
+        values, columns, params, simulator, folder, retry_failed
+    )
+    items = _theta_tasks(physics, todo, records, inputs, params)
+    simulated, seconds = _run_theta_tasks(items, records, folder, workers, scheduler, progress)
+    ok, bad = _split_records(records, order, columns)
+    return SimulatorRuns(
+        points=pd.DataFrame(ok, columns=[*columns, "output"]),
+        failed=pd.DataFrame(bad, columns=[*columns, "error"]),
+        inputs=inputs,
+        parameters=params,
+        simulated=simulated,
+        cached=cached,
+        seconds=seconds,
+    )
+
+
+def _design_values(physics: PhysicsModel, design: pd.DataFrame, columns: list[str]) -> np.ndarray:
+    """The design's ``columns`` as a finite float array (a missing column is a KeyError)."""
     missing = [k for k in columns if k not in design.columns]
     if missing:
         raise KeyError(
             f"run_design: the design lacks column(s) {missing} of {physics.name!r} "
-            f"(needs inputs {list(inputs)} and parameters {list(params)})"
+            f"(needs inputs {list(physics.inputs)} and parameters {list(physics.parameters)})"
         )
     values = design[columns].to_numpy(float)
     if not np.all(np.isfinite(values)):
         raise ValueError("run_design: the design contains NaN/inf")
-    simulator = simulator_identity(physics, simulator_label)
+    return values
+
+
+def _cache_folder(cache: str | Path | None) -> Path | None:
+    """The cache folder (created when missing), or None without a cache."""
     folder = None if cache is None else Path(cache)
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _plan_points(
+    values: np.ndarray,
+    columns: list[str],
+    params: tuple[str, ...],
+    simulator: str,
+    folder: Path | None,
+    retry_failed: bool,
+) -> tuple[dict[str, dict[str, Any]], list[str], dict[tuple[float, ...], list[str]], int]:
+    """Records of the design's points: cached ones read, the others grouped by θ to run.
+
+    Returns the records (key -> ``{"point", "output", "error", ...}``), the key of every
+    design row in order, the keys to run per θ, and the number of points read from cache.
+    """
     records: dict[str, dict[str, Any]] = {}  # key -> {"point", "output", "error"}
     order: list[str] = []
     todo: dict[tuple[float, ...], list[str]] = {}
@@ -216,11 +258,34 @@ def run_design(
         theta = tuple(point[k] for k in params)
         todo.setdefault(theta, []).append(key)
         records[key] = {"point": point, "output": None, "error": None, "simulator": simulator}
+    return records, order, todo, cached
+
+
+def _theta_tasks(
+    physics: PhysicsModel,
+    todo: dict[tuple[float, ...], list[str]],
+    records: dict[str, dict[str, Any]],
+    inputs: tuple[str, ...],
+    params: tuple[str, ...],
+) -> dict[str, tuple[Any, ...]]:
+    """One task per θ: name -> (physics, input columns, θ, keys of its points)."""
     items = {}
     for t, (theta, keys) in enumerate(todo.items()):
         rows = [records[k]["point"] for k in keys]
         x = {name: [r[name] for r in rows] for name in inputs}
         items[f"run-{t}"] = (physics, x, dict(zip(params, theta, strict=True)), keys)
+    return items
+
+
+def _run_theta_tasks(
+    items: dict[str, tuple[Any, ...]],
+    records: dict[str, dict[str, Any]],
+    folder: Path | None,
+    workers: int,
+    scheduler: Any,
+    progress: TaskDisplay | None,
+) -> tuple[int, float]:
+    """Run the tasks, filling their points' records (and cache files); (points run, seconds)."""
     tasks = {name: item[:3] for name, item in items.items()}
     seconds = 0.0
     simulated = 0
@@ -238,6 +303,13 @@ def run_design(
                 rec["output"], rec["error"] = None, outcome.error
             if folder is not None:
                 _write_record(folder / f"{key}.json", rec)
+    return simulated, seconds
+
+
+def _split_records(
+    records: dict[str, dict[str, Any]], order: list[str], columns: list[str]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Rows of the successful and of the failed points, in design order (once each)."""
     ok, bad = [], []
     for key in dict.fromkeys(order):
         rec = records[key]
@@ -246,12 +318,4 @@ def run_design(
             ok.append({**row, "output": float(rec["output"])})
         else:
             bad.append({**row, "error": str(rec.get("error"))})
-    return SimulatorRuns(
-        points=pd.DataFrame(ok, columns=[*columns, "output"]),
-        failed=pd.DataFrame(bad, columns=[*columns, "error"]),
-        inputs=inputs,
-        parameters=params,
-        simulated=simulated,
-        cached=cached,
-        seconds=seconds,
-    )
+    return ok, bad

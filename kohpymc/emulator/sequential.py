@@ -9,8 +9,9 @@ after ``rounds`` rounds.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -237,12 +238,7 @@ def sequential_design(
     >>> result.table().columns[:2].tolist()  # doctest: +SKIP
     ['runs', 'shift_sd']
     """
-    from kohpymc.calibration import calibrate
-
-    if rounds < 0:
-        raise ValueError(f"rounds must be >= 0, got {rounds}")
-    if not tolerance > 0:
-        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    _check_schedule(rounds, tolerance)
     if emulator is None:
         emulator = emulate(
             physics,
@@ -255,11 +251,37 @@ def sequential_design(
             scheduler=scheduler,
         )
     add = int(new_runs) if new_runs is not None else max(1, emulator.n_runs // 2)
+    run = partial(run_design, physics, cache=cache, workers=workers, scheduler=scheduler)
+    return _design_rounds(
+        emulator, physics, data, discrepancy, rounds, tolerance, add, seed, run, calibrate_kwargs
+    )
+
+
+def _check_schedule(rounds: int, tolerance: float) -> None:
+    """``rounds`` must be >= 0 and ``tolerance`` > 0."""
+    if rounds < 0:
+        raise ValueError(f"rounds must be >= 0, got {rounds}")
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+
+
+def _design_rounds(
+    emulator: Emulator,
+    physics: PhysicsModel,
+    data: CalibrationData,
+    discrepancy: Discrepancy | None,
+    rounds: int,
+    tolerance: float,
+    add: int,
+    seed: int,
+    run: Callable[[pd.DataFrame], SimulatorRuns],
+    calibrate_kwargs: dict[str, Any],
+) -> SequentialDesign:
+    """The rounds: calibrate, record, stop when settled, else add ``add`` runs and refit."""
+    from kohpymc.calibration import calibrate
+
     params = list(physics.parameters)
-    box = {
-        k: (float(lo), float(lo + w))
-        for k, lo, w in zip(emulator.columns, emulator.lower, emulator.width, strict=True)
-    }
+    box = _emulator_box(emulator)
     result: SequentialDesign | None = None
     previous: dict[str, float] | None = None
     history: list[dict[str, Any]] = []
@@ -267,32 +289,48 @@ def sequential_design(
     for round_ in range(rounds + 1):
         cal = calibrate(emulator.physics_model(), data, discrepancy, **calibrate_kwargs)
         draws = _draws(cal, params)
-        means = {k: float(draws[k].mean()) for k in params}
-        sds = {k: float(draws[k].std()) for k in params}
-        shift = (
-            float("nan")
-            if previous is None
-            else max(abs(means[k] - previous[k]) / sds[k] for k in params)
-        )
-        history.append(
-            {
-                "runs": emulator.n_runs,
-                "means": means,
-                "sds": sds,
-                "shift": shift,
-                "emulator": repr(emulator),
-            }
-        )
-        result = SequentialDesign(emulator, cal, history, bool(shift < tolerance))
+        record = _round_record(emulator, draws, params, previous)
+        history.append(record)
+        result = SequentialDesign(emulator, cal, history, bool(record["shift"] < tolerance))
         if result.converged or round_ == rounds:
             break
-        previous = means
+        previous = record["means"]
         points = posterior_design(draws, data, physics, add, seed=seed + round_ + 1)
-        more = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
-        all_runs = _merged(all_runs, more)
+        all_runs = _merged(all_runs, run(points))
         emulator = Emulator(
             all_runs, physics, box=box, kernel=emulator.kernel, seed=seed,
             log_output=emulator.log_output,
         )  # fmt: skip
     assert result is not None
     return result
+
+
+def _emulator_box(emulator: Emulator) -> dict[str, tuple[float, float]]:
+    """The emulator's unit box as column -> ``(lower, upper)`` (kept by every refit)."""
+    return {
+        k: (float(lo), float(lo + w))
+        for k, lo, w in zip(emulator.columns, emulator.lower, emulator.width, strict=True)
+    }
+
+
+def _round_record(
+    emulator: Emulator,
+    draws: pd.DataFrame,
+    params: list[str],
+    previous: dict[str, float] | None,
+) -> dict[str, Any]:
+    """One round's entry: runs, posterior means and sds, shift from ``previous``, emulator."""
+    means = {k: float(draws[k].mean()) for k in params}
+    sds = {k: float(draws[k].std()) for k in params}
+    shift = (
+        float("nan")
+        if previous is None
+        else max(abs(means[k] - previous[k]) / sds[k] for k in params)
+    )
+    return {
+        "runs": emulator.n_runs,
+        "means": means,
+        "sds": sds,
+        "shift": shift,
+        "emulator": repr(emulator),
+    }

@@ -35,7 +35,7 @@ from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.emulator.checking import check_emulator
 from kohpymc.emulator.design import DESIGNS
-from kohpymc.emulator.gp import KERNELS, EmulatedPhysics
+from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator
 from kohpymc.emulator.sequential import emulate, sequential_design
 from kohpymc.physics import PhysicsModel
 
@@ -168,34 +168,66 @@ def study_physics(
     check = check_emulator(emulator)
     _write_check(folder, check)
     if settings.sequential > 0:
-        discrepancy = None
-        if settings.formulation is not None:
-            if formulations is None or settings.formulation not in formulations:
-                raise KeyError(
-                    f"[emulator] formulation {settings.formulation!r} is not one of the "
-                    f"study's formulations {sorted(formulations or {})}"
-                )
-            discrepancy = formulations[settings.formulation]
-        result = sequential_design(
+        emulator = _sequential_rounds(
+            settings,
             physics,
             calibration,
-            discrepancy,
-            emulator=emulator,
-            new_runs=settings.new_runs,
-            rounds=settings.sequential,
-            tolerance=settings.tolerance,
-            cache=cache,
-            seed=settings.seed,
+            emulator,
+            folder,
+            formulations=formulations,
+            sampling=sampling,
             workers=workers,
             scheduler=scheduler,
-            **_calibrate_settings(sampling or {}),
         )
-        emulator = result.emulator
-        result.table().to_csv(folder / "rounds.csv")
-        _write_check(folder, check_emulator(emulator))
     (folder / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
     _write_emulator(folder, emulator)
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+
+
+def _round_formulation(
+    settings: EmulatorSettings, formulations: Mapping[str, Discrepancy] | None
+) -> Discrepancy | None:
+    """The formulation the sequential rounds calibrate with (``None``: M0)."""
+    if settings.formulation is None:
+        return None
+    if formulations is None or settings.formulation not in formulations:
+        raise KeyError(
+            f"[emulator] formulation {settings.formulation!r} is not one of the "
+            f"study's formulations {sorted(formulations or {})}"
+        )
+    return formulations[settings.formulation]
+
+
+def _sequential_rounds(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    emulator: Emulator,
+    folder: Path,
+    *,
+    formulations: Mapping[str, Discrepancy] | None,
+    sampling: Mapping[str, Any] | None,
+    workers: int,
+    scheduler: Any,
+) -> Emulator:
+    """Run the sequential rounds; write their table and the new check; the last emulator."""
+    result = sequential_design(
+        physics,
+        calibration,
+        _round_formulation(settings, formulations),
+        emulator=emulator,
+        new_runs=settings.new_runs,
+        rounds=settings.sequential,
+        tolerance=settings.tolerance,
+        cache=folder / "runs",
+        seed=settings.seed,
+        workers=workers,
+        scheduler=scheduler,
+        **_calibrate_settings(sampling or {}),
+    )
+    result.table().to_csv(folder / "rounds.csv")
+    _write_check(folder, check_emulator(result.emulator))
+    return result.emulator
 
 
 def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:

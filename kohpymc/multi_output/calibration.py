@@ -41,7 +41,7 @@ from kohpymc.multi_output.model import (
     variable,
 )
 from kohpymc.multi_output.physics import MultiOutputPhysics
-from kohpymc.sampling import one_blas_thread, sample_posterior
+from kohpymc.sampling import SamplingReport, one_blas_thread, sample_posterior
 
 __all__ = [
     "MultiOutputCalibration",
@@ -249,17 +249,9 @@ def calibrate_outputs(
     """
     chosen = resolve_sampler(sampler, None, None)
     check_compile_mode(mode)
-    built = compose_multi_output_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
-    report = None
-    if check_identifiability:
-        plain = compose_multi_output_model(
-            physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
-        )
-        report = _identifiability(plain, physics)
+    built, report = _composed(physics, data, discrepancy, noise_sd_prior, check_identifiability)
     if target_accept is None:
-        accepts = [p.formulation.default_target_accept for p in built.parts.values()
-                   if p.formulation is not None]  # fmt: skip
-        target_accept = max(accepts, default=getattr(discrepancy, "default_target_accept", 0.9))
+        target_accept = _default_target_accept(built, discrepancy)
     idata, sampling = sample_posterior(
         built.model,
         sampler=chosen,
@@ -275,6 +267,56 @@ def calibrate_outputs(
         sample_kwargs=sample_kwargs,
         variance_pairs=_variance_pairs(built),
     )
+    problems = _annotate(idata, built, physics, data, sampling)
+    if problems and warn:
+        _warn_problems(data, problems)
+    return MultiOutputCalibration(
+        physics, data, discrepancy, built, idata, problems, report, noise_sd_prior
+    )
+
+
+def _composed(
+    physics: MultiOutputPhysics,
+    data: MultiOutputData,
+    discrepancy: Any,
+    noise_sd_prior: Any,
+    check_identifiability: bool,
+) -> tuple[MultiOutputModel, Any]:
+    """The joint model, and the identifiability report of its unmarginalised twin (or None)."""
+    built = compose_multi_output_model(physics, data, discrepancy, noise_sd_prior=noise_sd_prior)
+    report = None
+    if check_identifiability:
+        plain = compose_multi_output_model(
+            physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
+        )
+        report = _identifiability(plain, physics)
+    return built, report
+
+
+def _default_target_accept(built: MultiOutputModel, discrepancy: Any) -> float:
+    """The highest default target acceptance of the outputs' formulations."""
+    accepts = [p.formulation.default_target_accept for p in built.parts.values()
+               if p.formulation is not None]  # fmt: skip
+    return max(accepts, default=getattr(discrepancy, "default_target_accept", 0.9))
+
+
+def _warn_problems(data: MultiOutputData, problems: list[str]) -> None:
+    """Warn of the sampler's problems, attributed to the caller of :func:`calibrate_outputs`."""
+    warnings.warn(
+        f"joint calibration of {list(data.outputs)}: " + "; ".join(problems),
+        SamplerTroubleWarning,
+        stacklevel=3,
+    )
+
+
+def _annotate(
+    idata: az.InferenceData,
+    built: MultiOutputModel,
+    physics: MultiOutputPhysics,
+    data: MultiOutputData,
+    sampling: SamplingReport,
+) -> list[str]:
+    """Add log-likelihoods, input coordinates and attributes to ``idata``; return problems."""
     pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
     for name in data.outputs:  # every output's rows: coordinates <output>::<input>
         coords = {variable(name, k): v for k, v in data[name].inputs.items()}
@@ -291,15 +333,7 @@ def calibrate_outputs(
             "wall_time_s": sum(sampling.timings.values()),
         }
     )
-    if problems and warn:
-        warnings.warn(
-            f"joint calibration of {list(data.outputs)}: " + "; ".join(problems),
-            SamplerTroubleWarning,
-            stacklevel=2,
-        )
-    return MultiOutputCalibration(
-        physics, data, discrepancy, built, idata, problems, report, noise_sd_prior
-    )
+    return problems
 
 
 @one_blas_thread()

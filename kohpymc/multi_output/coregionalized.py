@@ -28,8 +28,9 @@ Likelihood (one joint Gaussian over the stacked rows of all outputs):
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -142,33 +143,40 @@ class Coregionalized:
         new_inputs: Mapping[str, Any] | None,
     ) -> Any:
         """Add the joint likelihood (and predictions) to ``model``; return the built model."""
-        from kohpymc.multi_output.model import MultiOutputModel, OutputPart, _sigma_obs, _y_scale
+        from kohpymc.multi_output.model import MultiOutputModel
 
-        outputs = data.outputs
-        phys_inputs = physics.inputs
-        names = tuple(dict.fromkeys(phys_inputs + self.inputs))
+        names = self._input_names(physics, data)
+        rows = _stack_outputs(physics, data, theta, priors, names)
+        model.add_coord(JOINT_DIM, np.arange(rows.y.size))
+        kernel, B = self._kernel_priors(model, rows)
+        scale_t = pt.as_tensor_variable(np.asarray(rows.scales))
+        sigma_t = pt.stack([pt.as_tensor_variable(s, dtype="float64") for s in rows.sigmas])
+        o_t = pt.as_tensor_variable(rows.output.astype("int64"))
+        X_t = pt.as_tensor_variable(rows.X)
+        K = self._cross(kernel, B, scale_t, X_t, o_t, X_t, o_t)
+        cov = K + pt.diag(sigma_t[o_t] ** 2 + _JITTER * scale_t[o_t] ** 2)
+        mu = pt.concatenate(rows.physics)
+        GaussianLikelihood("y", mu=mu, cov=cov, observed=rows.y, dims=JOINT_DIM)
+        record = JointRecord(mu, cov, np.concatenate(rows.noise_scale), rows.output)
+        parts = _output_parts(rows, mu)
+        if new_inputs:
+            gp = _JointGP(partial(self._cross, kernel, B, scale_t), X_t, o_t, mu, cov)
+            _add_predictions(model, physics, theta, rows, gp, new_inputs)
+        return MultiOutputModel(model, parts, joint=record)
+
+    def _input_names(self, physics: Any, data: Any) -> tuple[str, ...]:
+        """The physics inputs, then the kernel's other inputs (all must be in the data)."""
+        names = tuple(dict.fromkeys(physics.inputs + self.inputs))
         missing = [k for k in names if k not in data.input_names]
         if missing:
             raise KeyError(f"Coregionalized: input(s) {missing} are not in the data")
-        Xs, idx, ys, G, sigmas, scales, noise_scale = [], [], [], [], [], [], []
-        n_phys = len(phys_inputs)
-        for j, k in enumerate(outputs):
-            part = data[k]
-            _check_physics(physics.output(k), part)
-            X = part.matrix(names)
-            Xs.append(X)
-            idx.append(np.full(part.n, j))
-            ys.append(part.y)
-            G.append(physics.output(k).tensor(theta, pt.as_tensor_variable(X[:, :n_phys])))
-            scale = _y_scale(part.y)
-            with pm.Model(name=k):
-                sigmas.append(_sigma_obs(k, part.noise_sd, priors[k], scale))
-            scales.append(scale)
-            noise_scale.append(np.full(part.n, part.noise_sd or scale))
-        X_all, o_all, y_all = np.vstack(Xs), np.concatenate(idx), np.concatenate(ys)
-        center, sd, span = _scales(X_all, names)
+        return names
+
+    def _kernel_priors(self, model: pm.Model, rows: _Stacked) -> tuple[Any, Any]:
+        """Add the length scales, ``κ`` and ``W`` to ``model``; return the kernel and ``B``."""
+        outputs, names = rows.outputs, rows.names
+        _, _, span = _scales(rows.X, names)
         active = [names.index(k) for k in self.inputs]
-        model.add_coord(JOINT_DIM, np.arange(y_all.size))
         model.add_coord("gp_input", list(self.inputs))
         model.add_coord("output", list(outputs))
         spans = np.array([span[k] for k in self.inputs])
@@ -181,44 +189,116 @@ class Coregionalized:
             W = pt.zeros((len(outputs), 0))
         B = self.coregionalization(W, kappa)
         kernel = pm.gp.cov.ExpQuad(len(names), ls=ls, active_dims=active)
-        scale_t = pt.as_tensor_variable(np.asarray(scales))
-        sigma_t = pt.stack([pt.as_tensor_variable(s, dtype="float64") for s in sigmas])
-        o_t = pt.as_tensor_variable(o_all.astype("int64"))
-        X_t = pt.as_tensor_variable(X_all)
-        K = self._cross(kernel, B, scale_t, X_t, o_t, X_t, o_t)
-        cov = K + pt.diag(sigma_t[o_t] ** 2 + _JITTER * scale_t[o_t] ** 2)
-        mu = pt.concatenate(G)
-        GaussianLikelihood("y", mu=mu, cov=cov, observed=y_all, dims=JOINT_DIM)
-        record = JointRecord(mu, cov, np.concatenate(noise_scale), o_all)
-        parts = {}
-        for j, k in enumerate(outputs):
-            rows = o_all == j
-            parts[k] = OutputPart(
-                k, None, None, names, sigmas[j], float(noise_scale[j][0]), mu[np.flatnonzero(rows)]
-            )
-        if new_inputs:
-            ((k, inputs),) = new_inputs.items()
-            j = outputs.index(k)
-            Xn = new_input_matrix(inputs, names)
-            model.add_coord(PRED_DIM, np.arange(Xn.shape[0]))
-            Xn_t = pt.as_tensor_variable(Xn)
-            on = pt.as_tensor_variable(np.full(Xn.shape[0], j, dtype="int64"))
-            Ks = self._cross(kernel, B, scale_t, X_t, o_t, Xn_t, on)
-            Kss = self._cross(kernel, B, scale_t, Xn_t, on, Xn_t, on)
-            chol = pt.linalg.cholesky(cov)
-            alpha = pt.linalg.cho_solve((chol, True), y_all - mu)
-            v = pt.linalg.solve_triangular(chol, Ks, lower=True)
-            cond_cov = Kss - pt.dot(v.T, v) + _JITTER * scales[j] ** 2 * pt.eye(Xn.shape[0])
-            G_new = physics.output(k).tensor(theta, Xn_t[:, :n_phys])
-            with pm.Model(name=k):
-                G_det = pm.Deterministic("physics", G_new, dims=PRED_DIM)
-                delta = pm.MvNormal(
-                    "gp_conditional", mu=pt.dot(Ks.T, alpha), cov=cond_cov, dims=PRED_DIM
-                )
-                y_model = pm.Deterministic("y_model", G_det + delta, dims=PRED_DIM)
-                pm.Deterministic("discrepancy", delta, dims=PRED_DIM)
-                pm.Normal("y_pred", mu=y_model, sigma=sigmas[j], dims=PRED_DIM)
-        return MultiOutputModel(model, parts, joint=record)
+        return kernel, B
 
     def __repr__(self) -> str:
         return f"Coregionalized(inputs={list(self.inputs)}, rank={self.rank})"
+
+
+@dataclass(frozen=True)
+class _Stacked:
+    """The outputs' data rows stacked, with each output's physics, σ_obs and data sd."""
+
+    outputs: tuple[str, ...]
+    names: tuple[str, ...]  # columns of X: the physics inputs, then the kernel's others
+    X: np.ndarray  # (n, len(names))
+    output: np.ndarray  # (n,) output number of each row
+    y: np.ndarray  # (n,)
+    physics: list[Any]  # per output: G at its rows (tensor)
+    sigmas: list[Any]  # per output: σ_obs (known number or random variable)
+    scales: list[float]  # per output: sd of its data
+    noise_scale: list[np.ndarray]  # per output, per row: known σ_obs, else the data sd
+
+
+@dataclass(frozen=True)
+class _JointGP:
+    """The joint GP's tensors that predictions condition on."""
+
+    cross: Callable[..., Any]  # (Xa, oa, Xb, ob) -> covariance block
+    X: Any
+    output: Any
+    mean: Any
+    covariance: Any
+
+
+def _stack_outputs(
+    physics: Any, data: Any, theta: Any, priors: Mapping[str, Any], names: tuple[str, ...]
+) -> _Stacked:
+    """Stack every output's rows; add each output's σ_obs prior (model ``<k>``)."""
+    from kohpymc.multi_output.model import _sigma_obs, _y_scale
+
+    Xs, idx, ys, G, sigmas, scales, noise_scale = [], [], [], [], [], [], []
+    n_phys = len(physics.inputs)
+    for j, k in enumerate(data.outputs):
+        part = data[k]
+        _check_physics(physics.output(k), part)
+        X = part.matrix(names)
+        Xs.append(X)
+        idx.append(np.full(part.n, j))
+        ys.append(part.y)
+        G.append(physics.output(k).tensor(theta, pt.as_tensor_variable(X[:, :n_phys])))
+        scale = _y_scale(part.y)
+        with pm.Model(name=k):
+            sigmas.append(_sigma_obs(k, part.noise_sd, priors[k], scale))
+        scales.append(scale)
+        noise_scale.append(np.full(part.n, part.noise_sd or scale))
+    return _Stacked(
+        tuple(data.outputs),
+        names,
+        np.vstack(Xs),
+        np.concatenate(idx),
+        np.concatenate(ys),
+        G,
+        sigmas,
+        scales,
+        noise_scale,
+    )
+
+
+def _output_parts(rows: _Stacked, mu: Any) -> dict[str, Any]:
+    """One :class:`~kohpymc.multi_output.model.OutputPart` per output: its rows of ``mu``."""
+    from kohpymc.multi_output.model import OutputPart
+
+    parts = {}
+    for j, k in enumerate(rows.outputs):
+        sel = rows.output == j
+        parts[k] = OutputPart(
+            k,
+            None,
+            None,
+            rows.names,
+            rows.sigmas[j],
+            float(rows.noise_scale[j][0]),
+            mu[np.flatnonzero(sel)],
+        )
+    return parts
+
+
+def _add_predictions(
+    model: pm.Model,
+    physics: Any,
+    theta: Any,
+    rows: _Stacked,
+    gp: _JointGP,
+    new_inputs: Mapping[str, Any],
+) -> None:
+    """Add ``<k>::physics``, ``y_model``, ``discrepancy``, ``y_pred`` at one output's inputs."""
+    ((k, inputs),) = new_inputs.items()
+    j = rows.outputs.index(k)
+    Xn = new_input_matrix(inputs, rows.names)
+    model.add_coord(PRED_DIM, np.arange(Xn.shape[0]))
+    Xn_t = pt.as_tensor_variable(Xn)
+    on = pt.as_tensor_variable(np.full(Xn.shape[0], j, dtype="int64"))
+    Ks = gp.cross(gp.X, gp.output, Xn_t, on)
+    Kss = gp.cross(Xn_t, on, Xn_t, on)
+    chol = pt.linalg.cholesky(gp.covariance)
+    alpha = pt.linalg.cho_solve((chol, True), rows.y - gp.mean)
+    v = pt.linalg.solve_triangular(chol, Ks, lower=True)
+    cond_cov = Kss - pt.dot(v.T, v) + _JITTER * rows.scales[j] ** 2 * pt.eye(Xn.shape[0])
+    G_new = physics.output(k).tensor(theta, Xn_t[:, : len(physics.inputs)])
+    with pm.Model(name=k):
+        G_det = pm.Deterministic("physics", G_new, dims=PRED_DIM)
+        delta = pm.MvNormal("gp_conditional", mu=pt.dot(Ks.T, alpha), cov=cond_cov, dims=PRED_DIM)
+        y_model = pm.Deterministic("y_model", G_det + delta, dims=PRED_DIM)
+        pm.Deterministic("discrepancy", delta, dims=PRED_DIM)
+        pm.Normal("y_pred", mu=y_model, sigma=rows.sigmas[j], dims=PRED_DIM)

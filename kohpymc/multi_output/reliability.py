@@ -110,14 +110,7 @@ def output_reliability(
     >>> rel.table.index.tolist()  # doctest: +SKIP
     ['u', 'strain', 'combined']
     """
-    if combine not in ("rows", "outputs"):
-        raise ValueError(f"combine must be 'rows' or 'outputs', got {combine!r}")
-    outputs = [k for k in calibration.outputs if k in validation.outputs]
-    if not outputs:
-        raise ValueError(
-            f"validation outputs {list(validation.outputs)} share none with the calibrated "
-            f"outputs {list(calibration.outputs)}"
-        )
+    outputs = _scored_outputs(calibration, validation, combine)
     tolerances = per_output(tolerance, validation.outputs, "tolerance")
     rows, pointwise, per_draw, weights = [], {}, [], []
     for k in outputs:
@@ -128,39 +121,67 @@ def output_reliability(
         pred = (predictions or {}).get(k)
         if pred is None:
             pred = predict_output(calibration, k, val, random_seed=random_seed)
-        da = pred.predictions["y_model"]  # type: ignore[attr-defined]  # arviz adds groups at run time
-        ym = da.transpose("chain", "draw", "pred").values
-        if ym.shape[-1] != val.n:
-            raise ValueError(f"output {k!r}: {ym.shape[-1]} predictions for {val.n} rows")
-        sigma = calibration.sigma_obs_draws(k)
-        posterior = None if sigma is None else xr.Dataset({"sigma_obs": sigma})
-        noise = validation_noise(
-            val, calibration.data[k], posterior, calibration.built.parts[k].formulation
-        )
-        D, sd = _measurement_model(val, noise, ym.shape)
-        prob = _probabilities(ym, D, sd, eps)
-        q = prob.mean(axis=2)
+        q, pointwise[k], row = _score_output(calibration, k, val, pred, eps)
         per_draw.append(q)
         weights.append(val.n if combine == "rows" else 1.0)
-        pointwise[k] = xr.DataArray(
-            prob.mean(axis=(0, 1)),
-            dims=("pred",),
-            coords={c: v for c, v in da.coords.items() if v.dims == ("pred",)},
-            name=f"reliability_{k}",
-        )
-        rows.append(
-            {"output": k, "n": val.n, "tolerance": eps, "mu_r": float(q.mean()),
-             "mu_r_mcse": _mcse(q), "noise": noise.describe()}
-        )  # fmt: skip
-    w = np.asarray(weights, dtype=float) / np.sum(weights)
-    q_comb = sum(wk * qk for wk, qk in zip(w, per_draw, strict=True))
-    rows.append(
-        {"output": COMBINED, "n": sum(validation[k].n for k in outputs), "tolerance": np.nan,
-         "mu_r": float(q_comb.mean()), "mu_r_mcse": _mcse(q_comb),
-         "noise": f"mean over {'all rows' if combine == 'rows' else 'outputs'}"}
-    )  # fmt: skip
+        rows.append(row)
+    n = sum(validation[k].n for k in outputs)
+    rows.append(_combined_row(per_draw, weights, n, combine))
     table = pd.DataFrame(rows).set_index("output")
     return OutputReliability(table, pointwise, combine)
+
+
+def _scored_outputs(
+    calibration: MultiOutputCalibration, validation: MultiOutputData, combine: str
+) -> list[str]:
+    """The calibrated outputs that have validation rows (checks ``combine``)."""
+    if combine not in ("rows", "outputs"):
+        raise ValueError(f"combine must be 'rows' or 'outputs', got {combine!r}")
+    outputs = [k for k in calibration.outputs if k in validation.outputs]
+    if not outputs:
+        raise ValueError(
+            f"validation outputs {list(validation.outputs)} share none with the calibrated "
+            f"outputs {list(calibration.outputs)}"
+        )
+    return outputs
+
+
+def _score_output(
+    calibration: MultiOutputCalibration, k: str, val: Any, pred: Any, eps: float
+) -> tuple[np.ndarray, xr.DataArray, dict[str, Any]]:
+    """Output ``k``'s per-draw mean probabilities, its r(x) and its table row."""
+    da = pred.predictions["y_model"]  # arviz adds groups at run time
+    ym = da.transpose("chain", "draw", "pred").values
+    if ym.shape[-1] != val.n:
+        raise ValueError(f"output {k!r}: {ym.shape[-1]} predictions for {val.n} rows")
+    sigma = calibration.sigma_obs_draws(k)
+    posterior = None if sigma is None else xr.Dataset({"sigma_obs": sigma})
+    noise = validation_noise(
+        val, calibration.data[k], posterior, calibration.built.parts[k].formulation
+    )
+    D, sd = _measurement_model(val, noise, ym.shape)
+    prob = _probabilities(ym, D, sd, eps)
+    q = prob.mean(axis=2)
+    pointwise = xr.DataArray(
+        prob.mean(axis=(0, 1)),
+        dims=("pred",),
+        coords={c: v for c, v in da.coords.items() if v.dims == ("pred",)},
+        name=f"reliability_{k}",
+    )
+    row = {"output": k, "n": val.n, "tolerance": eps, "mu_r": float(q.mean()),
+           "mu_r_mcse": _mcse(q), "noise": noise.describe()}  # fmt: skip
+    return q, pointwise, row
+
+
+def _combined_row(
+    per_draw: list[np.ndarray], weights: list[float], n: int, combine: str
+) -> dict[str, Any]:
+    """The table's combined row: the weighted mean of the outputs' per-draw means."""
+    w = np.asarray(weights, dtype=float) / np.sum(weights)
+    q_comb = sum(wk * qk for wk, qk in zip(w, per_draw, strict=True))
+    return {"output": COMBINED, "n": n, "tolerance": np.nan,
+            "mu_r": float(q_comb.mean()), "mu_r_mcse": _mcse(q_comb),
+            "noise": f"mean over {'all rows' if combine == 'rows' else 'outputs'}"}  # fmt: skip
 
 
 def reliability_table(

@@ -152,12 +152,7 @@ def check_calibration(
         chains=chains, seed=seed, rank_draws=rank_draws,
     )  # fmt: skip
     settings = resolve(spec, overrides)
-    recipe = Recipe(
-        str(Path(spec.source).resolve()),
-        settings,
-        setup_hash(spec, settings),
-        model_hash(spec, settings.formulation, settings.mode),
-    )
+    recipe = _recipe(spec, settings)
     out = None if out_dir is None else Path(out_dir)
     seeds = [replicate_seed(settings.seed, i) for i in range(settings.replicates)]
     done = {} if out is None or fresh else files.read_replicates(out, recipe.setup_hash, seeds)
@@ -166,23 +161,56 @@ def check_calibration(
         say(f"{len(done)} of {settings.replicates} replicates reused from {out}")
     timings: dict[str, Any] = {}
     todo = [i for i in range(settings.replicates) if i not in done]
-    records, failures = dict(done), {}
+    records: dict[int, Any] = dict(done)
+    failures: dict[int, Any] = {}
     if todo:
-        say(f"{settings.formulation}: composing and compiling the fitted model (once)")
-        fitter = _prepare(spec, settings, recipe, timings)
-        tasks = _tasks(spec, settings, recipe, fitter, todo, seeds)
-        say(
-            f"{settings.formulation}: compiled in {timings['setup_compile']:.1f} s; fitting "
-            f"{len(todo)} replicate(s), {settings.chains} × {settings.draws} draws each"
+        new, failures = _run_replicates(
+            spec, settings, recipe, todo, seeds, out, workers, scheduler, say, timings
         )
-        for index, result, error in _collect(tasks, workers, scheduler, say, settings):
-            if error is not None:
-                failures[index] = error
-                continue
-            records[index] = result
-            if out is not None:
-                files.write_replicate(out, recipe.setup_hash, result)
+        records.update(new)
     return _finish(spec, settings, recipe, records, failures, done, timings, started, out)
+
+
+def _recipe(spec: StudySpec, settings: CheckSettings) -> Recipe:
+    """The check's recipe: study file, settings and the hashes of set-up and model."""
+    return Recipe(
+        str(Path(spec.source).resolve()),
+        settings,
+        setup_hash(spec, settings),
+        model_hash(spec, settings.formulation, settings.mode),
+    )
+
+
+def _run_replicates(
+    spec: StudySpec,
+    settings: CheckSettings,
+    recipe: Recipe,
+    todo: list[int],
+    seeds: list[int],
+    out: Path | None,
+    workers: int,
+    scheduler: str | None,
+    say: Callable[[str], None],
+    timings: dict[str, Any],
+) -> tuple[dict[int, Any], dict[int, Any]]:
+    """Compile once, fit the ``todo`` replicates (writing each to ``out``): results, errors."""
+    records: dict[int, Any] = {}
+    failures: dict[int, Any] = {}
+    say(f"{settings.formulation}: composing and compiling the fitted model (once)")
+    fitter = _prepare(spec, settings, recipe, timings)
+    tasks = _tasks(spec, settings, recipe, fitter, todo, seeds)
+    say(
+        f"{settings.formulation}: compiled in {timings['setup_compile']:.1f} s; fitting "
+        f"{len(todo)} replicate(s), {settings.chains} × {settings.draws} draws each"
+    )
+    for index, result, error in _collect(tasks, workers, scheduler, say, settings):
+        if error is not None:
+            failures[index] = error
+            continue
+        records[index] = result
+        if out is not None:
+            files.write_replicate(out, recipe.setup_hash, result)
+    return records, failures
 
 
 def _prepare(spec: StudySpec, settings: CheckSettings, recipe: Recipe, timings) -> Fitter:

@@ -239,7 +239,6 @@ def _solve_settings(
     :func:`_charge_sensitivities`).  ``keep`` receives what
     :func:`_charge_sensitivities` needs, to compute them later without solving again.
     """
-    n_settings = kin.E_app.shape[0]
     n_ss = _steady_state(kin)
     # settings without injection (V = 0, or a current below ~1e-240 A/m²) stay empty
     live = n_ss > _N_TINY
@@ -258,13 +257,7 @@ def _solve_settings(
     _, fp_ss, _ = kin.rhs(safe)
     rate_ss = -fp_ss[:, 0]
 
-    # locate every row in its setting's grid
-    order = np.argsort(inv, kind="stable")
-    bounds = np.searchsorted(inv[order], np.arange(n_settings + 1))
-    j = np.empty(t.size, dtype=np.intp)
-    for k in range(n_settings):
-        rows = order[bounds[k] : bounds[k + 1]]
-        j[rows] = np.searchsorted(t_grid[k], t[rows], side="right") - 1
+    j = _grid_index(t_grid, t, inv, kin.E_app.shape[0])
     last = _S.size - 1
     jc = np.clip(j, 0, last - 1)
     t0, t1 = t_grid[inv, jc], t_grid[inv, jc + 1]
@@ -307,6 +300,17 @@ def _solve_settings(
     if not sensitivities:
         return n, kin_rows
     return n, kin_rows, _charge_sensitivities(kin, kin_rows, grid, row_data)
+
+
+def _grid_index(t_grid: np.ndarray, t: np.ndarray, inv: np.ndarray, n_settings: int) -> np.ndarray:
+    """Locate every row in its setting's grid: the last node at or before its time (-1: none)."""
+    order = np.argsort(inv, kind="stable")
+    bounds = np.searchsorted(inv[order], np.arange(n_settings + 1))
+    j = np.empty(t.size, dtype=np.intp)
+    for k in range(n_settings):
+        rows = order[bounds[k] : bounds[k + 1]]
+        j[rows] = np.searchsorted(t_grid[k], t[rows], side="right") - 1
+    return j
 
 
 def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows: dict):

@@ -194,7 +194,7 @@ def test_a_multi_output_study_file_runs_through_the_study_command(tmp_path, caps
     assert table["sampler_problems"].notna().all()  # reported per formulation, "none" if clean
     assert (tmp_path / "out" / "M0.nc").is_file()
     bad = tmp_path / "bad.toml"
-    bad.write_text(study.read_text().replace("strain = 1e-3 }", "strain = 1e-3, w = 1.0 }", 1))
+    bad.write_text(study.read_text().replace("strain = 3.0 }", "strain = 3.0, w = 1.0 }", 1))
     capsys.readouterr()
     assert main(["study", str(bad), "--dry-run"]) == 2
     assert "noise_sd" in capsys.readouterr().err

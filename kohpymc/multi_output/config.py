@@ -14,15 +14,15 @@ differences::
     [data]
     calibration = "cal.csv"             # one column per input and per output
     validation = "val.csv"
-    noise_sd = { u = 0.316, strain = 1e-3 }   # per output (or one number for all);
+    noise_sd = { u = 0.316, strain = 3.0 }    # per output (or one number for all);
                                               # outputs left out are calibrated
 
     [validation]
-    tolerance = { u = 0.75, strain = 1e-3 }   # per output, in its units
+    tolerance = { u = 0.75, strain = 7.5 }    # per output, in its units
 
     [formulations]                      # label -> discrepancy of every output
     M0 = "none"                         # one type for all outputs
-    M31 = { u = { type = "input_dependent", mean = ["x"] }, strain = "constant" }
+    M31 = { u = { type = "input_dependent", mean = ["x", "P", "x*P"] }, strain = "constant" }
     ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
 
 Every problem names the file and the key (``[data.noise_sd.strian]``), or the file and
@@ -159,7 +159,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     >>> spec = load_multi_output_study(
     ...     files("kohpymc.examples") / "beam_multi_output_study.toml")
     >>> spec.calibration.outputs, spec.tolerance
-    (('u', 'strain'), {'u': 0.75, 'strain': 0.001})
+    (('u', 'strain'), {'u': 0.75, 'strain': 7.5})
     """
     path = Path(path)
     doc = _read_document(path)

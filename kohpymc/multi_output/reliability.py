@@ -106,7 +106,7 @@ def output_reliability(
 
     Examples
     --------
-    >>> rel = output_reliability(cal, val, {"u": 0.75, "strain": 1e-3})  # doctest: +SKIP
+    >>> rel = output_reliability(cal, val, {"u": 0.75, "strain": 7.5})  # doctest: +SKIP
     >>> rel.table.index.tolist()  # doctest: +SKIP
     ['u', 'strain', 'combined']
     """
@@ -194,7 +194,7 @@ def reliability_table(
 
     Examples
     --------
-    >>> reliability_table(cal, val, {"u": 0.75, "strain": 1e-3}).index.tolist()  # doctest: +SKIP
+    >>> reliability_table(cal, val, {"u": 0.75, "strain": 7.5}).index.tolist()  # doctest: +SKIP
     ['u', 'strain', 'combined']
     """
     return output_reliability(calibration, validation, tolerance, **options).table

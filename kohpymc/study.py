@@ -336,7 +336,7 @@ def _check_identifiability(physics, calibration, formulations, say):
             say(f"  {label}: identifiable (rank {report.rank} of {len(report.names)})")
         else:
             text = "; ".join(report.confounded())
-            say(f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}): {text}")
+            say(f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}), warned:")
             warnings.warn(
                 f"{label} is not identifiable at the prior centre: {text}",
                 IdentifiabilityWarning,

@@ -16,7 +16,13 @@ import logging
 import warnings
 from typing import NamedTuple
 
-__all__ = ["IMPORT_NOISE", "NoiseFilter", "ignore_noise", "quiet_command_line"]
+__all__ = [
+    "IMPORT_NOISE",
+    "NoiseFilter",
+    "ignore_noise",
+    "one_line_warning",
+    "quiet_command_line",
+]
 
 
 class NoiseFilter(NamedTuple):
@@ -75,8 +81,26 @@ def ignore_noise(filters: tuple[NoiseFilter, ...] = IMPORT_NOISE) -> None:
         )
 
 
+def one_line_warning(message, category, filename, lineno, line=None) -> str:
+    """A warning as ``warning (Category): message``, without the source line.
+
+    For the command line (as :func:`warnings.formatwarning`), where the file and line of
+    the library call that warned mean nothing to the user.
+
+    Examples
+    --------
+    >>> print(one_line_warning(UserWarning("E is not identifiable"), UserWarning, "x.py", 1))
+    warning (UserWarning): E is not identifiable
+    <BLANKLINE>
+    """
+    return f"warning ({category.__name__}): {message}\n"
+
+
 def quiet_command_line() -> None:
-    """What the ``kohpymc`` command hides: :data:`IMPORT_NOISE` and routine library log lines.
+    """What the ``kohpymc`` command hides: import noise, log lines, warnings' source lines.
+
+    :data:`IMPORT_NOISE`, routine library log lines, and the file and source line that
+    Python prints with a warning (:func:`one_line_warning`).
 
     Examples
     --------
@@ -90,6 +114,7 @@ def quiet_command_line() -> None:
     ignore_noise(IMPORT_NOISE)
     for name, level in _QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
+    warnings.formatwarning = one_line_warning
 
 
 ignore_noise()  # on import: kohpymc/__init__.py imports this module before anything else

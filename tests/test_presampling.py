@@ -1,0 +1,164 @@
+"""Before sampling: identifiability at the posterior mode, and the sampling-time estimate."""
+
+import json
+import time
+import warnings
+
+import numpy as np
+import pytest
+
+from kohpymc import CalibrationData, PhysicsModel, Uniform, calibrate
+from kohpymc.identifiability import IdentifiabilityWarning
+from kohpymc.presampling import SlowSamplingWarning, probe_steps, slow_reasons
+from kohpymc.reparameterization import Coordinates, Reparameterization
+
+SEED = 31
+
+
+def _hinge():
+    """y = a + c·max(x − t, 0): with t at its prior centre (15) beyond the data (x ≤ 10)
+    neither c nor t changes the output; at the truth (t = 4) both do."""
+
+    def hinge(i, p):
+        return p["a"] + p["c"] * np.maximum(i["x"] - p["t"], 0.0)
+
+    physics = PhysicsModel(
+        hinge,
+        {"a": Uniform(-5.0, 5.0), "c": Uniform(0.0, 4.0), "t": Uniform(0.0, 30.0)},
+        inputs=["x"],
+        name="hinge",
+    )
+    x = np.linspace(0.0, 10.0, 25)
+    rng = np.random.default_rng(SEED)
+    y = hinge({"x": x}, {"a": 1.0, "c": 2.0, "t": 4.0}) + rng.normal(0.0, 0.1, x.size)
+    return physics, CalibrationData({"x": x}, y, noise_sd=0.1)
+
+
+def _quiet_calibrate(physics, data, **kwargs):
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        cal = calibrate(physics, data, chains=1, random_seed=SEED, warn=False, **kwargs)
+    return cal, [w for w in seen if issubclass(w.category, UserWarning)]
+
+
+def test_a_parameter_without_effect_at_the_centre_is_identified_at_the_mode():
+    physics, data = _hinge()
+    cal, seen = _quiet_calibrate(physics, data, draws=30, tune=30, slow_warning_s=None)
+    centre, at_mode = cal.identifiability, cal.identifiability_at_mode
+    assert not centre.identifiable
+    assert {name for found in centre.non_identifiable_sets for name in found} == {"c", "t"}
+    assert at_mode.identifiable and at_mode.weak_direction == {}
+    assert abs(at_mode.point["t"] - 4.0) < 0.5  # the check ran at the fit, not the centre
+    texts = [str(w.message) for w in seen if w.category is IdentifiabilityWarning]
+    assert any("prior centre" in t for t in texts)
+    assert not any("posterior mode" in t for t in texts)
+    record = json.loads(cal.provenance()["presampling"])
+    assert record["identifiability_at_mode"]["identifiable"] is True
+    assert record["mode"]["t"] == pytest.approx(at_mode.point["t"])
+    assert record["cost"] is None  # slow_warning_s=None
+
+
+def test_a_structural_product_ridge_is_named_at_the_mode():
+    x = np.linspace(0.5, 2.0, 12)
+    physics = PhysicsModel(
+        lambda i, p: p["a"] * p["b"] * i["x"],
+        {"a": Uniform(0.1, 10.0), "b": Uniform(0.5, 20.0)},
+        inputs=["x"],
+        name="product",
+    )
+    rng = np.random.default_rng(SEED)
+    data = CalibrationData({"x": x}, 3.0 * x + rng.normal(0.0, 0.05, x.size), noise_sd=0.05)
+    cal, seen = _quiet_calibrate(physics, data, draws=20, tune=20, slow_warning_s=None)
+    report = cal.identifiability_at_mode
+    assert report.rank == 1 and report.structural is True
+    a, b = report.point["a"], report.point["b"]
+    assert a * b == pytest.approx(3.0, rel=0.02)  # the mode lies on the ridge a·b = 3
+    (direction,) = report.null_directions  # Δa/a = -Δb/b along the ridge
+    assert direction["b"] / direction["a"] == pytest.approx(-b / a, rel=1e-3)
+    (text,) = [
+        str(w.message)
+        for w in seen
+        if w.category is IdentifiabilityWarning and "posterior mode" in str(w.message)
+    ]
+    assert "rank 1 of 2" in text and "entering only as a·b" in text and "structural" in text
+
+
+def test_probe_counts_more_steps_on_a_correlated_gaussian():
+    """nutpie adapts a diagonal mass matrix: a correlation of 0.999 (sd ratio of the
+    principal axes √(1999/1) ≈ 45) leaves trajectories many times longer than on an
+    isotropic Gaussian."""
+    rho = 0.999
+    precision = np.linalg.inv(np.array([[1.0, rho], [rho, 1.0]]))
+
+    def correlated(z):
+        return -0.5 * z @ precision @ z, -precision @ z
+
+    def isotropic(z):
+        return -0.5 * z @ z, -z
+
+    easy, _ = probe_steps(isotropic, 2, iterations=100, seed=SEED)
+    hard, done = probe_steps(correlated, 2, iterations=100, seed=SEED)
+    assert done == 100
+    assert easy <= 8
+    assert hard >= 5 * easy
+
+
+def test_probe_stops_at_its_time_budget():
+    def slow(z):
+        time.sleep(0.01)
+        return -0.5 * z @ z, -z
+
+    begin = time.perf_counter()
+    per_iteration, done = probe_steps(slow, 2, iterations=1000, seconds=0.5, seed=SEED)
+    assert time.perf_counter() - begin < 3.0
+    assert done < 1000 and per_iteration >= 1
+
+
+def test_reasons_name_a_noisy_gradient_and_suggest_smc():
+    from kohpymc.presampling import CostEstimate
+
+    noisy = (
+        "the gradient of the log density disagrees with finite differences of it "
+        "(relative error 0.3 ...): ... or use sampler='smc'"
+    )
+    plan = Reparameterization(
+        "affine", np.zeros(1), np.eye(1), Coordinates.identity(1), "", warnings=(noisy,)
+    )
+    cheap = CostEstimate(1e-5, 4.0, "probe", 8000, 900.0, threshold_s=600.0)
+    reasons = slow_reasons(cheap, plan, None)
+    assert reasons == [noisy]  # cheap evaluations and short trajectories: not the cause
+
+
+def test_cost_estimate_warns_and_matches_the_measured_time():
+    """5 ms of sleep per physics call (value and Jacobian: ~10 ms per evaluation): the
+    estimate is within a factor 3 of the sampling time measured on the same run."""
+
+    def value(i, p):
+        time.sleep(0.005)
+        return p["a"] * np.exp(-p["b"] * i["x"])
+
+    def jacobian(i, p):
+        time.sleep(0.005)
+        e = np.exp(-p["b"] * i["x"])
+        return np.column_stack([e, -p["a"] * i["x"] * e])
+
+    physics = PhysicsModel(
+        value,
+        {"a": Uniform(0.0, 5.0), "b": Uniform(0.0, 3.0)},
+        inputs=["x"],
+        jacobian=jacobian,
+        name="slow decay",
+    )
+    x = np.linspace(0.5, 2.0, 12)
+    rng = np.random.default_rng(SEED)
+    data = CalibrationData(
+        {"x": x}, 2.0 * np.exp(-x) + rng.normal(0.0, 0.05, x.size), noise_sd=0.05
+    )
+    cal, seen = _quiet_calibrate(physics, data, draws=40, tune=40, slow_warning_s=1.0)
+    (text,) = [str(w.message) for w in seen if w.category is SlowSamplingWarning]
+    assert "kohpymc.Emulator" in text and "ms per log-density+gradient evaluation" in text
+    cost = json.loads(cal.idata.attrs["presampling"])["cost"]
+    assert cost["exceeds"] and cost["steps_from"] == "probe"
+    assert 0.005 < cost["seconds_per_evaluation"] < 0.05
+    measured = json.loads(cal.idata.attrs["sampling"])["timings_s"]["sampling"]
+    assert measured / 3 < cost["estimated_seconds"] < 3 * measured, (cost, measured)

@@ -24,11 +24,15 @@ The Laplace geometry at the mode does not predict them where it matters: on a cu
 ridge (``y = a·b·x`` with bounded priors) the whitened posterior looks like a standard
 normal at the mode (a leapfrog probe there turns back after ~4 steps) while NUTS needs
 ~180 steps per draw once its mass matrix has adapted to the whole ridge.  So the probe
-is the sampler itself: :func:`probe_steps` runs :data:`PROBE_ITERATIONS` warm-up
-iterations of nutpie's NUTS on one chain in the sampling coordinates (at most
-``probe_s`` seconds, 20 by default) and counts the evaluations.  Early warm-up costs more
-per iteration than the rest of the run, so the estimate errs on the high side (measured:
-1.2–2× the sampling time on small runs, see the tests).  Without nutpie the Laplace
+is the sampler itself: :func:`probe_steps` runs one chain of nutpie's NUTS in the
+sampling coordinates, :data:`PROBE_ITERATIONS` warm-up iterations then
+:data:`DRAWS_PROBE` draws (at most ``probe_s`` seconds: 5–20 s from
+:class:`PreSampling`), and counts the evaluations in each phase.  The estimate charges
+the first warm-up iterations at the probe's warm-up rate and the rest of the run at its
+draws' rate.  A posterior whose trajectories keep growing as the mass matrix adapts to a
+long curved ridge is underestimated (``y = a·b·x``: 50–90 steps per draw after the
+probe's warm-up, 180 in a 2 × (100 + 100) run), and a probe cut short by its time budget
+sees only early warm-up, which overestimates.  Without nutpie the Laplace
 correlation condition number ``κ`` gives ``4·√κ`` steps (four for a standard normal),
 and a plan without a positive-definite Hessian (a flat direction) the tree-depth limit
 (1023 steps).  Chains share one lock around the Python log density in nutpie, so they
@@ -66,6 +70,7 @@ __all__ = [
     "estimate_cost",
     "mode_parameters",
     "probe_steps",
+    "slow_reasons",
 ]
 
 #: estimated sampling time (seconds) above which :class:`SlowSamplingWarning` is issued
@@ -106,6 +111,12 @@ class CostEstimate:
         Warn above this.
     reasons : list of str
         Why the run is slow (filled when the estimate exceeds the threshold).
+
+    Examples
+    --------
+    >>> cost = CostEstimate(0.0066, 60.0, "probe", 8000, 3168.0, threshold_s=600.0)
+    >>> cost.exceeds, cost.summary()[:7]
+    (True, '~53 min')
     """
 
     seconds_per_evaluation: float
@@ -197,13 +208,13 @@ def probe_steps(
     seconds: float = 20.0,
     target_accept: float = 0.8,
     seed: int = 0,
-) -> tuple[float, int]:
-    """Gradient evaluations per NUTS iteration, from a short warm-up of nutpie's NUTS.
+) -> tuple[float, float, int]:
+    """Gradient evaluations per NUTS iteration, from a short run of nutpie's NUTS.
 
-    One chain of at most ``iterations`` warm-up iterations from near ``z = 0`` (within
-    ±0.5, as the sampler's chains start), stopped after ``seconds``; the evaluations are
-    counted.  Early warm-up (small step sizes, mass matrix not yet adapted) costs more
-    per iteration than the rest of the run, so this errs on the high side.
+    One chain of ``iterations`` warm-up iterations and :data:`DRAWS_PROBE` draws from
+    near ``z = 0`` (within ±0.5, as the sampler's chains start), stopped after
+    ``seconds``; the evaluations are counted in each phase.  Early warm-up (small step
+    sizes, a mass matrix not yet adapted) costs more per iteration than later ones.
 
     Parameters
     ----------
@@ -220,13 +231,14 @@ def probe_steps(
 
     Returns
     -------
-    (evaluations per iteration, iterations finished)
+    (per warm-up iteration, per draw after the warm-up (NaN when not reached),
+    warm-up iterations finished)
 
     Examples
     --------
     >>> import numpy as np
-    >>> per_iteration, done = probe_steps(lambda z: (-0.5 * z @ z, -z), 3, seed=1)
-    >>> 1 <= per_iteration <= 16, done
+    >>> warm_up, after, done = probe_steps(lambda z: (-0.5 * z @ z, -z), 3, seed=1)
+    >>> 1 <= after <= warm_up <= 16, done
     (True, 50)
     """
     import nutpie
@@ -282,9 +294,9 @@ def probe_steps(
     except TimeoutError:
         sampler.cancel()
     done = min(counts["iterations"], iterations)
-    warm = (counts["evaluations"] - counts["after"]) / max(done, 1)
-    after = counts["after"] / max(counts["iterations"] - iterations, 1)
-    return max(warm, after), done
+    warm_up = (counts["evaluations"] - counts["after"]) / max(done, 1)
+    drawn = counts["iterations"] - iterations
+    return warm_up, counts["after"] / drawn if drawn > 0 else float("nan"), done
 
 
 def _laplace_steps(reparam: Reparameterization | None) -> tuple[float, str]:
@@ -357,18 +369,23 @@ def estimate_cost(
     steps, source = _laplace_steps(reparam)
     # a probe only where the tree-depth limit could reach the threshold
     if threshold_s is None or iterations * MAX_STEPS * share > threshold_s:
+        early = max(1, min(PROBE_ITERATIONS, tune))
         try:
-            steps, _ = probe_steps(
+            warm_up, after, _ = probe_steps(
                 logp_grad,
                 space.ndim,
-                iterations=max(1, min(PROBE_ITERATIONS, tune)),
+                iterations=early,
                 seconds=probe_s,
                 target_accept=target_accept,
                 seed=seed,
             )
-            source = "probe"
         except ImportError:
             pass
+        else:
+            after = warm_up if not np.isfinite(after) else after
+            # early warm-up at its own rate; later warm-up and the draws at the draws' rate
+            per_chain = min(early, tune) * warm_up + (draws + max(tune - early, 0)) * after
+            steps, source = per_chain / max(draws + tune, 1), "probe"
     seconds = iterations * steps * share
     return CostEstimate(per_eval, steps, source, iterations, seconds, threshold_s)
 
@@ -517,7 +534,7 @@ class PreSampling:
             parallel=parallel,
             target_accept=self.target_accept,
             threshold_s=self.threshold_s,
-            probe_s=min(20.0, 0.05 * float(self.threshold_s or 0.0)),
+            probe_s=min(20.0, max(5.0, 0.05 * float(self.threshold_s or 0.0))),
             seed=int(settings.get("seed", 0)),
         )
         if not self.cost.exceeds:

@@ -96,11 +96,11 @@ def test_probe_counts_more_steps_on_a_correlated_gaussian():
     def isotropic(z):
         return -0.5 * z @ z, -z
 
-    easy, _ = probe_steps(isotropic, 2, iterations=100, seed=SEED)
-    hard, done = probe_steps(correlated, 2, iterations=100, seed=SEED)
+    easy_warm_up, easy, _ = probe_steps(isotropic, 2, iterations=100, seed=SEED)
+    hard_warm_up, hard, done = probe_steps(correlated, 2, iterations=100, seed=SEED)
     assert done == 100
-    assert easy <= 8
-    assert hard >= 5 * easy
+    assert easy <= 8 and easy_warm_up <= 16
+    assert hard >= 5 * easy and hard_warm_up >= 5 * easy_warm_up
 
 
 def test_probe_stops_at_its_time_budget():
@@ -109,9 +109,9 @@ def test_probe_stops_at_its_time_budget():
         return -0.5 * z @ z, -z
 
     begin = time.perf_counter()
-    per_iteration, done = probe_steps(slow, 2, iterations=1000, seconds=0.5, seed=SEED)
+    warm_up, after, done = probe_steps(slow, 2, iterations=1000, seconds=0.5, seed=SEED)
     assert time.perf_counter() - begin < 3.0
-    assert done < 1000 and per_iteration >= 1
+    assert done < 1000 and warm_up >= 1 and np.isnan(after)
 
 
 def test_reasons_name_a_noisy_gradient_and_suggest_smc():

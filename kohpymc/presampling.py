@@ -231,8 +231,9 @@ def probe_steps(
 
     Returns
     -------
-    (per warm-up iteration, per draw after the warm-up (NaN when not reached),
-    warm-up iterations finished)
+    (per warm-up iteration, per later iteration, warm-up iterations finished)
+        Later: the draws after the warm-up or, when the time budget ends the probe
+        first, the second half of the finished warm-up (NaN with fewer than 8).
 
     Examples
     --------
@@ -244,13 +245,12 @@ def probe_steps(
     import nutpie
     from nutpie.compiled_pyfunc import from_pyfunc
 
-    counts = {"evaluations": 0, "iterations": 0, "after": 0}
+    evaluations = [0]
+    marks: list[int] = []  # evaluations so far at the end of each iteration
 
     def make_logp():
         def logp(z, **_):
-            counts["evaluations"] += 1
-            if counts["iterations"] >= iterations:
-                counts["after"] += 1
+            evaluations[0] += 1
             value, grad = logp_grad(z)
             if not np.isfinite(value) or not np.all(np.isfinite(grad)):
                 return -np.inf, np.zeros(ndim)
@@ -260,7 +260,7 @@ def probe_steps(
 
     def make_expand(seed1, seed2, chain):
         def expand(z, **_):
-            counts["iterations"] += 1
+            marks.append(evaluations[0])
             return {"z": np.array(z, dtype=float)}
 
         return expand
@@ -293,10 +293,27 @@ def probe_steps(
         sampler.wait(timeout=seconds)
     except TimeoutError:
         sampler.cancel()
-    done = min(counts["iterations"], iterations)
-    warm_up = (counts["evaluations"] - counts["after"]) / max(done, 1)
-    drawn = counts["iterations"] - iterations
-    return warm_up, counts["after"] / drawn if drawn > 0 else float("nan"), done
+    return _rates(list(marks), evaluations[0], iterations)
+
+
+def _rates(marks: list[int], evaluations: int, iterations: int) -> tuple[float, float, int]:
+    """Evaluations per warm-up iteration and per later iteration, from the marks.
+
+    Later: the draws after the warm-up, else the second half of a warm-up cut short
+    (NaN with fewer than 8 warm-up iterations finished).  With none finished, the
+    evaluations so far stand for the first iteration (a lower bound).
+    """
+    per = np.diff(np.asarray([0, *marks], dtype=float))
+    warm, drawn = per[:iterations], per[iterations:]
+    if warm.size == 0:
+        return float(max(evaluations, 1)), float("nan"), 0
+    if drawn.size:
+        later = float(drawn.mean())
+    elif warm.size >= 8:
+        later = float(warm[warm.size // 2 :].mean())
+    else:
+        later = float("nan")
+    return float(warm.mean()), later, int(warm.size)
 
 
 def _laplace_steps(reparam: Reparameterization | None) -> tuple[float, str]:

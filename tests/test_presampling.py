@@ -111,7 +111,21 @@ def test_probe_stops_at_its_time_budget():
     begin = time.perf_counter()
     warm_up, after, done = probe_steps(slow, 2, iterations=1000, seconds=0.5, seed=SEED)
     assert time.perf_counter() - begin < 3.0
-    assert done < 1000 and warm_up >= 1 and np.isnan(after)
+    assert 0 < done < 1000 and warm_up >= 1 and not after > 3 * warm_up
+
+
+def test_rates_split_the_warm_up_from_the_draws():
+    from kohpymc.presampling import _rates
+
+    # 10 warm-up iterations of 7 then 3 evaluations (5 each), then 2 draws of 4
+    per = [7] * 5 + [3] * 5 + [4, 4]
+    marks = list(np.cumsum(per))
+    assert _rates(marks, marks[-1], 10) == (5.0, 4.0, 10)
+    assert _rates(marks[:10], marks[9], 10) == (5.0, 3.0, 10)  # cut short: second half
+    early = _rates(marks[:3], marks[2], 10)  # too few for a later rate
+    assert early[0] == 7.0 and np.isnan(early[1]) and early[2] == 3
+    none = _rates([], 12, 10)  # no iteration finished: a lower bound
+    assert none[0] == 12.0 and np.isnan(none[1]) and none[2] == 0
 
 
 def test_reasons_name_a_noisy_gradient_and_suggest_smc():

@@ -27,12 +27,13 @@ normal at the mode (a leapfrog probe there turns back after ~4 steps) while NUTS
 is the sampler itself: :func:`probe_steps` runs one chain of nutpie's NUTS in the
 sampling coordinates, :data:`PROBE_ITERATIONS` warm-up iterations then
 :data:`DRAWS_PROBE` draws (at most ``probe_s`` seconds: 5–20 s from
-:class:`PreSampling`), and counts the evaluations in each phase.  The estimate charges
-the first warm-up iterations at the probe's warm-up rate and the rest of the run at its
-draws' rate.  A posterior whose trajectories keep growing as the mass matrix adapts to a
-long curved ridge is underestimated (``y = a·b·x``: 50–90 steps per draw after the
-probe's warm-up, 180 in a 2 × (100 + 100) run), and a probe cut short by its time budget
-sees only early warm-up, which overestimates.  Without nutpie the Laplace
+:class:`PreSampling`), and counts the evaluations of every iteration.  The estimate
+charges each chain the probe's finished warm-up iterations as counted (they are a prefix
+of the chain's own warm-up) and the rest of the run at the probe's later rate (its
+draws, or the second half of a warm-up cut short by the time budget).  A posterior whose
+trajectories keep growing as the mass matrix adapts to a long curved ridge is
+underestimated (``y = a·b·x``: 50–90 steps per draw after the probe's warm-up, 180 in a
+2 × (100 + 100) run).  Without nutpie the Laplace
 correlation condition number ``κ`` gives ``4·√κ`` steps (four for a standard normal),
 and a plan without a positive-definite Hessian (a flat direction) the tree-depth limit
 (1023 steps).  Chains share one lock around the Python log density in nutpie, so they
@@ -388,7 +389,7 @@ def estimate_cost(
     if threshold_s is None or iterations * MAX_STEPS * share > threshold_s:
         early = max(1, min(PROBE_ITERATIONS, tune))
         try:
-            warm_up, after, _ = probe_steps(
+            warm_up, after, done = probe_steps(
                 logp_grad,
                 space.ndim,
                 iterations=early,
@@ -400,8 +401,9 @@ def estimate_cost(
             pass
         else:
             after = warm_up if not np.isfinite(after) else after
-            # early warm-up at its own rate; later warm-up and the draws at the draws' rate
-            per_chain = min(early, tune) * warm_up + (draws + max(tune - early, 0)) * after
+            # the probed iterations as counted (a prefix of each chain's warm-up), the
+            # rest of the warm-up and the draws at the later rate
+            per_chain = done * warm_up + max(draws + tune - done, 0) * after
             steps, source = per_chain / max(draws + tune, 1), "probe"
     seconds = iterations * steps * share
     return CostEstimate(per_eval, steps, source, iterations, seconds, threshold_s)

@@ -26,7 +26,7 @@ normal at the mode (a leapfrog probe there turns back after ~4 steps) while NUTS
 ~180 steps per draw once its mass matrix has adapted to the whole ridge.  So the probe
 is the sampler itself: :func:`probe_steps` runs one chain of nutpie's NUTS in the
 sampling coordinates, :data:`PROBE_ITERATIONS` warm-up iterations then
-:data:`DRAWS_PROBE` draws (at most ``probe_s`` seconds: 5–20 s from
+:data:`DRAWS_PROBE` draws (at most ``probe_s`` seconds: 10–20 s from
 :class:`PreSampling`), and counts the evaluations of every iteration.  The estimate
 charges each chain the probe's finished warm-up iterations as counted (they are a prefix
 of the chain's own warm-up) and the rest of the run at the probe's later rate (its
@@ -553,7 +553,7 @@ class PreSampling:
             parallel=parallel,
             target_accept=self.target_accept,
             threshold_s=self.threshold_s,
-            probe_s=min(20.0, max(5.0, 0.05 * float(self.threshold_s or 0.0))),
+            probe_s=min(20.0, max(10.0, 0.05 * float(self.threshold_s or 0.0))),
             seed=int(settings.get("seed", 0)),
         )
         if not self.cost.exceeds:

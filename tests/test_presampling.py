@@ -68,7 +68,7 @@ def test_a_structural_product_ridge_is_named_at_the_mode():
     )
     rng = np.random.default_rng(SEED)
     data = CalibrationData({"x": x}, 3.0 * x + rng.normal(0.0, 0.05, x.size), noise_sd=0.05)
-    cal, seen = _quiet_calibrate(physics, data, draws=20, tune=20, slow_warning_s=None)
+    cal, seen = _quiet_calibrate(physics, data, draws=20, tune=20, slow_warning_s=1e-3)
     report = cal.identifiability_at_mode
     assert report.rank == 1 and report.structural is True
     a, b = report.point["a"], report.point["b"]
@@ -81,6 +81,46 @@ def test_a_structural_product_ridge_is_named_at_the_mode():
         if w.category is IdentifiabilityWarning and "posterior mode" in str(w.message)
     ]
     assert "rank 1 of 2" in text and "entering only as a·b" in text and "structural" in text
+    # a (deliberately tiny) time threshold: the slow-run warning names the ridge too
+    (slow,) = [str(w.message) for w in seen if w.category is SlowSamplingWarning]
+    assert "at the posterior mode a and b are confounded" in slow
+
+
+@pytest.mark.slow  # 17 s idle, ~70-150 s loaded: the mode search and a <= 20 s probe
+def test_dielectric_m0_is_identified_at_the_mode_and_its_cost_is_estimated():
+    """The stand-in's trap parameters have no effect at the prior centre (rank 4 of 7) but
+    are informed at the fit; the weak direction there is the Fowler–Nordheim B² ridge
+    (Δln Φ_B : Δln m* ≈ 1 : -3), and NUTS needs tens of leapfrog steps per draw (59-69
+    measured in 1-chain runs)."""
+    from kohpymc.examples import dielectric as d
+    from kohpymc.identifiability import model_taylor_check
+    from kohpymc.model import compose_model
+    from kohpymc.presampling import PreSampling
+    from kohpymc.reparameterization import plan
+    from kohpymc.sampling import _user_starts
+    from kohpymc.value_space import value_space
+
+    data, _ = d.split_calibration_validation(d.generate_data(seed=0))
+    physics, form = d.physics_model(), d.formulations()["M0"]
+    fit = d.least_squares_fit(data)
+    built = compose_model(physics, data, form)
+    plain = compose_model(physics, data, form, marginalize=False)
+    assert model_taylor_check(plain).rank < 7
+    space = value_space(built.model)
+    reparam = plan(space, _user_starts(space, [fit]), seed=SEED)
+    hook = PreSampling(plain, physics, data.inputs, label="M0", target_accept=0.9)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        settings = dict(draws=1000, tune=1000, chains=4, cores=2, seed=SEED, sampler="nutpie")
+        hook(space, reparam, settings)
+    report = hook.report
+    assert report.identifiable and set(report.weak_direction) == {"phi_B", "m_eff"}
+    log_ratio = (report.weak_direction["m_eff"] / report.point["m_eff"]) / (
+        report.weak_direction["phi_B"] / report.point["phi_B"]
+    )
+    assert -3.5 < log_ratio < -2.5  # B ∝ √m*·Φ_B^1.5 fixed: Δln m* = -3 Δln Φ_B
+    assert any("practically non-identifiable" in str(w.message) for w in seen)
+    assert hook.cost.steps_from == "probe" and 20 < hook.cost.steps_per_draw < 300
 
 
 def test_probe_counts_more_steps_on_a_correlated_gaussian():

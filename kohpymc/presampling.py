@@ -244,10 +244,39 @@ def probe_steps(
     (True, 50)
     """
     import nutpie
+
+    compiled, evaluations, marks = _counting_model(logp_grad, ndim, seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        sampler = nutpie.sample(
+            compiled,
+            draws=DRAWS_PROBE,
+            tune=iterations,
+            chains=1,
+            cores=1,
+            seed=seed,
+            progress_bar=False,
+            target_accept=target_accept,
+            init_mean=np.zeros(ndim),
+            blocking=False,
+        )
+    try:
+        sampler.wait(timeout=seconds)
+    except TimeoutError:
+        sampler.cancel()
+    return _rates(list(marks), evaluations[0], iterations)
+
+
+def _counting_model(logp_grad: Callable, ndim: int, seed: int):
+    """Nutpie's model of ``logp_grad`` that counts evaluations and marks each iteration.
+
+    Returns the compiled model, the evaluation counter (a one-element list) and the
+    list of the counter's values at the end of each iteration.
+    """
     from nutpie.compiled_pyfunc import from_pyfunc
 
     evaluations = [0]
-    marks: list[int] = []  # evaluations so far at the end of each iteration
+    marks: list[int] = []
 
     def make_logp():
         def logp(z, **_):
@@ -276,25 +305,7 @@ def probe_steps(
         ["z"],
         make_initial_point_fn=lambda _: rng.uniform(-0.5, 0.5, size=ndim),
     )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
-        sampler = nutpie.sample(
-            compiled,
-            draws=DRAWS_PROBE,
-            tune=iterations,
-            chains=1,
-            cores=1,
-            seed=seed,
-            progress_bar=False,
-            target_accept=target_accept,
-            init_mean=np.zeros(ndim),
-            blocking=False,
-        )
-    try:
-        sampler.wait(timeout=seconds)
-    except TimeoutError:
-        sampler.cancel()
-    return _rates(list(marks), evaluations[0], iterations)
+    return compiled, evaluations, marks
 
 
 def _rates(marks: list[int], evaluations: int, iterations: int) -> tuple[float, float, int]:

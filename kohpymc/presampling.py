@@ -155,6 +155,11 @@ class CostEstimate:
         )
 
 
+def _first_line(err: BaseException) -> str:
+    """``TypeName: first line of the message`` (at most 300 characters)."""
+    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:300]}"
+
+
 def _duration(seconds: float) -> str:
     """``"45 s"``, ``"12 min"``, ``"3.1 h"``."""
     if seconds < 120:
@@ -539,8 +544,8 @@ class PreSampling:
             self.report = check_at_point(
                 self.plain, point, physics=self.physics, inputs=self.inputs
             )
-        except (ValueError, KeyError) as err:
-            self.notes.append(f"identifiability at the mode skipped: {err}")
+        except Exception as err:  # noqa: BLE001 - a check must not stop the calibration
+            self.notes.append(f"identifiability at the mode skipped: {_first_line(err)}")
             return
         text = ridge_text(self.report)
         if not text:
@@ -555,18 +560,25 @@ class PreSampling:
 
     def _estimate(self, space, reparam, settings) -> None:
         parallel = 1 if settings.get("sampler", "nutpie") == "nutpie" else settings["cores"]
-        self.cost = estimate_cost(
-            space,
-            reparam,
-            draws=settings["draws"],
-            tune=settings["tune"],
-            chains=settings["chains"],
-            parallel=parallel,
-            target_accept=self.target_accept,
-            threshold_s=self.threshold_s,
-            probe_s=min(20.0, max(10.0, 0.05 * float(self.threshold_s or 0.0))),
-            seed=int(settings.get("seed", 0)),
-        )
+        try:
+            self.cost = estimate_cost(
+                space,
+                reparam,
+                draws=settings["draws"],
+                tune=settings["tune"],
+                chains=settings["chains"],
+                parallel=parallel,
+                target_accept=self.target_accept,
+                threshold_s=self.threshold_s,
+                probe_s=min(20.0, max(10.0, 0.05 * float(self.threshold_s or 0.0))),
+                seed=int(settings.get("seed", 0)),
+            )
+        # nutpie's Rust panics arrive as pyo3's PanicException, a BaseException
+        except BaseException as err:  # noqa: BLE001 - an estimate must not stop the run
+            if isinstance(err, KeyboardInterrupt | SystemExit | GeneratorExit):
+                raise
+            self.notes.append(f"sampling-time estimate skipped: {_first_line(err)}")
+            return
         if not self.cost.exceeds:
             return
         self.cost.reasons = slow_reasons(self.cost, reparam, self.report)

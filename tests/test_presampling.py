@@ -216,3 +216,22 @@ def test_cost_estimate_warns_and_matches_the_measured_time():
     assert 0.005 < cost["seconds_per_evaluation"] < 0.05
     measured = json.loads(cal.idata.attrs["sampling"])["timings_s"]["sampling"]
     assert measured / 3 < cost["estimated_seconds"] < 3 * measured, (cost, measured)
+
+
+def test_a_failing_check_or_probe_is_noted_not_raised(monkeypatch):
+    """The checks before sampling never stop a calibration: what failed is in the notes."""
+    import kohpymc.presampling as presampling
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("probe exploded\nsecond line")
+
+    monkeypatch.setattr(presampling, "estimate_cost", broken)
+    monkeypatch.setattr(presampling, "check_at_point", broken)
+    physics, data = _hinge()
+    cal, _ = _quiet_calibrate(physics, data, draws=10, tune=10, slow_warning_s=1.0)
+    notes = json.loads(cal.idata.attrs["presampling"])["notes"]
+    assert notes == [
+        "identifiability at the mode skipped: RuntimeError: probe exploded",
+        "sampling-time estimate skipped: RuntimeError: probe exploded",
+    ]
+    assert cal.identifiability_at_mode is None and cal.posterior["t"].size == 10

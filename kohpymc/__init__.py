@@ -60,6 +60,7 @@ from kohpymc.multi_output import (
     run_multi_output_study,
 )
 from kohpymc.physics import PhysicsModel, PhysicsModelError
+from kohpymc.presampling import SlowSamplingWarning
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
 from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
 from kohpymc.sbc import CalibrationCheck, check_calibration
@@ -95,6 +96,7 @@ __all__ = [
     "prior_box",
     "sampler_diagnostics",
     "SamplerTroubleWarning",
+    "SlowSamplingWarning",
     # several outputs calibrating one θ jointly
     "MultiOutputData",
     "MultiOutputPhysics",

@@ -17,7 +17,7 @@ from kohpymc.calibration import Calibration, calibrate, predict
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
 from kohpymc.config import StudyConfigError, StudySpec, load_study
 from kohpymc.data import CalibrationData, pooled_replicate_sd
-from kohpymc.diagnostics import SamplerTroubleWarning, sampler_diagnostics
+from kohpymc.diagnostics import SamplerTroubleWarning, SlowSamplingWarning, sampler_diagnostics
 from kohpymc.discovery import DiscoveryReport, discover
 from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation class
 from kohpymc.emulator import (
@@ -60,7 +60,6 @@ from kohpymc.multi_output import (
     run_multi_output_study,
 )
 from kohpymc.physics import PhysicsModel, PhysicsModelError
-from kohpymc.presampling import SlowSamplingWarning
 from kohpymc.priors import Custom, HalfNormal, LogNormal, Normal, Prior, Uniform
 from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
 from kohpymc.sbc import CalibrationCheck, check_calibration

@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from kohpymc.diagnostics import SamplerTroubleWarning
+from kohpymc.diagnostics import SlowSamplingWarning
 from kohpymc.identifiability import (
     IdentifiabilityReport,
     IdentifiabilityWarning,
@@ -86,10 +86,6 @@ MAX_STEPS = 1023
 EXPENSIVE_S = 1e-3
 #: steps per draw above which trajectories are called long
 LONG_STEPS = 32
-
-
-class SlowSamplingWarning(SamplerTroubleWarning):
-    """The sampling run is estimated to take longer than the threshold (before it starts)."""
 
 
 @dataclass

@@ -17,7 +17,7 @@ from kohpymc.calibration import Calibration, calibrate, predict
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
 from kohpymc.config import StudyConfigError, StudySpec, load_study
 from kohpymc.data import CalibrationData, pooled_replicate_sd
-from kohpymc.diagnostics import SamplerTroubleWarning, sampler_diagnostics
+from kohpymc.diagnostics import SamplerTroubleWarning, SlowSamplingWarning, sampler_diagnostics
 from kohpymc.discovery import DiscoveryReport, discover
 from kohpymc.discrepancy import *  # noqa: F403 - every registered formulation class
 from kohpymc.emulator import (
@@ -96,6 +96,7 @@ __all__ = [
     "prior_box",
     "sampler_diagnostics",
     "SamplerTroubleWarning",
+    "SlowSamplingWarning",
     # several outputs calibrating one θ jointly
     "MultiOutputData",
     "MultiOutputPhysics",

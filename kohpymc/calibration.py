@@ -39,6 +39,7 @@ from kohpymc.identifiability import (
 from kohpymc.loo import pointwise_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
+from kohpymc.presampling import SLOW_SAMPLING_S, PreSampling
 from kohpymc.priors import Prior
 from kohpymc.sampling import one_blas_thread, sample_posterior
 
@@ -74,6 +75,10 @@ class Calibration:
         Sampler trouble (r̂, divergences, ESS), empty when none.
     identifiability : IdentifiabilityReport or None
         The Taylor check at the prior centre (``None`` when skipped).
+    identifiability_at_mode : IdentifiabilityReport or None
+        The same check at the posterior mode found before sampling (``None`` when
+        skipped or without a mode); with the mode and the sampling-time estimate in
+        ``idata.attrs["presampling"]`` (:mod:`kohpymc.presampling`).
     noise_sd_prior : Prior or None
         Prior of σ_obs used (``None``: the default or a known noise sd).
 
@@ -97,6 +102,7 @@ class Calibration:
     problems: list[str] = field(default_factory=list)
     identifiability: IdentifiabilityReport | None = None
     noise_sd_prior: Prior | dict[str, Any] | None = None
+    identifiability_at_mode: IdentifiabilityReport | None = None
 
     @property
     def label(self) -> str:
@@ -229,6 +235,7 @@ def calibrate(
     noise_sd_prior: Prior | dict[str, Any] | None = None,
     warn: bool = True,
     check_identifiability: bool = True,
+    slow_warning_s: float | None = SLOW_SAMPLING_S,
     method: Literal["nuts", "smc"] | None = None,
     nuts_sampler: Literal["pymc", "nutpie"] | None = None,
     **sample_kwargs: Any,
@@ -277,6 +284,15 @@ def calibrate(
         (:func:`kohpymc.identifiability.check_formulation`) at the prior centre; a rank
         deficit gives an :class:`~kohpymc.identifiability.IdentifiabilityWarning` naming
         the confounded combination.  The report is :attr:`Calibration.identifiability`.
+        Once the posterior mode is found the check is repeated there
+        (:attr:`Calibration.identifiability_at_mode`), warning on a rank deficit or an
+        ill-conditioned (practically non-identifiable) combination.
+    slow_warning_s : float or None
+        Before NUTS starts, estimate the sampling time (evaluation cost at the mode ×
+        leapfrog steps per draw × iterations, :mod:`kohpymc.presampling`) and issue a
+        :class:`~kohpymc.presampling.SlowSamplingWarning` with the reasons when it
+        exceeds this many seconds (default 600); ``None``: no estimate.  The run goes
+        ahead either way; the estimate is in ``idata.attrs["presampling"]``.
     **sample_kwargs :
         Any other keyword for :func:`pymc.sample` / :func:`pymc.sample_smc`.
 
@@ -305,6 +321,14 @@ def calibrate(
         physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
     )
     report = _identifiability(plain, physics) if check_identifiability else None
+    presampling = PreSampling(
+        plain if check_identifiability else None,
+        physics,
+        data.inputs,
+        label=f"{discrepancy.label} with {physics.name!r}",
+        threshold_s=slow_warning_s,
+        target_accept=target_accept or discrepancy.default_target_accept,
+    )
     idata, sampling = sample_posterior(
         built.model,
         sampler=chosen,
@@ -319,12 +343,14 @@ def calibrate(
         mode=mode,
         sample_kwargs=sample_kwargs,
         variance_pairs=_variance_pairs(discrepancy),
+        before_sampling=presampling,
     )
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
     problems = convergence_problems(idata) if sampling.sampler != "smc" else []
     problems += [
-        _explained(text, report) for text in sampling.reparameterization.get("warnings", [])
+        _explained(text, presampling.explaining(report))
+        for text in sampling.reparameterization.get("warnings", [])
     ]
     idata.attrs.update(
         {
@@ -338,6 +364,7 @@ def calibrate(
             "reparameterization": sampling.reparameterization.get("kind", "none"),
             "compile_mode": sampling.compile_mode,
             "wall_time_s": sum(sampling.timings.values()),
+            "presampling": json.dumps(presampling.to_dict()),
         }
     )
     if problems and warn:
@@ -346,7 +373,10 @@ def calibrate(
             SamplerTroubleWarning,
             stacklevel=2,
         )
-    return Calibration(physics, data, discrepancy, built, idata, problems, report, noise_sd_prior)
+    return Calibration(
+        physics, data, discrepancy, built, idata, problems, report, noise_sd_prior,
+        presampling.report,
+    )  # fmt: skip
 
 
 @one_blas_thread()

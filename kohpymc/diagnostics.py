@@ -16,6 +16,7 @@ import pandas as pd
 
 __all__ = [
     "SamplerTroubleWarning",
+    "SlowSamplingWarning",
     "sampler_diagnostics",
     "convergence_problems",
     "RHAT_MAX",
@@ -30,6 +31,13 @@ ESS_MIN = 400
 
 class SamplerTroubleWarning(UserWarning):
     """Issued when r̂, ESS, divergences or tree-depth hits indicate an unreliable posterior."""
+
+
+class SlowSamplingWarning(SamplerTroubleWarning):
+    """The sampling run is estimated to take longer than a threshold (before it starts).
+
+    Issued by :class:`kohpymc.presampling.PreSampling`, with the estimate and its reasons.
+    """
 
 
 def n_divergences(idata: az.InferenceData) -> int | None:

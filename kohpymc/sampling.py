@@ -27,7 +27,7 @@ import importlib.util
 import threading
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -146,6 +146,7 @@ def sample_posterior(
     sample_kwargs: Mapping[str, Any] | None = None,
     variance_pairs: Sequence[Sequence[str]] = (),
     space: ValueSpace | None = None,
+    before_sampling: Callable[..., None] | None = None,
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
 
@@ -176,6 +177,11 @@ def sample_posterior(
     space : ValueSpace, optional
         ``value_space(model)`` compiled earlier, to sample without compiling again (e.g.
         many data sets swapped into one model's shared variables); default: compile now.
+    before_sampling : callable, optional
+        Called as ``before_sampling(space, reparam, settings)`` after the mode is found
+        and before the NUTS sampler starts (``settings``: draws, tune, chains, cores,
+        seed, sampler), e.g. :class:`kohpymc.presampling.PreSampling`; its time is
+        ``timings["presampling"]``.
 
     Returns
     -------
@@ -219,6 +225,10 @@ def sample_posterior(
         report.timings["compile"] = time.perf_counter() - start
         shares = variance_shares(space, variance_pairs)
         reparam = _plan(space, starts, seed, reparameterize, report, shares)
+        if before_sampling is not None:
+            begin = time.perf_counter()
+            before_sampling(space, reparam, {**settings, "sampler": name})
+            report.timings["presampling"] = time.perf_counter() - begin
         report_phase("sampling")
         idata: az.InferenceData | None = None
         failures: list[str] = []

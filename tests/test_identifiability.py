@@ -358,3 +358,29 @@ def test_weak_direction_names_a_power_law_ridge():
     # well conditioned: nothing to name
     well = analyse_matrix(np.column_stack([x, x**2]), ["p", "q"])
     assert well.weak_direction == {} and well.weakly_informed() == ""
+
+
+def test_check_at_point_names_the_product_and_calls_it_structural():
+    """y = a·b·x: at (a, b) = (1.5, 2) the output is unchanged along Δa/a = -Δb/b, i.e.
+    Δa : Δb = 1 : -b/a (computed by hand), and a denser design keeps the deficit."""
+    from kohpymc.identifiability import check_at_point, ridge_text
+    from kohpymc.model import compose_model
+
+    x = np.linspace(0.5, 2.0, 8)
+    physics = PhysicsModel(
+        lambda i, p: p["a"] * p["b"] * i["x"],
+        {"a": Uniform(0.1, 10.0), "b": Uniform(0.5, 20.0)},
+        inputs=["x"],
+    )
+    built = compose_model(
+        physics, CalibrationData({"x": x}, 3.0 * x, noise_sd=0.1), marginalize=False
+    )
+    report = check_at_point(built, {"a": 1.5, "b": 2.0}, physics=physics, inputs={"x": x})
+    assert report.rank == 1 and report.structural is True
+    (direction,) = report.null_directions
+    assert direction["b"] / direction["a"] == pytest.approx(-2.0 / 1.5, rel=1e-4)
+    text = ridge_text(report)
+    assert "consistent with their entering only as a·b" in text and "structural" in text
+    # the same point given for a only: b stays at its prior centre (10.25)
+    at_centre_b = check_at_point(built, {"a": 1.5})
+    assert at_centre_b.point["b"] == pytest.approx(10.25) and at_centre_b.structural is None

@@ -27,9 +27,13 @@ Layers:
 * :mod:`~kohpymc.identifiability.physics_check`: the Taylor check of physics models alone;
 * :mod:`~kohpymc.identifiability.model_check`: the Taylor check of a formulation's PyMC
   model;
-* :mod:`~kohpymc.identifiability.fisher`: the Fisher-information check of all parameters.
+* :mod:`~kohpymc.identifiability.fisher`: the Fisher-information check of all parameters;
+* :mod:`~kohpymc.identifiability.at_mode`: the check at a point the data choose (the
+  posterior mode, which :func:`kohpymc.calibrate` finds before sampling) and its verdict
+  in words.
 """
 
+from kohpymc.identifiability.at_mode import check_at_point, ridge_text
 from kohpymc.identifiability.fisher import fisher_information_check
 from kohpymc.identifiability.model_check import check_formulation, model_taylor_check
 from kohpymc.identifiability.physics_check import sensitivity_matrix, taylor_check
@@ -51,5 +55,7 @@ __all__ = [
     "check_formulation",
     "model_taylor_check",
     "fisher_information_check",
+    "check_at_point",
+    "ridge_text",
     "RTOL",
 ]

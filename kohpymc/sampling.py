@@ -43,7 +43,7 @@ from kohpymc.value_space import ValueSpace, value_space
 __all__ = [
     "SAMPLERS",
     "SamplingReport",
-    "chain_threads",
+    "evaluation_seconds",
     "choose_sampler",
     "sample_posterior",
     "variance_shares",
@@ -72,7 +72,8 @@ class SamplingReport:
         ``"NUMBA"`` or ``"C"``: the PyTensor backend of the log density, and why when
         NUMBA was wanted but failed (``"C (NUMBA failed: ...)"``).
     chain_threads : int
-        Threads the chains ran on (see :func:`chain_threads`).
+        Threads nutpie's chains ran on: one, since every chain calls the log density
+        through one lock.
     evaluation_s : float
         Seconds per log density and gradient at the mode, as measured before sampling.
     """
@@ -156,7 +157,9 @@ def sample_posterior(
     sampler : {"nutpie", "pymc", "smc"}, optional
         Default ``"nutpie"``.
     draws, tune, chains, cores, target_accept, random_seed, progressbar :
-        The usual sampler settings (``cores`` defaults to ``min(chains, 2)``).
+        The usual sampler settings (``cores`` defaults to ``min(chains, 2)``; it sets
+        PyMC's and SMC's processes: nutpie's chains share one thread, see
+        :attr:`SamplingReport.chain_threads`).
     reparameterize : bool
         Find the mode and whiten the sampling coordinates (NUTS samplers only).
     starts : sequence of dict
@@ -366,17 +369,8 @@ def _compiled_space(model: pm.Model, mode: str | None, report: SamplingReport) -
     return space
 
 
-#: Seconds per evaluation below which the chains share one thread.  nutpie calls the log
-#: density from Python, under the GIL: on the beam (0.05–0.1 ms per evaluation) two
-#: chain threads contending for it sampled slower than one (M4: 28.7 s vs 18.1 s).
-THREADED_EVALUATION_S = 2e-3
-
-
-def chain_threads(space: ValueSpace, mapping: Reparameterization, cores: int) -> tuple[int, float]:
-    """Threads for the chains, and the measured seconds per log density and gradient.
-
-    ``cores`` threads when an evaluation takes at least :data:`THREADED_EVALUATION_S`
-    (long numpy work releases the GIL, so chains overlap), else one.
+def evaluation_seconds(space: ValueSpace, mapping: Reparameterization) -> float:
+    """Seconds per log density and gradient at the mode (median of five calls).
 
     Examples
     --------
@@ -384,8 +378,8 @@ def chain_threads(space: ValueSpace, mapping: Reparameterization, cores: int) ->
     >>> with pm.Model() as model:
     ...     mu = pm.Normal("mu", 0.0, 10.0)
     >>> space = value_space(model)
-    >>> chain_threads(space, _identity_map(space), cores=2)[0]
-    1
+    >>> evaluation_seconds(space, _identity_map(space)) < 1.0
+    True
     """
     z = np.zeros(space.ndim)
     seconds = []
@@ -393,8 +387,7 @@ def chain_threads(space: ValueSpace, mapping: Reparameterization, cores: int) ->
         start = time.perf_counter()
         mapping.logp_dlogp(space, z, safe=True)
         seconds.append(time.perf_counter() - start)
-    per_evaluation = float(np.median(seconds))
-    return (max(int(cores), 1) if per_evaluation >= THREADED_EVALUATION_S else 1), per_evaluation
+    return float(np.median(seconds))
 
 
 def _run_nutpie(
@@ -416,8 +409,7 @@ def _run_nutpie(
 
     mapping = reparam if reparam is not None else _identity_map(space)
     compiled = _nutpie_model(space, mapping, failures)
-    threads, report.evaluation_s = chain_threads(space, mapping, settings["cores"])
-    report.chain_threads = threads
+    report.evaluation_s = evaluation_seconds(space, mapping)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
         return nutpie.sample(
@@ -425,7 +417,9 @@ def _run_nutpie(
             draws=settings["draws"],
             tune=settings["tune"],
             chains=settings["chains"],
-            cores=threads,
+            # one thread: the chains' calls go through one lock (below) and the GIL, so a
+            # second thread only adds contention (beam M4: 28.7 s on two threads, 18.1 s on one)
+            cores=1,
             seed=settings["seed"],
             progress_bar=progressbar,
             target_accept=target_accept,

@@ -216,6 +216,32 @@ def _variance_pairs(discrepancy: Discrepancy) -> list[tuple[str, str, str]]:
     return [] if partner is None else [("sigma_obs", *partner)]
 
 
+def _record_provenance(
+    idata: az.InferenceData,
+    physics: PhysicsModel,
+    data: CalibrationData,
+    discrepancy: Discrepancy,
+    sampling: Any,
+    presampling: Any,
+) -> None:
+    """What ran, in ``idata.attrs``: formulation, physics, noise, sampler, timings."""
+    idata.attrs.update(
+        {
+            "formulation": discrepancy.label,
+            "formulation_description": discrepancy.description,
+            "physics": physics.name,
+            "noise_sd": -1.0 if data.noise_sd is None else float(data.noise_sd),
+            "method": "smc" if sampling.sampler == "smc" else "nuts",
+            "sampler": sampling.sampler,
+            "sampling": json.dumps(sampling.to_dict()),
+            "reparameterization": sampling.reparameterization.get("kind", "none"),
+            "compile_mode": sampling.compile_mode,
+            "wall_time_s": sum(sampling.timings.values()),
+            "presampling": json.dumps(presampling.to_dict()),
+        }
+    )
+
+
 @one_blas_thread()
 def calibrate(
     physics: PhysicsModel,
@@ -352,21 +378,7 @@ def calibrate(
         _explained(text, presampling.explaining(report))
         for text in sampling.reparameterization.get("warnings", [])
     ]
-    idata.attrs.update(
-        {
-            "formulation": discrepancy.label,
-            "formulation_description": discrepancy.description,
-            "physics": physics.name,
-            "noise_sd": -1.0 if data.noise_sd is None else float(data.noise_sd),
-            "method": "smc" if sampling.sampler == "smc" else "nuts",
-            "sampler": sampling.sampler,
-            "sampling": json.dumps(sampling.to_dict()),
-            "reparameterization": sampling.reparameterization.get("kind", "none"),
-            "compile_mode": sampling.compile_mode,
-            "wall_time_s": sum(sampling.timings.values()),
-            "presampling": json.dumps(presampling.to_dict()),
-        }
-    )
+    _record_provenance(idata, physics, data, discrepancy, sampling, presampling)
     if problems and warn:
         warnings.warn(
             f"{discrepancy.label} calibration of {physics.name!r}: " + "; ".join(problems),

@@ -43,7 +43,6 @@ from kohpymc.value_space import ValueSpace, value_space
 __all__ = [
     "SAMPLERS",
     "SamplingReport",
-    "evaluation_seconds",
     "choose_sampler",
     "sample_posterior",
     "variance_shares",
@@ -74,8 +73,6 @@ class SamplingReport:
     chain_threads : int
         Threads nutpie's chains ran on: one, since every chain calls the log density
         through one lock.
-    evaluation_s : float
-        Seconds per log density and gradient at the mode, as measured before sampling.
     """
 
     sampler: str
@@ -86,7 +83,6 @@ class SamplingReport:
     failed_evaluations: int = 0
     compile_mode: str = "C"
     chain_threads: int = 1
-    evaluation_s: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for provenance."""
@@ -99,7 +95,6 @@ class SamplingReport:
             "failed_evaluations": self.failed_evaluations,
             "compile_mode": self.compile_mode,
             "chain_threads": self.chain_threads,
-            "evaluation_s": float(self.evaluation_s) if np.isfinite(self.evaluation_s) else None,
         }
 
 
@@ -238,7 +233,7 @@ def sample_posterior(
         if name == "nutpie":
             try:
                 idata = _run_nutpie(
-                    space, reparam, settings, target_accept, progressbar, kwargs, failures, report
+                    space, reparam, settings, target_accept, progressbar, kwargs, failures
                 )
             # nutpie's Rust panics arrive as pyo3's PanicException, a BaseException
             except BaseException as err:  # noqa: BLE001 - any failure falls back
@@ -369,27 +364,6 @@ def _compiled_space(model: pm.Model, mode: str | None, report: SamplingReport) -
     return space
 
 
-def evaluation_seconds(space: ValueSpace, mapping: Reparameterization) -> float:
-    """Seconds per log density and gradient at the mode (median of five calls).
-
-    Examples
-    --------
-    >>> import pymc as pm
-    >>> with pm.Model() as model:
-    ...     mu = pm.Normal("mu", 0.0, 10.0)
-    >>> space = value_space(model)
-    >>> evaluation_seconds(space, _identity_map(space)) < 1.0
-    True
-    """
-    z = np.zeros(space.ndim)
-    seconds = []
-    for _ in range(5):
-        start = time.perf_counter()
-        mapping.logp_dlogp(space, z, safe=True)
-        seconds.append(time.perf_counter() - start)
-    return float(np.median(seconds))
-
-
 def _run_nutpie(
     space: ValueSpace,
     reparam: Reparameterization | None,
@@ -398,7 +372,6 @@ def _run_nutpie(
     progressbar: bool,
     kwargs: dict[str, Any],
     failures: list[str],
-    report: SamplingReport,
 ) -> az.InferenceData:
     """Nutpie's NUTS on the sampling coordinates ``z`` through a Python log density.
 
@@ -409,7 +382,6 @@ def _run_nutpie(
 
     mapping = reparam if reparam is not None else _identity_map(space)
     compiled = _nutpie_model(space, mapping, failures)
-    report.evaluation_s = evaluation_seconds(space, mapping)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
         return nutpie.sample(

@@ -159,12 +159,13 @@ def _lists_outputs(path: str) -> bool:
 def _multi_output_study(args: argparse.Namespace) -> int:
     """``kohpymc study`` on a file with several outputs: joint calibration per formulation.
 
-    Writes ``<label>.nc`` per formulation and ``table.csv``/``table.md`` (one row per
-    output and a combined row per formulation), each file atomically as it is finished.
+    Writes ``<label>.nc`` per formulation the moment it is sampled, and
+    ``table.csv``/``table.md`` (one row per output and a combined row per formulation) at
+    the end, each atomically; a rerun into the same folder reuses unchanged formulations
+    (``--fresh`` recomputes them) and a failed formulation does not stop the others.
     """
     from kohpymc.config import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study, run_multi_output_study
-    from kohpymc.study_files import StudyFolder, write_table
 
     try:
         spec = load_multi_output_study(args.study)
@@ -182,23 +183,22 @@ def _multi_output_study(args: argparse.Namespace) -> int:
         )
         return 0
     print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")
-    folder = StudyFolder(out, fresh=True)
+    say = None if args.quiet else (lambda msg: print(msg, flush=True))
     try:
-        result = run_multi_output_study(spec, **overrides)
+        result = run_multi_output_study(
+            spec, out_dir=out, fresh=args.fresh, progress=say, **overrides
+        )
     except (ValueError, KeyError) as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
-    for label, cal in result.calibrations.items():
-        idata = cal.idata
-
-        def write_netcdf(path: Path, idata=idata) -> object:
-            return idata.to_netcdf(str(path))
-
-        folder.save_formulation(label, write_netcdf)
-    table = result.table
-    write_table(folder, table)
+    if result.failures:
+        failed = "; ".join(f"{k}: {v}" for k, v in result.failures.items())
+        print(f"failed: {failed}", file=sys.stderr)
+    if not result.reliabilities:
+        print(f"error: no formulation finished (see {out}/study.json)", file=sys.stderr)
+        return 1
     print()
-    print(table.to_string(float_format=lambda v: f"{v:.4g}"))
+    print(result.table.to_string(float_format=lambda v: f"{v:.4g}"))
     print(f"\nresults in {out}/ (table.md, table.csv, *.nc)")
     return 0
 

@@ -59,6 +59,7 @@ def source_fingerprint(function: Any) -> str:
     """
     if function is None:
         return ""
+    function = inspect.unwrap(function)  # a wrapper that names what it wraps (__wrapped__)
     # the qualified name and the source, not the module's name: a function loaded from a
     # file gets a module name that differs from process to process
     parts = [str(getattr(function, "__qualname__", ""))]
@@ -144,7 +145,7 @@ def formulation_fingerprint(formulation: Any) -> str:
         return digest(None)
     try:
         described: Any = formulation.to_dict()
-    except TypeError:
+    except (TypeError, AttributeError):  # not expressible in TOML, or no to_dict at all
         described = repr(formulation)
     return digest([type(formulation).__qualname__, described])
 

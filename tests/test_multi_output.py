@@ -474,6 +474,42 @@ def test_study_file_reads_outputs_noise_and_formulations(tmp_path):
     assert spec.formulations["ICM"].rank == 2
 
 
+def test_study_keeps_finished_formulations_and_reuses_them(tmp_path):
+    """Each formulation's file is written when it finishes; a failing formulation is
+    recorded and the others go on; a rerun reuses a file whose fingerprint matches (same
+    draws) and recomputes one whose inputs changed."""
+    import json
+
+    from kohpymc.multi_output import Coregionalized, load_multi_output_study, run_multi_output_study
+    from kohpymc.study_files import CALIBRATION_HASH
+
+    spec = load_multi_output_study(_write_study(tmp_path))
+    spec.formulations = {"M0": spec.formulations["M0"], "bad": Coregionalized(["nope"])}
+    out = tmp_path / "out"
+    settings = dict(draws=100, tune=100, chains=2, random_seed=5, warn=False)
+    first = run_multi_output_study(spec, out_dir=out, **settings)
+    assert list(first.calibrations) == ["M0"] and first.reused == []
+    assert "nope" in first.failures["bad"]
+    manifest = json.loads((out / "study.json").read_text())
+    assert manifest["formulations"]["bad"]["status"] == "failed"
+    assert manifest["formulations"]["M0"]["status"] == "done"
+    assert not (out / "bad.nc").exists()
+    assert first.table.index.get_level_values(0).unique().tolist() == ["M0"]
+    saved = az.from_netcdf(str(out / "M0.nc"))
+    again = run_multi_output_study(spec, out_dir=out, **settings)
+    assert again.reused == ["M0"]
+    np.testing.assert_array_equal(
+        again.calibrations["M0"].posterior["E"].values, saved.posterior["E"].values
+    )
+    pd.testing.assert_frame_equal(again.table, first.table)
+    changed = run_multi_output_study(spec, out_dir=out, **{**settings, "draws": 120})
+    assert changed.reused == []
+    assert changed.calibrations["M0"].posterior.sizes["draw"] == 120
+    assert (
+        az.from_netcdf(str(out / "M0.nc")).attrs[CALIBRATION_HASH] != saved.attrs[CALIBRATION_HASH]
+    )
+
+
 def test_study_file_noise_key_not_an_output_named(tmp_path):
     from kohpymc import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study

@@ -23,6 +23,7 @@ class _Select:
 
     def __init__(self, function: Callable[..., Any], output: str) -> None:
         self.function, self.output = function, output
+        self.__wrapped__ = function  # fingerprints hash the wrapped function's source
         self.__name__ = f"{getattr(function, '__name__', 'physics')}[{output}]"
 
     def __call__(self, inputs: Any, params: Any) -> Any:

@@ -270,17 +270,13 @@ def _study(args: argparse.Namespace) -> int:
 
 def _discover(args: argparse.Namespace) -> int:
     import json
-    import shutil
-    import tempfile
-
-    import matplotlib.pyplot as plt
-    import numpy as np
 
     from kohpymc.config import StudyConfigError
     from kohpymc.discovery import discover
     from kohpymc.physics import PhysicsModelError
-    from kohpymc.plots import plot_residuals_before_after
 
+    if _lists_outputs(args.study):
+        return _multi_output_discover(args)
     spec = _load(args)
     if spec is None:
         return 2
@@ -312,42 +308,118 @@ def _discover(args: argparse.Namespace) -> int:
         return 2
     text = json.dumps(report.to_dict(), indent=2)
     print(text)
+    _write_discovery(
+        {"": (report, spec.calibration)}, text, Path(args.json) if args.json else None,
+        Path(args.out) if args.out else None,
+    )  # fmt: skip
+    return 0
+
+
+def _multi_output_discover(args: argparse.Namespace) -> int:
+    """``kohpymc discover`` on a file with several outputs: discovery on each output.
+
+    The JSON report maps output -> that output's report; ``--out`` gets one folder per
+    output (``<out>/<output>/report.json``, ``before.nc``, ``after.nc``, ``residuals.png``).
+    """
+    import json
+
+    from kohpymc.config import StudyConfigError
+    from kohpymc.multi_output import discover_outputs, load_multi_output_study
+    from kohpymc.physics import PhysicsModelError
+
+    try:
+        spec = load_multi_output_study(args.study)
+    except StudyConfigError as err:
+        return _bad_input(err)
+    merged = _sampler_overrides(args, spec.sampling)
+    sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
+    if args.dry_run:
+        print(
+            f"dry run: {spec.source} is a multi-output study; discovery would run on each of "
+            f"the outputs {', '.join(spec.physics.outputs)}; nothing sampled, nothing written"
+        )
+        return 0
+    try:
+        reports = discover_outputs(
+            spec.physics,
+            spec.calibration,
+            spec.validation,
+            tolerance=spec.tolerance,
+            random_seed=merged.get("random_seed"),
+            progress=None if args.quiet else lambda msg: print(msg, flush=True),
+            **sampling,
+        )
+    except (ValueError, KeyError, TypeError, NotImplementedError, PhysicsModelError) as err:
+        print(f"error: {spec.source}: {err}", file=sys.stderr)
+        return 2
+    text = json.dumps({k: r.to_dict() for k, r in reports.items()}, indent=2)
+    print(text)
+    _write_discovery(
+        {k: (r, spec.calibration[k]) for k, r in reports.items()}, text,
+        Path(args.json) if args.json else None, Path(args.out) if args.out else None,
+    )  # fmt: skip
+    return 0
+
+
+def _write_discovery(reports: dict, text: str, json_path: Path | None, out: Path | None) -> None:
+    """Stage every file of the discovery reports, then move them all into place.
+
+    ``reports`` maps a sub-folder of ``out`` (``""`` for ``out`` itself) to
+    ``(report, calibration data)``; ``text`` is the JSON of the whole report.  Nothing
+    is moved until every file has been written, so a failure leaves no partial output.
+    """
+    import shutil
+    import tempfile
+
     targets: list[tuple[Path, Path]] = []  # (staged file, final path)
     with tempfile.TemporaryDirectory(prefix=".kohpymc-discover-") as staging:
         stage = Path(staging)
         (stage / "report.json").write_text(text + "\n")
-        if args.json:
-            targets.append((stage / "report.json", Path(args.json)))
-        if args.out:
-            out = Path(args.out)
-            report.before.to_netcdf(str(stage / "before.nc"))
-            report.after.to_netcdf(str(stage / "after.nc"))
-            cal = spec.calibration
-            key = report.key_input
-            others = [k for k in report.inputs if k != key]
-            groups = None
-            if others:
-                groups = np.array([", ".join(f"{k}={cal.inputs[k][i]:g}" for k in others)
-                                   for i in range(cal.n)])  # fmt: skip
-            fig = plot_residuals_before_after(
-                cal.inputs[key],
-                report.residuals["before"],
-                report.residuals["after"],
-                x_name=key,
-                groups=groups,
-                noise_sd=cal.noise_sd,
-            )
-            fig.savefig(stage / "residuals.png", dpi=120)
-            plt.close(fig)
-            for name in ("report.json", "before.nc", "after.nc", "residuals.png"):
-                targets.append((stage / name, out / name))
-        # every file exists: now move them into place
+        if json_path is not None:
+            targets.append((stage / "report.json", json_path))
+        if out is not None:
+            for sub, (report, cal) in reports.items():
+                folder = stage / sub if sub else stage
+                folder.mkdir(exist_ok=True)
+                names = _stage_discovery_files(report, cal, folder)
+                targets += [(folder / name, (out / sub if sub else out) / name) for name in names]
         for staged, final in targets:
             final.parent.mkdir(parents=True, exist_ok=True)
             tmp = final.with_name(f".{final.name}.part")
             shutil.copyfile(staged, tmp)
             tmp.replace(final)
-    return 0
+
+
+def _stage_discovery_files(report, cal, folder: Path) -> list[str]:
+    """One report's ``report.json``, ``before.nc``, ``after.nc`` and ``residuals.png``."""
+    import json
+
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from kohpymc.plots import plot_residuals_before_after
+
+    if not (folder / "report.json").exists():
+        (folder / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+    report.before.to_netcdf(str(folder / "before.nc"))
+    report.after.to_netcdf(str(folder / "after.nc"))
+    key = report.key_input
+    others = [k for k in report.inputs if k != key]
+    groups = None
+    if others:
+        groups = np.array([", ".join(f"{k}={cal.inputs[k][i]:g}" for k in others)
+                           for i in range(cal.n)])  # fmt: skip
+    fig = plot_residuals_before_after(
+        cal.inputs[key],
+        report.residuals["before"],
+        report.residuals["after"],
+        x_name=key,
+        groups=groups,
+        noise_sd=cal.noise_sd,
+    )
+    fig.savefig(folder / "residuals.png", dpi=120)
+    plt.close(fig)
+    return ["report.json", "before.nc", "after.nc", "residuals.png"]
 
 
 def _checked_discovery(spec) -> None:

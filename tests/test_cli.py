@@ -73,6 +73,53 @@ def test_discover_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, write_s
     assert not out.exists() and not report.exists()
 
 
+def _multi_output_example(tmp_path):
+    """The shipped multi-output study, data paths made absolute, copied to ``tmp_path``."""
+    from pathlib import Path
+
+    import kohpymc
+
+    example = Path(kohpymc.__file__).parent / "examples" / "beam_multi_output_study.toml"
+    text = example.read_text()
+    study = tmp_path / "study.toml"
+    study.write_text(text.replace("data/beam_multi", str(example.parent / "data" / "beam_multi")))
+    return study
+
+
+def test_discover_on_a_multi_output_file_dry_run_names_the_outputs(tmp_path, capsys):
+    study = _multi_output_example(tmp_path)
+    assert main(["discover", str(study), "--dry-run"]) == 0
+    assert "outputs u, strain" in capsys.readouterr().out
+    assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]  # nothing written
+
+
+@pytest.mark.slow
+def test_discover_on_a_multi_output_file_runs_per_output(tmp_path):
+    """One report per output, one folder per output: the strain gauge's planted zero offset
+    (15 microstrain) is found as an effect that depends on neither input, the deflection's
+    shear term as one that depends on x and P (examples/data/README.md)."""
+    import json
+
+    study = _multi_output_example(tmp_path)
+    out, report = tmp_path / "found", tmp_path / "report.json"
+    args = ["discover", str(study), "--json", str(report), "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    payload = json.loads(report.read_text())
+    assert set(payload) == {"u", "strain"}
+    for name in ("u", "strain"):
+        assert {"report.json", "before.nc", "after.nc", "residuals.png"} <= {
+            p.name for p in (out / name).iterdir()
+        }
+    strain, u = payload["strain"], payload["u"]
+    assert strain["significant"] is True and strain["inputs"] == []
+    # the deflection's planted Timoshenko shear term a*P*x depends on both inputs
+    assert u["significant"] is True and set(u["inputs"]) == {"x", "P"}
+    for found in (u, strain):  # adding the term moves E towards the truth (200 GPa)
+        assert found["validation"]["after"]["rmse"] < found["validation"]["before"]["rmse"]
+        E = found["parameters"]
+        assert abs(E["after"]["E"] - 200.0) < abs(E["before"]["E"] - 200.0)
+
+
 def test_study_on_an_existing_dask_cluster_matches_in_process(tmp_path, capsys, write_study,
                                                               dask_cluster):  # fmt: skip
     """`kohpymc study --scheduler ADDRESS` on a real LocalCluster of 2 worker processes gives

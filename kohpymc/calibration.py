@@ -42,6 +42,7 @@ from kohpymc.physics import PhysicsModel
 from kohpymc.presampling import SLOW_SAMPLING_S, PreSampling
 from kohpymc.priors import Prior
 from kohpymc.sampling import one_blas_thread, sample_posterior
+from kohpymc.warning_filters import pymc_info_hidden
 
 __all__ = ["Calibration", "calibrate", "predict"]
 
@@ -444,7 +445,7 @@ def predict(
     )
     names = built.input_names
     Xn = new_input_matrix(new_inputs, names)
-    with built.model:
+    with built.model, pymc_info_hidden():
         pred = pm.sample_posterior_predictive(
             calibration.idata,
             var_names=["physics", "discrepancy", "y_model", "y_pred"],

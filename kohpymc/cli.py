@@ -186,7 +186,12 @@ def _multi_output_study(args: argparse.Namespace) -> int:
     say = None if args.quiet else (lambda msg: print(msg, flush=True))
     try:
         result = run_multi_output_study(
-            spec, out_dir=out, fresh=args.fresh, progress=say, **overrides
+            spec,
+            out_dir=out,
+            fresh=args.fresh,
+            figures=not args.no_figures,
+            progress=say,
+            **overrides,
         )
     except (ValueError, KeyError) as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
@@ -199,7 +204,7 @@ def _multi_output_study(args: argparse.Namespace) -> int:
         return 1
     print()
     print(result.table.to_string(float_format=lambda v: f"{v:.4g}"))
-    print(f"\nresults in {out}/ (table.md, table.csv, *.nc)")
+    print(f"\nresults in {out}/ (table.md, table.csv, *.nc, figures)")
     return 0
 
 

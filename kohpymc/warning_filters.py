@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import NamedTuple
 
 __all__ = [
@@ -22,6 +24,7 @@ __all__ = [
     "ignore_noise",
     "one_line_warning",
     "quiet_command_line",
+    "pymc_info_hidden",
 ]
 
 
@@ -115,6 +118,31 @@ def quiet_command_line() -> None:
     for name, level in _QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
     warnings.formatwarning = one_line_warning
+
+
+@contextmanager
+def pymc_info_hidden() -> Iterator[None]:
+    """Hide PyMC's INFO lines (``Sampling: [y_pred]``) for the duration of a library step.
+
+    kohpymc draws predictions inside its own steps (a study scores every formulation);
+    PyMC's line naming the variables it samples says nothing to the user there.  Warnings
+    and errors still show, and the logger's level is restored afterwards.
+
+    Examples
+    --------
+    >>> import logging
+    >>> with pymc_info_hidden():
+    ...     logging.getLogger("pymc").getEffectiveLevel() >= logging.WARNING
+    True
+    """
+    logger = logging.getLogger("pymc")
+    level = logger.level
+    if logger.getEffectiveLevel() < logging.WARNING:
+        logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 ignore_noise()  # on import: kohpymc/__init__.py imports this module before anything else

@@ -494,6 +494,9 @@ def test_study_keeps_finished_formulations_and_reuses_them(tmp_path):
     assert manifest["formulations"]["bad"]["status"] == "failed"
     assert manifest["formulations"]["M0"]["status"] == "done"
     assert not (out / "bad.nc").exists()
+    written = {p.name for p in out.iterdir()}
+    assert {"M0.nc", "table.csv", "posteriors.png", "predictions_u.png"} <= written
+    assert "predictions_strain.png" in written
     assert first.table.index.get_level_values(0).unique().tolist() == ["M0"]
     saved = az.from_netcdf(str(out / "M0.nc"))
     again = run_multi_output_study(spec, out_dir=out, **settings)

@@ -142,3 +142,21 @@ def test_the_matplotlib_deprecation_of_arviz_plots_is_hidden():
 
     assert any("alias_mapping" in m for m in messages())
     assert not any("alias_mapping" in m for m in messages(quiet_command_line))
+
+
+def test_pymc_info_hidden_only_inside_and_keeps_warnings(caplog):
+    import logging
+
+    from kohpymc.warning_filters import pymc_info_hidden
+
+    logger = logging.getLogger("pymc")
+    before = logger.level
+    with caplog.at_level(logging.INFO, logger="pymc"):
+        with pymc_info_hidden():
+            logger.info("Sampling: [y_pred]")
+            logger.warning("a real problem")
+        logger.info("after the step")
+        assert logger.level == logging.INFO  # restored to what caplog set
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages == ["a real problem", "after the step"]
+    assert logger.level == before

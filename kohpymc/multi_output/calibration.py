@@ -42,6 +42,7 @@ from kohpymc.multi_output.model import (
 )
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.sampling import SamplingReport, one_blas_thread, sample_posterior
+from kohpymc.warning_filters import pymc_info_hidden
 
 __all__ = [
     "MultiOutputCalibration",
@@ -375,7 +376,7 @@ def predict_output(
     names = built.parts[output].input_names
     Xn = new_input_matrix(new_inputs, names)
     wanted = ["physics", "discrepancy", "y_model", "y_pred"]
-    with built.model:
+    with built.model, pymc_info_hidden():
         pred = pm.sample_posterior_predictive(
             calibration.idata,
             var_names=[variable(output, k) for k in wanted],

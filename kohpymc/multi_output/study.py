@@ -31,7 +31,11 @@ from kohpymc.fingerprint import (
     kohpymc_version,
     physics_fingerprint,
 )
-from kohpymc.multi_output.calibration import MultiOutputCalibration, calibrate_outputs
+from kohpymc.multi_output.calibration import (
+    MultiOutputCalibration,
+    calibrate_outputs,
+    predict_output,
+)
 from kohpymc.multi_output.config import MultiOutputStudySpec
 from kohpymc.multi_output.model import compose_multi_output_model
 from kohpymc.multi_output.reliability import OutputReliability, output_reliability
@@ -56,12 +60,15 @@ class MultiOutputStudyResult:
         Formulations that failed, with the error.
     reused : list of str
         Formulations whose posterior was read from an earlier run's file.
+    predictions : dict of str to dict of str to InferenceData
+        Label -> output -> predictions at that output's validation inputs.
     """
 
     calibrations: dict[str, MultiOutputCalibration]
     reliabilities: dict[str, OutputReliability]
     failures: dict[str, str] = field(default_factory=dict)
     reused: list[str] = field(default_factory=list)
+    predictions: dict[str, dict[str, az.InferenceData]] = field(default_factory=dict)
 
     @property
     def table(self) -> pd.DataFrame:
@@ -85,6 +92,7 @@ def run_multi_output_study(
     *,
     out_dir: str | os.PathLike[str] | None = None,
     fresh: bool = False,
+    figures: bool = True,
     progress: Callable[[str], None] | None = None,
     **overrides: Any,
 ) -> MultiOutputStudyResult:
@@ -99,6 +107,9 @@ def run_multi_output_study(
         earlier run whose fingerprint matches are reused.
     fresh : bool
         Ignore earlier files in ``out_dir``.
+    figures : bool
+        With ``out_dir``: ``posteriors.png`` (θ per formulation) and
+        ``predictions_<output>.png`` (validation predictions per formulation).
     progress : callable, optional
         Receives one line per step (``print`` for a terminal).
     **overrides :
@@ -132,7 +143,7 @@ def run_multi_output_study(
         how = "reused" if label in result.reused else "done"
         say(f"[{i}/{n}] {label}: {how} in {time.perf_counter() - start:.1f} s")
     if folder is not None:
-        _write_study_files(folder, result)
+        _write_study_files(folder, result, spec, figures)
     return result
 
 
@@ -162,8 +173,14 @@ def _run_formulation(
         if folder is not None:
             _save(folder, label, cal, fingerprint)
     result.calibrations[label] = cal
+    predictions = {
+        k: predict_output(cal, k, spec.validation[k], random_seed=derived_seed(seed, label, 1))
+        for k in spec.validation.outputs
+        if k in cal.outputs
+    }
+    result.predictions[label] = predictions
     result.reliabilities[label] = output_reliability(
-        cal, spec.validation, spec.tolerance, random_seed=derived_seed(seed, label, 1)
+        cal, spec.validation, spec.tolerance, predictions=predictions
     )
     if folder is not None:
         status = "reused" if label in result.reused else "done"
@@ -236,9 +253,37 @@ def _save(folder: StudyFolder, label: str, cal: MultiOutputCalibration, fingerpr
     folder.save_formulation(label, lambda path: idata.to_netcdf(str(path)))
 
 
-def _write_study_files(folder: StudyFolder, result: MultiOutputStudyResult) -> None:
-    """The table (when anything finished) and the manifest's final state."""
+def _write_study_files(
+    folder: StudyFolder, result: MultiOutputStudyResult, spec: MultiOutputStudySpec, figures: bool
+) -> None:
+    """The table and figures (when anything finished) and the manifest's final state."""
     if result.reliabilities:
         write_table(folder, result.table)
+        if figures:
+            _write_figures(folder, result, spec)
     status = "failed" if not result.reliabilities else "done"
     folder.update(status=status, failures=result.failures, reused=result.reused)
+
+
+def _write_figures(
+    folder: StudyFolder, result: MultiOutputStudyResult, spec: MultiOutputStudySpec
+) -> None:
+    """``posteriors.png`` and one ``predictions_<output>.png`` per validated output."""
+    import matplotlib.pyplot as plt
+
+    from kohpymc.plots import plot_parameter_posteriors, plot_validation_predictions
+
+    posteriors = {label: cal.idata for label, cal in result.calibrations.items()}
+    figs = {"posteriors.png": plot_parameter_posteriors(posteriors, spec.physics.parameter_names)}
+    for k in spec.validation.outputs:
+        preds = {label: p[k] for label, p in result.predictions.items() if k in p}
+        if not preds:
+            continue
+        val = spec.validation[k]
+        names = [n for n in val.inputs if n in spec.physics.inputs] or list(val.inputs)
+        figs[f"predictions_{k}.png"] = plot_validation_predictions(
+            preds, val.y, {n: val.inputs[n] for n in names}, output_name=k
+        )
+    for name, fig in figs.items():
+        folder.write(name, lambda p, f=fig: f.savefig(p, dpi=120, format="png"))
+        plt.close(fig)

@@ -430,6 +430,29 @@ def test_coregionalized_likelihood_against_dense_reference(physics):
     assert _icm_logp(built, E, ls, kappa, np.zeros(2)) == pytest.approx(independent, rel=1e-8)
 
 
+def test_coregionalized_matern_kernel_against_dense_reference(physics):
+    """``kernel="Matern52"``: with W = 0 the joint likelihood is the sum of per-output
+    Gaussians whose kernel is the Matérn 5/2 written out here."""
+    from kohpymc.multi_output import Coregionalized
+
+    data = bm.generate_data((6.0,), seed=MULTI_SEED)
+    disc = Coregionalized(["x"], rank=1, kernel="Matern52")
+    built = compose_multi_output_model(physics, data, disc)
+    E, ls, kappa = 190.0, 150.0, np.array([0.7, 1.3])
+    expected = 0.0
+    for j, k in enumerate(data.outputs):
+        x, y, s = data[k].inputs["x"], data[k].y, np.std(data[k].y)
+        r = np.sqrt(5.0) * np.abs(x[:, None] - x[None, :]) / ls
+        K = (1.0 + r + r**2 / 3.0) * np.exp(-r)
+        C = s**2 * (kappa[j] * K + 4.0) + (data[k].noise_sd ** 2 + 1e-6 * s**2) * np.eye(5)
+        G = bm.beam_outputs(data[k].inputs, {"E": E})[k]
+        expected += stats.multivariate_normal(G, C).logpdf(y)
+    assert _icm_logp(built, E, ls, kappa, np.zeros(2)) == pytest.approx(expected, rel=1e-8)
+    assert "Matern52" in repr(disc)
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        Coregionalized(["x"], kernel="RBF")
+
+
 # ---------------------------------------------------------------------- TOML
 _STUDY = """
 [physics]
@@ -472,6 +495,20 @@ def test_study_file_reads_outputs_noise_and_formulations(tmp_path):
     assert isinstance(spec.formulations["both"]["strain"], ConstantBias)
     assert isinstance(spec.formulations["ICM"], Coregionalized)
     assert spec.formulations["ICM"].rank == 2
+    assert spec.formulations["ICM"].kernel == "ExpQuad"
+
+
+def test_study_file_coregionalized_kernel_read_and_a_bad_one_named(tmp_path):
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path)
+    text = path.read_text()
+    path.write_text(text.replace("rank = 2 }", 'rank = 2, kernel = "Matern32" }'))
+    assert load_multi_output_study(path).formulations["ICM"].kernel == "Matern32"
+    path.write_text(text.replace("rank = 2 }", 'rank = 2, kernel = "RBF" }'))
+    with pytest.raises(StudyConfigError, match=r"\[formulations\.ICM\.kernel\].*RBF"):
+        load_multi_output_study(path)
 
 
 def test_study_keeps_finished_formulations_and_reuses_them(tmp_path):

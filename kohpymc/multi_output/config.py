@@ -24,6 +24,7 @@ differences::
     M0 = "none"                         # one type for all outputs
     M31 = { u = { type = "input_dependent", mean = ["x", "P", "x*P"] }, strain = "constant" }
     ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
+    # kernel = "Matern52" (or "Matern32", "Exponential"; default "ExpQuad") in that table
 
 Every problem names the file and the key (``[data.noise_sd.strian]``), or the file and
 the column of a CSV file.
@@ -125,7 +126,7 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
     key = f"formulations.{label}"
     if isinstance(value, dict) and value.get("type") == "coregionalized":
         options = {k: v for k, v in value.items() if k != "type"}
-        unknown = sorted(set(options) - {"inputs", "rank"})
+        unknown = sorted(set(options) - {"inputs", "rank", "kernel"})
         if unknown:
             raise _err(path, key, f"coregionalized: unknown option(s) {unknown}")
         gp_inputs = _names(path, f"{key}.inputs", options.get("inputs", inputs))
@@ -133,9 +134,12 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
         if absent:
             raise _err(path, f"{key}.inputs", f"{absent} are not physics inputs {inputs}")
         try:
-            return Coregionalized(gp_inputs, rank=options.get("rank", 1))
+            return Coregionalized(
+                gp_inputs, rank=options.get("rank", 1), kernel=options.get("kernel", "ExpQuad")
+            )
         except ValueError as err:
-            raise _err(path, f"{key}.rank", str(err)) from err
+            bad = "kernel" if "kernel" in str(err) else "rank"
+            raise _err(path, f"{key}.{bad}", str(err)) from err
     if isinstance(value, dict) and "type" not in value:
         unknown = [k for k in value if k not in outputs]
         if unknown:

@@ -9,7 +9,8 @@ coregionalisation model, Álvarez, Rosasco & Lawrence 2012, §4.2):
     \mathrm{Cov}[\delta_k(x), \delta_l(x')] = s_k s_l \big(B_{kl}\, k(x, x')
         + 4\,[k = l]\big), \qquad B = W W^\top + \mathrm{diag}(\kappa),
 
-with ``k`` a squared-exponential kernel over the chosen inputs (ARD length scales
+with ``k`` a stationary kernel over the chosen inputs (squared exponential by default, or a
+Matérn 5/2, Matérn 3/2 or exponential one: ``kernel=``; ARD length scales
 ``delta_ls``, prior ``InverseGamma(4, 2 · range)`` as for M4), ``W`` a ``K × rank``
 matrix (``delta_W``, standard normal entries) and ``κ ≥ 0`` (``delta_kappa``,
 ``HalfNormal(1)``).  ``s_k`` is the sd of output ``k``'s data, so ``B`` is unit-free and
@@ -47,6 +48,13 @@ JOINT_DIM = "obs"
 #: prior variance (in units of s_k²) of each output's constant discrepancy mean
 MEAN_VARIANCE = 4.0
 _JITTER = 1e-6
+#: ``kernel=`` names and the stationary PyMC covariances they select
+KERNELS = {
+    "ExpQuad": pm.gp.cov.ExpQuad,
+    "Matern52": pm.gp.cov.Matern52,
+    "Matern32": pm.gp.cov.Matern32,
+    "Exponential": pm.gp.cov.Exponential,
+}
 
 
 @dataclass(frozen=True)
@@ -80,6 +88,9 @@ class Coregionalized:
         Inputs of the shared kernel.
     rank : int
         Columns of ``W`` (0: independent GPs with shared length scales).
+    kernel : {"ExpQuad", "Matern52", "Matern32", "Exponential"}
+        The stationary kernel ``k`` (PyMC's covariance of that name); a rougher kernel
+        for a discrepancy that is not smooth in the inputs.
 
     Examples
     --------
@@ -97,7 +108,12 @@ class Coregionalized:
     description = "coregionalised multi-output GP"
     default_target_accept = 0.95
 
-    def __init__(self, inputs: Sequence[str], rank: int = 1) -> None:
+    def __init__(self, inputs: Sequence[str], rank: int = 1, kernel: str = "ExpQuad") -> None:
+        if kernel not in KERNELS:
+            raise ValueError(
+                f"Coregionalized: kernel must be one of {sorted(KERNELS)}, got {kernel!r}"
+            )
+        self.kernel = kernel
         if isinstance(inputs, str):
             inputs = [inputs]
         self.inputs = tuple(inputs)
@@ -188,11 +204,12 @@ class Coregionalized:
         else:
             W = pt.zeros((len(outputs), 0))
         B = self.coregionalization(W, kappa)
-        kernel = pm.gp.cov.ExpQuad(len(names), ls=ls, active_dims=active)
+        kernel = KERNELS[self.kernel](len(names), ls=ls, active_dims=active)
         return kernel, B
 
     def __repr__(self) -> str:
-        return f"Coregionalized(inputs={list(self.inputs)}, rank={self.rank})"
+        kernel = "" if self.kernel == "ExpQuad" else f", kernel={self.kernel!r}"
+        return f"Coregionalized(inputs={list(self.inputs)}, rank={self.rank}{kernel})"
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test test-slow bench bench-discovery bench-discovery-mcmc bench-slow-simulator bench-dielectric-emulator lint format typecheck clean
+.PHONY: demo test test-slow bench bench-mass-matrix bench-discovery bench-discovery-mcmc bench-slow-simulator bench-dielectric-emulator lint format typecheck clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -35,6 +35,11 @@ $(BENCH_STAMP): $(STAMP)
 # time to a usable posterior (ESS >= 1000, r_hat <= 1.01; ~1 h); tables in benchmarks/results/
 bench: $(BENCH_STAMP)
 	$(PY) -m benchmarks.run
+
+# nutpie's diagonal against its low-rank mass-matrix adaptation on the beam and the hard
+# posteriors (~10 min); table in benchmarks/results/mass_matrix.md
+bench-mass-matrix: $(BENCH_STAMP)
+	$(PY) -m benchmarks.mass_matrix
 
 # hidden-effect benchmark of discovery: 16 kinds of missing effect x 2 noise levels x 2 seeds
 # and 64 null data sets, noise sd given and unknown, STLSQ baseline (~15 min on 2 busy cores);

@@ -27,7 +27,6 @@ from kohpymc.examples.dielectric.kinetics import (
     _Kinetics,
     _rows,
     _settings,
-    _solve,
     _solve_settings,
 )
 
@@ -52,17 +51,23 @@ def charging_current(inputs: Mapping[str, Any], params: Mapping[str, float]) -> 
     """
     V, T, t = _rows(inputs)
     theta = _scalar_params(params)
+    Vs, Ts, inv = _settings(V, T)
+    kin = _Kinetics(Vs, Ts, params)
     if theta is None:  # per-setting parameter arrays: no reuse
-        n, kin = _solve(inputs, params)
+        n = _solve_settings(kin, t, inv)
     else:
-        Vs, Ts, inv = _settings(V, T)
         state: dict[str, Any] = {}
-        n, kin = _solve_settings(_Kinetics(Vs, Ts, params), t, inv, keep=state)
+        n = _solve_settings(kin, t, inv, keep=state)
         with _LAST_LOCK:
             _LAST.clear()
             # copies: the caller may change its input arrays in place afterwards
             _LAST.update(state, key=theta, V=V.copy(), T=T.copy(), t=t.copy())
-    f, _, J = kin.rhs(n[:, None])
+    f, _, J = kin.rhs(n[:, None], inv)
+    return _external(f, J)
+
+
+def _external(f: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """``J_FN - (q d / 2) f`` in nA/cm² from ``f`` and ``J_FN`` at the rows, ``(R, 1)``."""
     return CURRENT_UNIT * (J[:, 0] - 0.5 * _Q * THICKNESS * f[:, 0])
 
 
@@ -132,9 +137,9 @@ def charging_current_batch(
     }
     kin = _Kinetics(np.tile(Vs, n_batch), np.tile(Ts, n_batch), stacked)
     rows = (inv[None, :] + n_set * np.arange(n_batch)[:, None]).reshape(-1)
-    n, kin_rows = _solve_settings(kin, np.tile(t, n_batch), rows)
-    f, _, J = kin_rows.rhs(n[:, None])
-    return (CURRENT_UNIT * (J[:, 0] - 0.5 * _Q * THICKNESS * f[:, 0])).reshape(n_batch, t.size)
+    n = _solve_settings(kin, np.tile(t, n_batch), rows)
+    f, _, J = kin.rhs(n[:, None], rows)
+    return _external(f, J).reshape(n_batch, t.size)
 
 
 def charging_current_jacobian(
@@ -237,18 +242,19 @@ def charging_current_sensitivities(
     V, T, t = _rows(inputs)
     theta = tuple(float(_param(params, k)) for k in PRIOR_RANGES)
     last = _reusable(theta, V, T, t)
-    if last is not None:
-        n, kin = last["rows"]["n"], last["kin_rows"]
-        dn = _charge_sensitivities(last["kin"], kin, last["grid"], last["rows"])
-    else:
+    if last is None:
         Vs, Ts, inv = _settings(V, T)
         values = dict(zip(PRIOR_RANGES, theta, strict=True))
-        n, kin, dn = _solve_settings(_Kinetics(Vs, Ts, values), t, inv, sensitivities=True)
-    f, fp, J = kin.rhs(n[:, None])
-    df, dJ = kin.sensitivities(n[:, None])
-    E = np.maximum(kin.E_app - _FEEDBACK * n[:, None], 1.0)
-    J_n = -_FEEDBACK * J * (2.0 / E + kin.b / E**2)
+        last = {}
+        _solve_settings(_Kinetics(Vs, Ts, values), t, inv, keep=last)
+    kin, rows = last["kin"], last["rows"]
+    n, inv = rows["n"][:, None], rows["inv"]
+    C = kin.coefficients()
+    dn = _charge_sensitivities(kin, last["grid"], rows, C)
+    f, fp, J = kin.rhs(n, inv)
+    df, dJ = kin.sensitivities(n, inv, C)
+    E = np.maximum(kin.E_app[inv] - _FEEDBACK * n, 1.0)
+    J_n = -_FEEDBACK * J * (2.0 / E + kin.b[inv] / E**2)
     half = 0.5 * _Q * THICKNESS
-    out = CURRENT_UNIT * (J[:, 0] - half * f[:, 0])
     jac = CURRENT_UNIT * ((J_n - half * fp) * dn + dJ - half * df)
-    return out, jac
+    return _external(f, J), jac

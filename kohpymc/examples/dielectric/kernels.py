@@ -65,27 +65,40 @@ def log_balance(n, E_app, a, b, N_T, kappa, log_e):
 
 
 @_jit
-def rhs_array(n, E_app, a, b, N_T, kappa, e):
-    """:func:`rhs` (first three) at ``n`` of shape ``(G, K)``, coefficients ``(G,)``."""
+def rhs_array(n, rows, E_app, a, b, N_T, kappa, e):
+    """:func:`rhs` (first three) at ``n`` ``(R, K)``; row r of n in setting ``rows[r]``."""
     f, fp, J = np.empty_like(n), np.empty_like(n), np.empty_like(n)
-    for i in range(n.shape[0]):
+    for r in range(n.shape[0]):
+        i = rows[r]
         for k in range(n.shape[1]):
-            f[i, k], fp[i, k], J[i, k], _ = rhs(
-                n[i, k], E_app[i], a[i], b[i], N_T[i], kappa[i], e[i]
+            f[r, k], fp[r, k], J[r, k], _ = rhs(
+                n[r, k], E_app[i], a[i], b[i], N_T[i], kappa[i], e[i]
             )
     return f, fp, J
 
 
 @_jit
-def bases_array(n, E_app, a, b, N_T, kappa, e):
-    """:func:`bases` at ``n`` of shape ``(G, K)``: ``(5, G, K)`` and ``J`` ``(G, K)``."""
+def bases_array(n, rows, E_app, a, b, N_T, kappa, e):
+    """:func:`bases` at ``n`` ``(R, K)`` (settings ``rows``): ``(5, R, K)`` and ``J`` ``(R, K)``."""
     phis, J = np.empty((5,) + n.shape), np.empty_like(n)
-    for i in range(n.shape[0]):
+    for r in range(n.shape[0]):
+        i = rows[r]
         for k in range(n.shape[1]):
-            values, J[i, k] = bases(n[i, k], E_app[i], a[i], b[i], N_T[i], kappa[i], e[i])
+            values, J[r, k] = bases(n[r, k], E_app[i], a[i], b[i], N_T[i], kappa[i], e[i])
             for m in range(5):
-                phis[m, i, k] = values[m]
+                phis[m, r, k] = values[m]
     return phis, J
+
+
+@_jit
+def combine(C, rows, w):
+    """``Σ_k C[rows[r], i, k] w[k, r]``: ``(R, P)`` from ``C`` ``(G, P, M)``, ``w`` ``(M, R)``."""
+    out = np.zeros((rows.size, C.shape[1]))
+    for r in range(rows.size):
+        for i in range(C.shape[1]):
+            for k in range(C.shape[2]):
+                out[r, i] += C[rows[r], i, k] * w[k, r]
+    return out
 
 
 @_jit
@@ -119,18 +132,30 @@ def steady_state(E_app, a, b, N_T, kappa, log_e, n_max, max_iter):
     return out
 
 
-@_jit
-def grid_solution(n_ss, E_app, a, b, N_T, kappa, e, U, H):
-    """``t(s)`` on the grid ``n = n_ss expit(s)`` of every setting.
+#: nodes computed past the first node later than a setting's last row: the rows'
+#: cubic pieces end at or before that node, and the sensitivity integrals' slope there
+#: is a central difference (results equal those of the whole grid)
+_EXTRA_NODES = 2
 
-    Returns ``t``, ``g = dt/ds``, ``f``, ``J_FN``, ``P_c`` at the nodes ``(G, K)`` and
-    ``f(0)`` ``(G,)``.  Settings without charge (``n_ss <= 1e-250``) get the grid of
+
+@_jit
+def grid_solution(n_ss, E_app, a, b, N_T, kappa, e, U, H, t_rows, inv):
+    """``t(s)`` on the grid ``n = n_ss expit(s)`` of every setting, as far as its rows need.
+
+    Returns ``t``, ``g = dt/ds``, ``f``, ``J_FN``, ``P_c`` at the nodes ``(G, K)``,
+    ``f(0)`` ``(G,)`` and the number of nodes computed per setting ``(G,)``: up to
+    ``_EXTRA_NODES`` past the first node later than the setting's last row time
+    (``t = inf`` beyond).  Settings without charge (``n_ss <= 1e-250``) get the grid of
     ``n_ss = 1`` with ``f = 1``, ``f' = 0`` (finite, later masked).
     """
     G, K = n_ss.size, U.size
-    t, g, f = np.empty((G, K)), np.empty((G, K)), np.empty((G, K))
+    t_last = np.full(G, -np.inf)
+    for r in range(t_rows.size):
+        t_last[inv[r]] = max(t_last[inv[r]], t_rows[r])
+    t, g, f = np.full((G, K), np.inf), np.empty((G, K)), np.empty((G, K))
     J, capture = np.empty((G, K)), np.empty((G, K))
     f0 = np.ones(G)
+    used = np.full(G, K)
     for i in range(G):
         live = n_ss[i] > _N_TINY
         safe = n_ss[i] if live else 1.0
@@ -152,7 +177,11 @@ def grid_solution(n_ss, E_app, a, b, N_T, kappa, e, U, H):
             t[i, k] = t_first + acc
             f[i, k], g[i, k] = f_k, g_k
             g_prev, dg_prev = g_k, dg_k
-    return t, g, f, J, capture, f0
+            if t[i, k] > t_last[i] and used[i] == K:
+                used[i] = min(k + 1 + _EXTRA_NODES, K)
+            if k + 1 >= used[i]:
+                break
+    return t, g, f, J, capture, f0, used
 
 
 @_jit
@@ -216,21 +245,22 @@ def interpolate_rows(t_rows, inv, t_grid, g, f, f0, n_ss, rate_ss, S, U):
 
 
 @_jit
-def charge_integrals(safe, g, f, J, capture, f0, phis0, E_app, b, N_T, kappa, e, U, H):
+def charge_integrals(safe, used, g, f, J, capture, f0, phis0, E_app, b, N_T, kappa, e, U, H):
     """``Q_k(s) = ∫ φ_k g / f ds`` (k = B..E) at the nodes, and the integrands ``q_k``.
 
     Returns ``Q`` and ``q``, both ``(4, G, K)``: the Euler–Maclaurin-corrected
     cumulative trapezoid from the first node (slopes of ``q`` by second-order
     differences) plus the trapezoid in n from 0 to the first node, with ``φ(0)``
     (``phis0``, ``(5, G)``) and ``f(0)`` (``f0``, ``(G,)``).  ``safe`` is ``n_ss``, or 1
-    for settings without charge (as in :func:`grid_solution`).
+    for settings without charge, and ``used`` the nodes computed (as in
+    :func:`grid_solution`): ``Q`` up to the last but one of them unless all are used.
     """
     G, K = safe.size, U.size
     q, Q = np.empty((4, G, K)), np.empty((4, G, K))
     phis_first = np.empty(4)
     for i in range(G):
         coef = (E_app[i], b[i], N_T[i], kappa[i], e[i])
-        for k in range(K):
+        for k in range(used[i]):
             n = safe[i] * U[k]
             phis = bases_given(n, J[i, k], capture[i, k], *coef)
             weight = g[i, k] / f[i, k]
@@ -245,7 +275,7 @@ def charge_integrals(safe, g, f, J, capture, f0, phis0, E_app, b, N_T, kappa, e,
             d_first = (-3.0 * qm[0] + 4.0 * qm[1] - qm[2]) / (2.0 * H)
             acc = 0.0
             Q[m, i, 0] = first
-            for k in range(1, K):
+            for k in range(1, used[i] if used[i] == K else used[i] - 1):
                 acc += 0.5 * H * (qm[k] + qm[k - 1])
                 if k < K - 1:
                     dq = (qm[k + 1] - qm[k - 1]) / (2.0 * H)

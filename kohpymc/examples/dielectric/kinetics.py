@@ -40,23 +40,6 @@ class _Kinetics:
     used to solve several parameter sets at once).
     """
 
-    _ARRAYS = (
-        "E_app",
-        "a",
-        "b",
-        "N_T",
-        "kappa",
-        "e",
-        "log_e",
-        "n_max",
-        "phi",
-        "mass",
-        "T",
-        "eps_inf",
-        "E_A",
-        "_lowering",
-    )
-
     def __init__(self, V: np.ndarray, T: np.ndarray, params: Mapping[str, Any]) -> None:
         def column(name: str) -> np.ndarray:
             return np.broadcast_to(_param(params, name), V.shape)[:, None]
@@ -77,33 +60,35 @@ class _Kinetics:
         self.e = np.exp(self.log_e)
         #: largest charge: traps full or injecting field screened to zero
         self.n_max = np.minimum(self.N_T, np.maximum(self.E_app, 0.0) / _FEEDBACK)
-
-    def take(self, idx: np.ndarray) -> _Kinetics:
-        new = object.__new__(_Kinetics)
-        new.__dict__.update(self.__dict__)
-        for name in _Kinetics._ARRAYS:
-            setattr(new, name, getattr(self, name)[idx])
-        return new
-
-    def columns(self) -> tuple[np.ndarray, ...]:
-        """``E_app, a, b, N_T, κ, e`` as ``(G,)`` arrays: the kernels' coefficients."""
-        return tuple(
-            np.ascontiguousarray(getattr(self, k)[:, 0])
-            for k in ("E_app", "a", "b", "N_T", "kappa", "e")
+        #: ``E_app, a, b, N_T, κ, e`` as ``(G,)`` arrays: the kernels' coefficients
+        self.columns = tuple(
+            np.ascontiguousarray(v[:, 0])
+            for v in (self.E_app, self.a, self.b, self.N_T, self.kappa, self.e)
         )
 
-    def rhs(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``f(n)``, ``f'(n)`` and the injection current ``J_FN(E_inj)`` (A/m²), ``n`` (G, K)."""
-        return kernels.rhs_array(_nodes(n), *self.columns())
+    def _rows(self, n: np.ndarray, rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` as a C-contiguous float array and the setting of each of its rows."""
+        n = np.ascontiguousarray(n, dtype=float)
+        return n, np.arange(n.shape[0]) if rows is None else rows
 
-    def bases(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rhs(
+        self, n: np.ndarray, rows: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``f(n)``, ``f'(n)`` and the injection current ``J_FN(E_inj)`` (A/m²).
+
+        ``n`` is ``(R, K)``, its row r in setting ``rows[r]`` (default: row r in setting r).
+        """
+        return kernels.rhs_array(*self._rows(n, rows), *self.columns)
+
+    def bases(self, n: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The five functions ``φ_k(n)`` that ``∂f/∂θ`` combines, shape ``(5,) + n.shape``.
 
         ``∂f/∂θ_i = Σ_k C_ik φ_k`` (``C``: :meth:`coefficients`) with ``φ_A = J P_c / (q d)``,
         ``φ_B = φ_A b / E``, ``φ_C = J (1 - P_c) κ / (q d)``, ``φ_D = φ_C n`` and
-        ``φ_E = -e n``; note ``φ_A = f - φ_E``.  Also returns ``J_FN(E_inj)``.
+        ``φ_E = -e n``; note ``φ_A = f - φ_E``.  Also returns ``J_FN(E_inj)``.  ``n`` and
+        ``rows`` as for :meth:`rhs`.
         """
-        return kernels.bases_array(_nodes(n), *self.columns())
+        return kernels.bases_array(*self._rows(n, rows), *self.columns)
 
     def coefficients(self) -> np.ndarray:
         """``C`` of :meth:`bases`, shape ``(G, 7, 5)``; θ in the order of PRIOR_RANGES.
@@ -127,16 +112,22 @@ class _Kinetics:
         C[:, 6, 4] = dloge_dx * qkT  # E_A
         return C
 
-    def sensitivities(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``∂f/∂θ`` and ``∂J_FN/∂θ`` at fixed ``n`` of shape ``(G, 1)``: ``(G, 7)`` each."""
-        phis, J = self.bases(n)
-        C = self.coefficients()
-        df = np.einsum("gik,kg->gi", C, phis[:, :, 0])
+    def sensitivities(
+        self, n: np.ndarray, rows: np.ndarray | None = None, C: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``∂f/∂θ`` and ``∂J_FN/∂θ`` at fixed ``n`` of shape ``(R, 1)``: ``(R, 7)`` each.
+
+        ``rows`` as for :meth:`rhs`; ``C``: :meth:`coefficients`, if already computed.
+        """
+        n, rows = self._rows(n, rows)
+        phis, J = self.bases(n, rows)
+        C = self.coefficients() if C is None else C
+        df = kernels.combine(C, rows, phis[:, :, 0])
         dJ = np.zeros_like(df)
-        E = np.maximum(self.E_app - _FEEDBACK * n, 1.0)
-        b_over_E = (self.b / E)[:, 0]
-        dJ[:, 1] = J[:, 0] * (-1.0 - 1.5 * b_over_E) / self.phi[:, 0]
-        dJ[:, 5] = J[:, 0] * (-1.0 - 0.5 * b_over_E) / self.mass[:, 0]
+        E = np.maximum(self.E_app[rows] - _FEEDBACK * n, 1.0)
+        b_over_E = (self.b[rows] / E)[:, 0]
+        dJ[:, 1] = J[:, 0] * (-1.0 - 1.5 * b_over_E) / self.phi[rows, 0]
+        dJ[:, 5] = J[:, 0] * (-1.0 - 0.5 * b_over_E) / self.mass[rows, 0]
         return df, dJ
 
 
@@ -149,15 +140,10 @@ def _steady_state(kin: _Kinetics) -> np.ndarray:
     upper bound ``top = min(n_max, f(0)/e)`` is replaced by the midpoint toward it
     (``h = -inf`` at ``n_max``) or by ``top`` itself (``h`` finite at ``f(0)/e``).
     """
-    E_app, a, b, N_T, kappa, _ = kin.columns()
+    E_app, a, b, N_T, kappa, _ = kin.columns
     log_e, n_max = (np.ascontiguousarray(v[:, 0]) for v in (kin.log_e, kin.n_max))
     n_ss = kernels.steady_state(E_app, a, b, N_T, kappa, log_e, n_max, _ROOT_ITERS)
     return n_ss[:, None]
-
-
-def _nodes(n: np.ndarray) -> np.ndarray:
-    """``n`` as a C-contiguous float (G, K) array (one compiled kernel for all callers)."""
-    return np.ascontiguousarray(n, dtype=float)
 
 
 def _settings(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,56 +161,53 @@ def _rows(inputs: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def _solve(inputs: Mapping[str, Any], params: Mapping[str, float]):
+    """``n_t`` at the rows, the settings' kinetics and each row's setting."""
     V, T, t = _rows(inputs)
     Vs, Ts, inv = _settings(V, T)
-    return _solve_settings(_Kinetics(Vs, Ts, params), t, inv)
+    kin = _Kinetics(Vs, Ts, params)
+    return _solve_settings(kin, t, inv), kin, inv
 
 
-def _solve_settings(
-    kin: _Kinetics,
-    t: np.ndarray,
-    inv: np.ndarray,
-    sensitivities: bool = False,
-    keep: dict | None = None,
-):
-    """``n_t`` at times ``t`` of rows in settings ``inv``, and the rows' kinetics.
+def _solve_settings(kin: _Kinetics, t: np.ndarray, inv: np.ndarray, keep: dict | None = None):
+    """``n_t`` at times ``t`` of rows in settings ``inv``.
 
-    With ``sensitivities`` also ``∂n_t/∂θ`` at fixed t, shape ``(rows, 7)`` (see
-    :func:`_charge_sensitivities`).  ``keep`` receives what
-    :func:`_charge_sensitivities` needs, to compute them later without solving again.
+    ``keep`` receives what :func:`_charge_sensitivities` needs, to compute ``∂n_t/∂θ``
+    without solving again.
     """
     n_ss = _steady_state(kin)
     # settings without injection (V = 0, or a current below ~1e-240 A/m²) stay empty
     live = n_ss > _N_TINY
     safe = np.where(live, n_ss, 1.0)
-    columns = kin.columns()
     # t(s) = ∫ g ds on the grid n = n_ss expit(s), g = dt/ds = (dn/ds) / f(n)
-    t_grid, g, f, J, capture, f0 = kernels.grid_solution(n_ss[:, 0], *columns, _U, _H_S)
+    t_grid, g, f, J, capture, f0, used = kernels.grid_solution(
+        n_ss[:, 0], *kin.columns, _U, _H_S, t, inv
+    )
     _, fp_ss, _ = kin.rhs(safe)
     n, j, s = kernels.interpolate_rows(t, inv, t_grid, g, f, f0, n_ss[:, 0], -fp_ss[:, 0], _S, _U)
-    kin_rows = kin.take(inv)
-    if not sensitivities and keep is None:
-        return n, kin_rows
-    grid = {
-        "g": g,
-        "f": f,
-        "J": J,
-        "capture": capture,
-        "f0": f0,
-        "fp_ss": fp_ss,
-        "safe": safe,
-        "live": live,
-    }
-    row_data = {"inv": inv, "j": j, "s": s, "n": n, "t": t}
     if keep is not None:
-        keep.update(kin=kin, kin_rows=kin_rows, grid=grid, rows=row_data)
-    if not sensitivities:
-        return n, kin_rows
-    return n, kin_rows, _charge_sensitivities(kin, kin_rows, grid, row_data)
+        grid = {
+            "g": g,
+            "f": f,
+            "J": J,
+            "capture": capture,
+            "f0": f0,
+            "used": used,
+            "fp_ss": fp_ss,
+            "safe": safe,
+            "live": live,
+        }
+        rows = {"inv": inv, "j": j, "s": s, "n": n, "t": t}
+        keep.update(kin=kin, grid=grid, rows=rows)
+    return n
 
 
-def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows: dict):
-    """``∂n/∂θ`` at fixed t for every row, shape ``(rows, 7)``.
+def _charge_sensitivities(
+    kin: _Kinetics, grid: dict, rows: dict, C: np.ndarray | None = None
+) -> np.ndarray:
+    """``∂n/∂θ`` at fixed t for every row, shape ``(rows, 7)``, from a kept solution.
+
+    ``grid`` and ``rows`` are what :func:`_solve_settings` keeps; ``C``:
+    :meth:`_Kinetics.coefficients`, if already computed.
 
     The solution satisfies ``t = ∫_0^n dn'/f(n'; θ)``; differentiating at fixed t gives
     ``∂n/∂θ = f(n) Q(n)``, ``Q(n) = ∫_0^n f_θ / f² dn' = ∫ (f_θ / f) g ds`` on the
@@ -238,9 +221,10 @@ def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows:
     """
     live, f0 = grid["live"], grid["f0"]
     phis0, _ = kin.bases(np.zeros_like(grid["safe"]))  # (5, G, 1)
-    E_app, _, b, N_T, kappa, e = kin.columns()
+    E_app, _, b, N_T, kappa, e = kin.columns
     Q, q = kernels.charge_integrals(
         grid["safe"][:, 0],
+        grid["used"],
         grid["g"],
         grid["f"],
         grid["J"],
@@ -257,11 +241,11 @@ def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows:
     )
     inv, j, s, n, t = rows["inv"], rows["j"], rows["s"], rows["n"], rows["t"]
     Q_row = kernels.integrals_at_rows(Q, q, inv, j, s, _S, _H_S)  # (4, rows)
-    f_row, _, _ = kin_rows.rhs(n[:, None])
+    f_row, _, _ = kin.rhs(n[:, None], inv)
     early = j < 0
     if np.any(early):
         ie = inv[early]
-        phis_e, _ = kin_rows.take(np.flatnonzero(early)).bases(n[early, None])
+        phis_e, _ = kin.bases(n[early, None], ie)
         with np.errstate(divide="ignore", invalid="ignore"):  # settings without charge
             Q_row[:, early] = (
                 0.5
@@ -269,13 +253,12 @@ def _charge_sensitivities(kin: _Kinetics, kin_rows: _Kinetics, grid: dict, rows:
                 * (phis0[1:, ie, 0] / f0[ie] ** 2 + phis_e[1:, :, 0] / f_row[early, 0] ** 2)
             )
     Q_all = np.concatenate([(t - Q_row[3])[None], Q_row])  # (5, rows), φ_A first
-    C = kin.coefficients()  # (G, 7, 5)
-    dn = f_row * np.einsum("rik,kr->ri", C[inv], Q_all)
+    C = kin.coefficients() if C is None else C  # (G, 7, 5)
+    dn = f_row * kernels.combine(C, inv, Q_all)
     late = j >= _S.size - 1
     if np.any(late):
-        fp_ss = grid["fp_ss"]
-        df_ss, _ = kin.sensitivities(grid["safe"])  # (G, 7)
-        dn[late] = -df_ss[inv[late]] / fp_ss[inv[late]]
+        df_ss, _ = kin.sensitivities(grid["safe"], C=C)  # (G, 7)
+        dn[late] = -df_ss[inv[late]] / grid["fp_ss"][inv[late]]
     return np.where(live[inv], dn, 0.0)
 
 
@@ -290,5 +273,5 @@ def trapped_charge(inputs: Mapping[str, Any], params: Mapping[str, float]) -> np
     >>> float(n[0]), bool(n[1] > 1e22)
     (0.0, True)
     """
-    n, _ = _solve(inputs, params)
+    n, _, _ = _solve(inputs, params)
     return n

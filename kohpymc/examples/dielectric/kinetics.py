@@ -41,12 +41,14 @@ class _Kinetics:
     """
 
     def __init__(self, V: np.ndarray, T: np.ndarray, params: Mapping[str, Any]) -> None:
+        zeros = np.zeros_like(V)
+
         def column(name: str) -> np.ndarray:
-            return np.broadcast_to(_param(params, name), V.shape)[:, None]
+            return (zeros + _param(params, name))[:, None]
 
         phi, mass = column("phi_B"), column("m_eff")
         self.phi, self.mass = phi, mass
-        self.T = np.broadcast_to(T, V.shape)[:, None]
+        self.T = (zeros + T)[:, None]
         self.eps_inf, self.E_A = column("eps_inf"), column("E_A")
         self.E_app = (V / THICKNESS)[:, None]
         self.a = _Q**2 / (8.0 * np.pi * _H * phi * mass)

@@ -26,8 +26,11 @@ from kohpymc.examples.dielectric.constants import (
 from kohpymc.examples.dielectric.emission import _log_emission
 from kohpymc.examples.dielectric.kernels import _N_TINY
 
-# quadrature grid n = n_ss expit(s)
-_S = np.linspace(-14.0, 18.0, 1281)
+# quadrature grid n = n_ss expit(s), step 0.025.  Below the first node (n < 4.5e-5 n_ss)
+# the trapezoid in n from 0: relative error ~ (n f'/f)² / 6 < 6e-8 there, as
+# |f'/f| n_ss <= 13 (measured over 3000 prior draws × 60 settings, 5-60 V, 250-450 K).
+# From s = -14 instead: 21 % more nodes, the same errors against a 16× finer grid.
+_S = np.linspace(-10.0, 18.0, 1121)
 _U = 1.0 / (1.0 + np.exp(-_S))
 _H_S = float(_S[1] - _S[0])
 _ROOT_ITERS = 60

@@ -99,11 +99,12 @@ def _reusable(theta: tuple[float, ...], V: np.ndarray, T: np.ndarray, t: np.ndar
 def charging_current_batch(
     inputs: Mapping[str, Any], param_sets: Sequence[Mapping[str, float]]
 ) -> np.ndarray:
-    """:func:`charging_current` for several parameter sets in one vectorised solve.
+    """:func:`charging_current` for several parameter sets in one call.
 
-    Every (parameter set, setting) pair is one more independent equation for the
-    solver, so ``B`` sets cost much less than ``B`` calls (the per-call overhead of
-    the small per-setting arrays dominates a single call).
+    The rows are checked and grouped by setting once, then each set is solved on them;
+    the values equal those of separate calls (bitwise: every setting is solved on its
+    own), without their per-call checks and without touching the solution that
+    :func:`charging_current_sensitivities` reuses.
 
     Parameters
     ----------
@@ -131,15 +132,12 @@ def charging_current_batch(
     if not sets:
         raise ValueError("param_sets is empty")
     Vs, Ts, inv = _settings(V, T)
-    n_set, n_batch = Vs.size, len(sets)
-    stacked = {
-        name: np.repeat([float(_param(p, name)) for p in sets], n_set) for name in PRIOR_RANGES
-    }
-    kin = _Kinetics(np.tile(Vs, n_batch), np.tile(Ts, n_batch), stacked)
-    rows = (inv[None, :] + n_set * np.arange(n_batch)[:, None]).reshape(-1)
-    n = _solve_settings(kin, np.tile(t, n_batch), rows)
-    f, _, J = kin.rhs(n[:, None], rows)
-    return _external(f, J).reshape(n_batch, t.size)
+    out = np.empty((len(sets), t.size))
+    for k, p in enumerate(sets):
+        kin = _Kinetics(Vs, Ts, {name: float(_param(p, name)) for name in PRIOR_RANGES})
+        f, _, J = kin.rhs(_solve_settings(kin, t, inv)[:, None], inv)
+        out[k] = _external(f, J)
+    return out
 
 
 def charging_current_jacobian(
@@ -154,7 +152,8 @@ def charging_current_jacobian(
     The same differences as :meth:`kohpymc.PhysicsModel.finite_difference_jacobian`
     (steps ``h_j = r · max(|θ_j|, s_j)``, ``s_j = max(|lower|, |upper|, upper - lower)``
     of the Table 3 range, ``r = √ε`` forward or ``ε^{1/3}`` central), but the 8 (forward)
-    or 14 (central) parameter sets are solved together: about 4× cheaper.
+    or 14 (central) parameter sets are solved in one call: ~15 % cheaper (240
+    calibration rows, 2026-11-24).
 
     Examples
     --------

@@ -39,8 +39,7 @@ _ROOT_ITERS = 60
 class _Kinetics:
     """Per-setting coefficients of ``dn/dt = f(n)``, arrays shaped ``(G, 1)``.
 
-    ``params`` holds floats, or arrays of shape ``(G,)`` (one parameter set per setting,
-    used to solve several parameter sets at once).
+    ``params`` holds floats, or arrays of shape ``(G,)`` (one parameter set per setting).
     """
 
     def __init__(self, V: np.ndarray, T: np.ndarray, params: Mapping[str, Any]) -> None:

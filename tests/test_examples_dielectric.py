@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import constants as C
 from scipy.integrate import solve_ivp
-from scipy.optimize import least_squares
+from scipy.optimize import brentq, least_squares
 
 from kohpymc.examples import dielectric as d
 
@@ -108,6 +108,57 @@ def test_output_finite_and_nonnegative_over_the_prior_box():
         J = d.charging_current(rows, p)
         assert J.shape == (530,)
         assert np.all(np.isfinite(J)) and np.all(J >= 0), p
+
+
+@pytest.mark.parametrize("point", [0, 1, 2])
+def test_late_charge_is_the_root_of_the_rate(point):
+    """Long after the step the charge is the steady state: a root of the test's own rate."""
+    p = d.TRUE_PARAMS if point == 0 else _informative_or_drawn(point)
+    for V, T in [(20.0, 300.0), (27.3, 345.0), (30.0, 390.0)]:
+        n = d.trapped_charge(_rows(V, T, [1e12]), p)[0]
+        upper = min(np.exp(p["ln_NT"]), (V / D) * 2 * C.epsilon_0 * 7.5 / (C.e * D))
+        root = brentq(lambda x, V=V, T=T: _rhs(x, V, T, p)[0], 0.0, upper, xtol=1e-300, rtol=1e-14)
+        assert n == pytest.approx(root, rel=1e-10), (V, T, n, root)
+
+
+def _informative_or_drawn(k):
+    """A prior draw whose design current is measurable (k = 1, 2, ...)."""
+    rows = d.design().iloc[::5].to_dict("list")
+    visible = [
+        p for p in _prior_draws(400, seed=21) if 0.1 < d.charging_current(rows, p).max() < 1e4
+    ]
+    return visible[k - 1]
+
+
+def test_grid_is_computed_only_as_far_as_the_rows_need():
+    """Rows up to 20 s use part of each setting's grid; a late row there uses all of it.
+
+    The shared rows' values and sensitivities are the same (bitwise): the quadrature
+    nodes computed are a prefix of the whole grid's, with the same sums.
+    """
+    frame = d.design()
+    early = frame[frame["t"] <= 20.0].to_dict("list")
+    late = {"V": [20.0, 30.0], "T": [300.0, 390.0], "t": [1e6, 1e9]}
+    both = {k: np.concatenate([early[k], late[k]]) for k in early}
+    for p in (d.TRUE_PARAMS, FIT_2026):
+        J_early, dJ_early = d.charging_current_sensitivities(early, p)
+        J_both, dJ_both = d.charging_current_sensitivities(both, p)
+        size = len(early["t"])
+        np.testing.assert_array_equal(J_both[:size], J_early)
+        np.testing.assert_array_equal(dJ_both[:size], dJ_early)
+
+
+def test_settings_are_solved_independently():
+    """A setting's rows give the same numbers alone as among other settings (bitwise)."""
+    rows = d.design().iloc[::3].to_dict("list")
+    rows = {k: np.asarray(v) for k, v in rows.items()}
+    J, dJ = d.charging_current_sensitivities(rows, FIT_2026)
+    for V, T in [(20.0, 300.0), (25.0, 360.0), (30.0, 390.0)]:
+        mask = (rows["V"] == V) & (rows["T"] == T)
+        alone = {k: v[mask] for k, v in rows.items()}
+        J_alone, dJ_alone = d.charging_current_sensitivities(alone, FIT_2026)
+        np.testing.assert_array_equal(J_alone, J[mask])
+        np.testing.assert_array_equal(dJ_alone, dJ[mask])
 
 
 def test_rows_in_any_order_and_any_setting():

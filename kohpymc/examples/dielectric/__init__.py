@@ -76,15 +76,19 @@ The equation is a scalar autonomous ODE with ``f`` strictly decreasing, so it is
 solved semi-analytically per (V, T) setting: the steady state ``n_ss`` (root of f,
 safeguarded Newton in ``ln n``, converged to machine precision), then the exact
 ``t(n) = ∫ dn / f(n)`` by quadrature on a fixed grid ``n = n_ss · expit(s)``,
-``s ∈ [-14, 18]`` (1281 nodes, Euler–Maclaurin-corrected trapezoid, fourth order), and
-``n(t)`` by cubic Hermite interpolation of ``s(t)`` with the exact slopes ``1 / (dt/ds)``.
-Before the first node (``n < 1e-6 n_ss``) a Hermite cubic from ``n(0) = 0`` is used,
+``s ∈ [-10, 18]`` (1121 nodes, step 0.025, Euler–Maclaurin-corrected trapezoid, fourth
+order), and ``n(t)`` by cubic Hermite interpolation of ``s(t)`` with the exact slopes
+``1 / (dt/ds)``.  Below the first node (``n < 4.5e-5 n_ss``) ``t`` is the trapezoid in n
+from 0 and ``n(t)`` a Hermite cubic from ``n(0) = 0``,
 after the last (``n_ss - n < 2e-8 n_ss``) the exact linear relaxation
 ``n_ss - n ∝ exp(f'(n_ss) t)``.  There is no adaptive step, so the output is a smooth,
 deterministic function of θ (central finite differences at relative steps 6e-6 and
 1e-4 agree); it agrees with ``solve_ivp(method="Radau", rtol=1e-10)`` to ~1e-6
-relative.  Rows are grouped by their (V, T) setting (any values, any t ≥ 0) and all
-settings are solved together in vectorised numpy.
+relative.  Rows are grouped by their (V, T) setting (any values, any t ≥ 0); the steady
+state, the quadrature, the interpolation and the sensitivity integrals below are
+numba-compiled loops (``kernels``; numba comes with PyTensor) over the settings, each
+solved independently of the others and only as far along its grid as its latest row
+needs (the nodes computed are a prefix of the whole grid's, so the result is the same).
 
 Hidden truth: dipolar polarization
 ----------------------------------
@@ -123,9 +127,10 @@ truth, the fit, near the truth and at prior draws) and with differences on a 4×
 grid to ≤ 3e-5 — closer to the exact derivative than differencing the discretised model
 (~8e-5), and exact at sub-second times where forward differences are off by up to 20 %.
 The gradient reuses the solution of the value call at the same point, so a sampler's
-value plus gradient costs ~2.5 model runs; the log density plus gradient of M0 is 3.8×
-cheaper than with the vectorised forward differences used before (6.6 vs 25 ms per
-evaluation on the loaded 2-core machine).  Finite differences remain available
+value plus gradient costs ~2 model runs: 0.56 ms on the 240 calibration rows, and one
+log density plus gradient of M0 0.65 ms, 3.4–3.7× less than with the earlier numpy
+loops (2.2–2.4 ms; interleaved runs on the shared 2-core machine at load ~6, best of
+300 evaluations; medians 0.7 against 6.5–8.5 ms).  Finite differences remain available
 (``physics_model("central")``, ``physics_model("forward", vectorized=True)``).
 
 The posterior is hard for NUTS even so.  The current fixes the Fowler–Nordheim exponent
@@ -146,7 +151,8 @@ Layout
 Frenkel–Poole), ``kinetics`` (the trapped-charge equation and its solution), ``current``
 (stand-in current, batch, Jacobian; the hidden truth), ``fit`` (the
 :class:`~kohpymc.PhysicsModel` and its least-squares fit), ``data`` (design, synthetic data,
-split) and ``formulations`` (Eq. 29, M0–M5).  Everything public is importable from here.
+split), ``formulations`` (Eq. 29, M0–M5) and ``kernels`` (the compiled loops of the
+solution).  Everything public is importable from here.
 """
 
 from kohpymc.examples.dielectric.constants import (

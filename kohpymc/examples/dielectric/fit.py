@@ -29,13 +29,13 @@ def physics_model(
     ----------
     gradient : {"analytic", "central", "forward"}
         ``"analytic"`` (default): the exact sensitivities of the semi-analytic solution,
-        :func:`charging_current_sensitivities` (about 5 model runs' cost; closer to the
+        :func:`charging_current_sensitivities` (about 2 model runs' cost; closer to the
         exact derivative, ~5e-6 relative, than finite differences of the discretised
         model, ~8e-5).  ``"central"`` / ``"forward"``: finite differences (14 / 8 model
         runs; at a least-squares fit the two agree to ~1e-6 relative).
     vectorized : bool
         With finite differences: compute them with :func:`charging_current_jacobian`
-        (all perturbed parameter sets in one solve, identical values, ~30 % cheaper)
+        (all perturbed parameter sets in one call, identical values, ~15 % cheaper)
         instead of one model call per perturbation.
 
     Examples

@@ -37,6 +37,13 @@ on the grid (to a relative 1e-9).
 to the likelihood covariance of every formulation that accepts it (the others get its
 diagonal added to the noise variance).  The rows' input values must be known numbers
 when the model is built (they are, in :func:`~kohpymc.model.compose_model`).
+
+``Σ_η`` is the truncation diagonal plus a rank ``K m`` term (``m`` distinct scalar
+settings among the rows); when that holds (see
+:meth:`FunctionalEmulator.covariance_tensor`) it is built as a
+:func:`~kohpymc.gaussian.low_rank_covariance`, and M0–M3, whose own covariance is
+diagonal plus the low-rank term of a marginalized mean, evaluate the likelihood by the
+Woodbury identity in ``O(n (K m)²)`` instead of factorizing ``n × n``.
 """
 
 from __future__ import annotations
@@ -999,8 +1006,9 @@ class FunctionalEmulatedPhysics(EmulatedPhysics):
     evaluation, Jacobian, variance and covariance), confined to the design on request.
 
     :meth:`covariance_tensor` is the emulator's full covariance between the calibration
-    rows (dense within a curve), which :func:`kohpymc.model.compose_model` puts into
-    the likelihood covariance of the formulations that accept it.
+    rows (dense within a curve, low rank plus diagonal in ``"full"`` mode), which
+    :func:`kohpymc.model.compose_model` puts into the likelihood covariance of the
+    formulations that accept it.
 
     Examples
     --------

@@ -36,7 +36,7 @@ is the same, but it carries its parts, and :class:`GaussianLikelihood` then eval
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pymc as pm
@@ -258,7 +258,7 @@ def low_rank_covariance(diagonal: Any, factor: Any) -> pt.TensorVariable:
     >>> C.eval()[0].tolist(), len(low_rank_parts(C))
     ([2.0, 1.0, 1.0], 2)
     """
-    return _low_rank_covariance(diagonal, factor)
+    return cast(pt.TensorVariable, _low_rank_covariance(diagonal, factor))
 
 
 def low_rank_parts(cov: Any) -> tuple[pt.TensorVariable, pt.TensorVariable] | None:

@@ -1028,7 +1028,7 @@ class FunctionalEmulatedPhysics(EmulatedPhysics):
         self.confine = bool(confine)
         super().__init__(
             emulator,  # type: ignore[arg-type]  # the same mean/variance/covariance interface
-            covariance=covariance,
+            covariance=covariance,  # type: ignore[arg-type]  # "dense": read by covariance_tensor here
             name=name or f"{emulator.physics.name} (PCA emulated)",
         )
 

@@ -24,9 +24,19 @@ and its gradient is written with the two extra outputs (no second factorization)
 variable is an ``MvNormalRV``, so draws, ``pm.compute_log_likelihood`` and code that
 looks for an ``MvNormalRV`` work unchanged).  A covariance that is not positive definite
 gives ``-inf``.
+
+A covariance that is a diagonal plus a low-rank term, ``C = diag(d) + F Fᵀ`` with ``F``
+``n × k`` and ``k < n`` (a principal-component emulator's ``Σ_η`` plus noise, a
+marginalized mean's ``B S0 Bᵀ``), is built with :func:`low_rank_covariance`; the matrix
+is the same, but it carries its parts, and :class:`GaussianLikelihood` then evaluates
+:func:`woodbury_log_density` (Woodbury identity and matrix determinant lemma,
+``O(n k²)``) instead of factorizing the ``n × n`` matrix (``O(n³)``).
+:func:`add_to_covariance` and :func:`covariance_solve` keep and use the structure.
 """
 
 from __future__ import annotations
+
+from typing import Any, cast
 
 import numpy as np
 import pymc as pm
@@ -37,7 +47,17 @@ from pytensor.graph.op import Op
 from pytensor.tensor.random.basic import MvNormalRV
 from scipy.linalg import lapack
 
-__all__ = ["GaussianLogDensity", "gaussian_log_density", "GaussianLikelihood"]
+__all__ = [
+    "GaussianLogDensity",
+    "gaussian_log_density",
+    "GaussianLikelihood",
+    "LowRankCovariance",
+    "add_to_covariance",
+    "covariance_solve",
+    "low_rank_covariance",
+    "low_rank_parts",
+    "woodbury_log_density",
+]
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -150,6 +170,207 @@ def _register_numba() -> None:
 _register_numba()
 
 
+class LowRankCovariance(Op):
+    """``diag(d) + F Fᵀ`` as a dense matrix whose graph keeps ``d`` and ``F``.
+
+    Code that needs the matrix (draws, leave-one-out, a GP's training covariance) uses
+    it as any covariance; :class:`GaussianLikelihood` and :func:`covariance_solve` read
+    the parts (:func:`low_rank_parts`) and never form it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> C = LowRankCovariance()(np.array([1.0, 2.0]), np.array([[1.0], [3.0]])).eval()
+    >>> C.tolist()
+    [[2.0, 3.0], [3.0, 11.0]]
+    """
+
+    __props__ = ()
+
+    def make_node(self, d, F):  # noqa: D102
+        d = pt.as_tensor_variable(d).astype("float64")
+        F = pt.as_tensor_variable(F).astype("float64")
+        if d.ndim != 1 or F.ndim != 2:
+            raise ValueError("LowRankCovariance needs a vector d and a matrix F")
+        return Apply(self, [d, F], [pt.dmatrix()])
+
+    def perform(self, node, inputs, outputs):  # noqa: D102
+        d, F = inputs
+        C = F @ F.T
+        C[np.diag_indices_from(C)] += d
+        outputs[0][0] = C
+
+    def grad(self, inputs, output_grads):  # noqa: D102
+        _, F = inputs
+        (g,) = output_grads
+        return [pt.diagonal(g), pt.dot(g + g.T, F)]
+
+    def infer_shape(self, fgraph, node, shapes):  # noqa: D102
+        n = shapes[0][0]
+        return [(n, n)]
+
+
+_low_rank_covariance = LowRankCovariance()
+
+
+def _register_low_rank_numba() -> None:
+    """Compile :class:`LowRankCovariance` natively in PyTensor's NUMBA mode (and nutpie)."""
+    try:
+        from pytensor.link.numba.dispatch import basic as numba_basic
+        from pytensor.link.numba.dispatch.basic import register_funcify_default_op_cache_key
+    except ImportError:  # pragma: no cover - numba is a PyTensor dependency here
+        return
+
+    @register_funcify_default_op_cache_key(LowRankCovariance)
+    def _numba_low_rank_covariance(op, node, **kwargs):
+        @numba_basic.numba_njit
+        def low_rank_covariance(d, F):
+            C = F @ F.T
+            for i in range(d.shape[0]):
+                C[i, i] += d[i]
+            return C
+
+        return low_rank_covariance, 1
+
+
+_register_low_rank_numba()
+
+
+def low_rank_covariance(diagonal: Any, factor: Any) -> pt.TensorVariable:
+    """The covariance ``diag(diagonal) + factor factorᵀ``, keeping its parts in the graph.
+
+    Parameters
+    ----------
+    diagonal : tensor-like, ``(n,)``
+        Positive variances.
+    factor : tensor-like, ``(n, k)``
+        The low-rank factor (``k < n`` for the structure to pay).
+
+    Returns
+    -------
+    TensorVariable
+        ``(n, n)``; :func:`low_rank_parts` recovers ``(diagonal, factor)`` from it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> C = low_rank_covariance(np.ones(3), np.ones((3, 1)))
+    >>> C.eval()[0].tolist(), len(low_rank_parts(C))
+    ([2.0, 1.0, 1.0], 2)
+    """
+    return cast(pt.TensorVariable, _low_rank_covariance(diagonal, factor))
+
+
+def low_rank_parts(cov: Any) -> tuple[pt.TensorVariable, pt.TensorVariable] | None:
+    """``(diagonal, factor)`` of a :func:`low_rank_covariance`, else ``None``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> low_rank_parts(pt.as_tensor(np.eye(2))) is None
+    True
+    """
+    owner = getattr(cov, "owner", None)
+    if owner is not None and isinstance(owner.op, LowRankCovariance):
+        d, F = owner.inputs
+        return d, F
+    return None
+
+
+def add_to_covariance(cov: Any, diagonal: Any = None, factor: Any = None) -> pt.TensorVariable:
+    """``cov + diag(diagonal) + factor factorᵀ``, low-rank when ``cov`` is.
+
+    Parameters
+    ----------
+    cov : tensor-like, ``(n, n)``
+        A covariance, possibly a :func:`low_rank_covariance`.
+    diagonal : tensor-like, optional
+        ``(n,)`` (or a scalar) added to the diagonal.
+    factor : tensor-like, optional
+        ``(n, j)`` whose outer product is added (appended to the low-rank factor).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> C = add_to_covariance(low_rank_covariance(np.ones(2), np.ones((2, 1))), 1.0,
+    ...                       np.array([[1.0], [0.0]]))
+    >>> C.eval().tolist(), low_rank_parts(C)[1].eval().shape
+    ([[4.0, 1.0], [1.0, 3.0]], (2, 2))
+    """
+    parts = low_rank_parts(cov)
+    if parts is None:
+        cov = pt.as_tensor_variable(cov)
+        if diagonal is not None:
+            cov = cov + pt.diag(diagonal * pt.ones(cov.shape[0]))
+        return cov if factor is None else cov + pt.dot(factor, pt.transpose(factor))
+    d, F = parts
+    if diagonal is not None:
+        d = d + diagonal
+    if factor is not None:
+        F = pt.concatenate([F, pt.as_tensor_variable(factor)], axis=1)
+    return low_rank_covariance(d, F)
+
+
+def _capacitance(d: Any, F: Any) -> tuple[pt.TensorVariable, pt.TensorVariable]:
+    """``D⁻¹F`` and the lower Cholesky factor of ``I + Fᵀ D⁻¹ F`` (``k × k``)."""
+    scaled = F / d[:, None]
+    inner = pt.eye(F.shape[1]) + pt.dot(pt.transpose(F), scaled)
+    return scaled, pt.linalg.cholesky(inner, lower=True)
+
+
+def woodbury_log_density(r: Any, diagonal: Any, factor: Any) -> pt.TensorVariable:
+    r"""``log N(r; 0, diag(d) + F Fᵀ)`` in ``O(n k²)`` (Woodbury and determinant lemma).
+
+    With ``A = I_k + Fᵀ D⁻¹ F = L Lᵀ`` and ``c = L⁻¹ Fᵀ D⁻¹ r``:
+
+    .. math::
+
+        r^\top C^{-1} r = r^\top D^{-1} r - c^\top c, \qquad
+        \log|C| = \textstyle\sum_i \log d_i + 2 \sum_j \log L_{jj}.
+
+    Differentiable (PyTensor's Cholesky and triangular solve of the ``k × k`` matrix);
+    ``-inf`` when some ``d_i ≤ 0``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.stats import multivariate_normal
+    >>> d, F, r = np.array([1.0, 2.0, 0.5]), np.array([[1.0], [0.5], [2.0]]), np.ones(3)
+    >>> logp = woodbury_log_density(r, d, F).eval()
+    >>> bool(np.isclose(logp, multivariate_normal(np.zeros(3), np.diag(d) + F @ F.T).logpdf(r)))
+    True
+    """
+    r, d, F = (pt.as_tensor_variable(a).astype("float64") for a in (r, diagonal, factor))
+    scaled, chol = _capacitance(d, F)
+    c = pt.linalg.solve_triangular(chol, pt.dot(pt.transpose(scaled), r), lower=True)
+    quad = pt.sum(r**2 / d) - pt.sum(c**2)
+    log_det = pt.sum(pt.log(d)) + 2.0 * pt.sum(pt.log(pt.diagonal(chol)))
+    logp = -0.5 * (quad + log_det + r.shape[0] * _LOG_2PI)
+    return pt.switch(pt.all(d > 0), logp, -np.inf)
+
+
+def covariance_solve(cov: Any, rhs: Any) -> pt.TensorVariable:
+    """``cov⁻¹ rhs`` (vector or matrix); by the Woodbury identity when ``cov`` is low-rank.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> C = low_rank_covariance(np.array([1.0, 2.0]), np.array([[1.0], [1.0]]))
+    >>> bool(np.allclose(C.eval() @ covariance_solve(C, np.ones(2)).eval(), 1.0))
+    True
+    """
+    rhs = pt.as_tensor_variable(rhs)
+    parts = low_rank_parts(cov)
+    if parts is None:
+        chol = pt.linalg.cholesky(cov, lower=True)
+        return pt.linalg.cho_solve((chol, True), rhs)
+    d, F = parts
+    scaled, chol = _capacitance(d, F)
+    inv_d = 1.0 / d if rhs.ndim == 1 else (1.0 / d)[:, None]
+    inner = pt.linalg.cho_solve((chol, True), pt.dot(pt.transpose(scaled), rhs))
+    return rhs * inv_d - pt.dot(scaled, inner)
+
+
 def gaussian_log_density(value, mu, cov) -> pt.TensorVariable:
     """Symbolic ``log N(value; mu, cov)`` through :class:`GaussianLogDensity`.
 
@@ -164,6 +385,12 @@ def gaussian_log_density(value, mu, cov) -> pt.TensorVariable:
     return _gaussian_log_density(value - mu, cov)[0]
 
 
+def _pays(d: pt.TensorVariable, F: pt.TensorVariable) -> bool:
+    """Whether the Woodbury form is the cheaper one: ``k < n`` (when the shapes are known)."""
+    n, k = d.type.shape[0], F.type.shape[1]
+    return n is None or k is None or k < n
+
+
 class _GaussianLikelihoodRV(MvNormalRV):
     """``MvNormalRV`` whose log density is :func:`gaussian_log_density`."""
 
@@ -171,7 +398,9 @@ class _GaussianLikelihoodRV(MvNormalRV):
 class GaussianLikelihood(pm.MvNormal):
     """:class:`pymc.MvNormal` (``mu``, ``cov``) with the one-pass log density above.
 
-    Use for observed vectors; draws are those of ``MvNormal``.
+    Use for observed vectors; draws are those of ``MvNormal``.  A ``cov`` built by
+    :func:`low_rank_covariance` (rank below ``n``) is evaluated by
+    :func:`woodbury_log_density`.
 
     Examples
     --------
@@ -196,4 +425,7 @@ class GaussianLikelihood(pm.MvNormal):
     def logp(value, mu, cov):  # noqa: D102
         if value.ndim != 1:
             raise NotImplementedError("GaussianLikelihood supports one observed vector")
+        parts = low_rank_parts(cov)
+        if parts is not None and _pays(*parts):
+            return woodbury_log_density(value - mu, *parts)
         return gaussian_log_density(value, mu, cov)

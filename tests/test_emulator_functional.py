@@ -262,3 +262,79 @@ def test_every_formulation_builds_with_the_functional_emulator():
         if formulation.label in ("M0", "M1", "M4"):
             point = built.model.initial_point()
             assert np.isfinite(built.model.compile_logp()(point)), formulation.label
+
+
+def _theta_point(model, theta):
+    """The model's initial point with the physics parameters at ``theta`` (transformed)."""
+    point = model.initial_point()
+    for rv, value in model.rvs_to_values.items():
+        if rv.name in theta:
+            tr = model.rvs_to_transforms[rv]
+            v = np.asarray(theta[rv.name])
+            point[value.name] = tr.forward(v, *rv.owner.inputs).eval() if tr else v
+    return point
+
+
+@pytest.mark.parametrize("settings", [1, 3])
+def test_the_low_rank_covariance_is_the_dense_one(settings):
+    from kohpymc.gaussian import low_rank_parts
+
+    em, _ = _emulator(25)
+    theta = pt.as_tensor([1.5, 0.7, 0.3])
+    t = np.linspace(0.15, 2.85, 10)  # half off the grid, no two rows between the same points
+    X = np.column_stack([np.repeat([0.0, 0.5, 1.0][:settings], 10), np.tile(t, settings)])
+    full = em.covariance_tensor(theta, X)
+    d, F = low_rank_parts(full)
+    assert F.eval().shape == (len(X), em.n_components * settings)
+    dense = em.covariance_tensor(theta, X, low_rank=False)
+    assert low_rank_parts(dense) is None
+    np.testing.assert_allclose(full.eval(), dense.eval(), rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(
+        em.variance_tensor(theta, X).eval(), np.diag(dense.eval()), rtol=1e-10
+    )
+    # two rows between the same grid points at one setting: the truncation term is not
+    # diagonal, the covariance stays dense
+    close = np.array([[0.0, 1.02], [0.0, 1.07], [0.0, 2.0]])
+    assert low_rank_parts(em.covariance_tensor(theta, close)) is None
+
+
+def test_the_woodbury_likelihood_equals_the_dense_one():
+    import kohpymc as kp
+    from kohpymc.gaussian import low_rank_parts
+    from kohpymc.model import compose_model
+
+    em, _ = _emulator(20)
+    data = _data()
+    for formulation in (
+        kp.NoDiscrepancy(),
+        kp.IIDGaussian(),  # the same code path as M1 (a marginalized mean)
+        kp.InputDependentGaussian(mean=["t"]),
+    ):
+        models = [
+            compose_model(em.physics_model(covariance=mode), data, formulation).model
+            for mode in ("full", "dense")
+        ]
+        cov = models[0]["y"].owner.inputs[-1]
+        assert low_rank_parts(cov) is not None, formulation.label
+        assert low_rank_parts(models[1]["y"].owner.inputs[-1]) is None
+        point = _theta_point(models[0], _TRUTH)
+        (logp, grad), (dense_logp, dense_grad) = (
+            m.compile_fn([m.logp(), m.dlogp()], mode="FAST_COMPILE")(point) for m in models
+        )
+        np.testing.assert_allclose(logp, dense_logp, rtol=1e-8, err_msg=formulation.label)
+        scale = np.max(np.abs(dense_grad))
+        np.testing.assert_allclose(grad, dense_grad, rtol=1e-8, atol=1e-8 * scale)
+
+
+@pytest.mark.slow
+def test_the_woodbury_posterior_is_the_dense_one():
+    import kohpymc as kp
+
+    em, _ = _emulator(40)
+    sampling = _SAMPLING | {"draws": 500, "tune": 500}
+    full, dense = (
+        _posterior(kp.calibrate(em.physics_model(covariance=mode), _data(), **sampling))
+        for mode in ("full", "dense")
+    )
+    for name, (mean, sd) in dense.items():
+        assert abs(full[name][0] - mean) < 0.1 * sd, (name, full[name], mean, sd)

@@ -83,7 +83,10 @@ class ModelContext:
         ``(n, n)`` covariance of the physics output between the calibration rows (an
         emulator's ``Σ_η(θ)``), given only to formulations whose
         :attr:`Discrepancy.accepts_physics_covariance` is true: they add it to the
-        likelihood covariance, ``N(G + μ_δ, Σ_η + Σ_δ + σ_obs² I)``.
+        likelihood covariance, ``N(G + μ_δ, Σ_η + Σ_δ + σ_obs² I)``.  It may be a
+        :func:`~kohpymc.gaussian.low_rank_covariance` (a principal-component
+        emulator's): :func:`~kohpymc.gaussian.add_to_covariance` keeps that structure
+        for the Woodbury likelihood.
     """
 
     input_names: tuple[str, ...]

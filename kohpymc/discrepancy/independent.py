@@ -20,7 +20,7 @@ import pytensor.tensor as pt
 
 from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.functions import MeanSpec, marginalizable
-from kohpymc.gaussian import GaussianLikelihood
+from kohpymc.gaussian import GaussianLikelihood, add_to_covariance, covariance_solve
 
 __all__ = ["IndependentDiscrepancy"]
 
@@ -53,16 +53,19 @@ class IndependentDiscrepancy(Discrepancy):
             B = spec.design(ctx, X)
             m0, s0 = spec.gaussian_prior(ctx)  # type: ignore[union-attr, misc]
             diag = variance * pt.ones_like(ctx.G)
-            base = pt.diag(diag) if physics_cov is None else pt.diag(diag) + physics_cov
-            cov = base + pt.dot(B * s0**2, B.T)
+            if physics_cov is None:
+                base = pt.diag(diag)
+                cov = base + pt.dot(B * s0**2, B.T)
+            else:  # low-rank when the emulator's Σ_η is (Woodbury likelihood)
+                base = add_to_covariance(physics_cov, diagonal=diag)
+                cov = add_to_covariance(base, factor=B * s0)
             mu = ctx.G + pt.dot(B, m0)
             GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
             if physics_cov is None:
                 inv_B, inv_resid = B / diag[:, None], (ctx.y - ctx.G) / diag
             else:
-                chol = pt.linalg.cholesky(base)
-                inv_B = pt.linalg.cho_solve((chol, True), B)
-                inv_resid = pt.linalg.cho_solve((chol, True), ctx.y - ctx.G)
+                inv_B = covariance_solve(base, B)
+                inv_resid = covariance_solve(base, ctx.y - ctx.G)
             mean_fn = spec.build_marginalized(  # type: ignore[union-attr]
                 ctx, self.mean_name, B, inv_B, inv_resid
             )
@@ -73,7 +76,7 @@ class IndependentDiscrepancy(Discrepancy):
                 pm.Normal("y", mu=mu, sigma=pt.sqrt(variance), observed=ctx.y, dims=ctx.obs_dim)
                 cov = None
             else:  # an emulator's correlated error: rows are no longer independent
-                cov = pt.diag(variance * pt.ones_like(ctx.G)) + physics_cov
+                cov = add_to_covariance(physics_cov, diagonal=variance * pt.ones_like(ctx.G))
                 GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
 
         def predict(X_new: pt.TensorVariable, G_new: pt.TensorVariable) -> pt.TensorVariable:

@@ -37,6 +37,13 @@ on the grid (to a relative 1e-9).
 to the likelihood covariance of every formulation that accepts it (the others get its
 diagonal added to the noise variance).  The rows' input values must be known numbers
 when the model is built (they are, in :func:`~kohpymc.model.compose_model`).
+
+``Σ_η`` is the truncation diagonal plus a rank ``K m`` term (``m`` distinct scalar
+settings among the rows); when that holds (see
+:meth:`FunctionalEmulator.covariance_tensor`) it is built as a
+:func:`~kohpymc.gaussian.low_rank_covariance`, and M0–M3, whose own covariance is
+diagonal plus the low-rank term of a marginalized mean, evaluate the likelihood by the
+Woodbury identity in ``O(n (K m)²)`` instead of factorizing ``n × n``.
 """
 
 from __future__ import annotations
@@ -74,6 +81,7 @@ from kohpymc.emulator.runs import (
     simulator_identity,
 )
 from kohpymc.execution import run_tasks
+from kohpymc.gaussian import low_rank_covariance, low_rank_parts
 from kohpymc.physics import PhysicsModel
 
 __all__ = [
@@ -754,9 +762,34 @@ class FunctionalEmulator:
         }
 
     # ----------------------------------------------------------------- pytensor
-    def _latent_tensor(self, theta: Any, X: np.ndarray) -> tuple[Any, Any]:
-        """Latent mean and covariance at the rows: all K weight GPs as batched tensors."""
+    def _latent_tensor(self, theta: Any, X: np.ndarray, low_rank: bool = False) -> tuple[Any, Any]:
+        """Latent mean and covariance at the rows: all K weight GPs as batched tensors.
+
+        With ``low_rank`` the covariance is a :func:`~kohpymc.gaussian.low_rank_covariance`
+        whenever its structure allows (see :meth:`_low_rank_factor`), else dense.
+        """
         loc = self._locate(X)
+        w_mean, cov_w = self._weight_moments(theta, loc)
+        B = loc.interp @ self.basis  # (n, K)
+        idx = loc.setting_index
+        trunc = self._truncation(loc)
+        s = self.curve_scale
+        mean = loc.interp @ self.mean_curve + s * pt.sum(B.T * w_mean[:, idx], axis=0)
+        factor = self._low_rank_factor(B, loc, trunc, cov_w) if low_rank else None
+        if factor is not None:
+            return mean, low_rank_covariance(s**2 * np.diag(trunc), s * factor)
+        if len(loc.settings) == 1:
+            cov = trunc + pt.dot(B * cov_w[:, 0, 0][None, :], B.T)
+        else:
+            outer = B.T[:, :, None] * B.T[:, None, :]  # (K, n, n)
+            cov = trunc + pt.sum(outer * cov_w[:, idx][:, :, idx], axis=0)
+        return mean, s**2 * cov
+
+    def _weight_moments(self, theta: Any, loc: _Rows) -> tuple[Any, Any]:
+        """GP means ``(K, m)`` and covariances ``(K, m, m)`` of the weights at the settings.
+
+        One setting: the variance is clipped below at the nugget, as in :meth:`_WeightGP.predict`.
+        """
         ds = len(self.scalar_inputs)
         u = self._theta_unit_tensor(pt.as_tensor_variable(theta))  # (p,)
         settings = self._unit_settings(loc.settings)  # (m, d_s) numbers
@@ -776,26 +809,35 @@ class FunctionalEmulator:
         Kc = self._batched_kernel(r2_s + r2_t[:, None, :], amp[:, None, None])  # (K, m, N)
         w_mean = pt.sum(Kc * alpha[:, None, :], axis=-1)  # (K, m)
         V = pt.matmul(chol_inv, Kc.transpose(0, 2, 1))  # (K, N, m)
-        B = loc.interp @ self.basis  # (n, K)
-        idx = loc.setting_index
-        trunc = self._truncation(loc)
         if m == 1:
             var = pt.maximum(amp + nug - pt.sum(V[:, :, 0] ** 2, axis=1), nug)  # (K,)
-            w_rows = pt.dot(B, w_mean[:, 0])
-            cov = trunc + pt.dot(B * var[None, :], B.T)
-        else:
-            prior_r2 = np.sum(
-                ((settings[None, :, None, :] - settings[None, None, :, :]) / LS[:, None, None, :ds])
-                ** 2,
-                axis=-1,
-            )
-            prior = self._batched_kernel(prior_r2, amp[:, None, None], lib=np)
-            cov_w = prior - pt.matmul(V.transpose(0, 2, 1), V) + nug[:, None, None] * np.eye(m)
-            w_rows = pt.sum(B.T * w_mean[:, idx], axis=0)
-            outer = B.T[:, :, None] * B.T[:, None, :]  # (K, n, n)
-            cov = trunc + pt.sum(outer * cov_w[:, idx][:, :, idx], axis=0)
-        s = self.curve_scale
-        return loc.interp @ self.mean_curve + s * w_rows, s**2 * cov
+            return w_mean, var[:, None, None]
+        prior_r2 = np.sum(
+            ((settings[None, :, None, :] - settings[None, None, :, :]) / LS[:, None, None, :ds])
+            ** 2,
+            axis=-1,
+        )
+        prior = self._batched_kernel(prior_r2, amp[:, None, None], lib=np)
+        return w_mean, prior - pt.matmul(V.transpose(0, 2, 1), V) + nug[:, None, None] * np.eye(m)
+
+    def _low_rank_factor(
+        self, B: np.ndarray, loc: _Rows, trunc: np.ndarray, cov_w: Any
+    ) -> Any | None:
+        """``F`` ``(n, K m)`` with ``Σ_k (B_k B_kᵀ) ∘ c_k[idx, idx] = F Fᵀ``, or ``None``.
+
+        ``F_k = diag(B_k) E L_k`` with ``E`` the rows' setting indicator and
+        ``c_k = L_k L_kᵀ``.  ``None`` (dense) when the output is log-normal, when the
+        truncation term is not diagonal (rows sharing a grid point at one setting) or
+        when the rank ``K m`` is not below the number of rows.
+        """
+        n, K, m = B.shape[0], B.shape[1], len(loc.settings)
+        if self.log_output or K * m >= n or np.any(trunc[~np.eye(n, dtype=bool)] != 0.0):
+            return None
+        if m == 1:
+            return B * pt.sqrt(cov_w[:, 0, 0])[None, :]
+        chol = pt.linalg.cholesky(cov_w, lower=True)  # (K, m, m)
+        blocks = B.T[:, :, None] * chol[:, loc.setting_index, :]  # (K, n, m)
+        return blocks.transpose(1, 0, 2).reshape((n, K * m))
 
     def _batched_kernel(self, r2: Any, amp: Any, lib: Any = pt) -> Any:
         if self.kernel == "se":
@@ -813,8 +855,15 @@ class FunctionalEmulator:
         mean, cov = self._latent_tensor(theta, _numbers(X))
         return self._output(mean, cov, pt)[0]
 
-    def covariance_tensor(self, theta: Any, X: Any) -> Any:
+    def covariance_tensor(self, theta: Any, X: Any, low_rank: bool = True) -> Any:
         """Symbolic predictive covariance ``Σ_η(θ)`` ``(n, n)`` between the rows ``X``.
+
+        With ``low_rank`` (default) it is built by
+        :func:`~kohpymc.gaussian.low_rank_covariance` (the truncation diagonal plus rank
+        ``K m``, ``m`` the rows' distinct scalar settings) whenever that holds: not
+        log-normal, no two rows at one grid point and setting, ``K m < n``.  The
+        likelihood then uses the Woodbury form; ``low_rank=False`` gives the plain dense
+        matrix.
 
         Examples
         --------
@@ -830,12 +879,17 @@ class FunctionalEmulator:
         >>> bool(np.allclose(C, em.predict_covariance({"t": [0.5, 1.5]}, [1.5, 0.7])[1]))
         True
         """
-        mean, cov = self._latent_tensor(theta, _numbers(X))
-        return self._output(mean, cov, pt)[1]
+        mean, cov = self._latent_tensor(theta, _numbers(X), low_rank)
+        return cov if low_rank_parts(cov) else self._output(mean, cov, pt)[1]
 
     def variance_tensor(self, theta: Any, X: Any) -> Any:
         """Symbolic predictive variance at the rows (the diagonal of the covariance)."""
-        return pt.diagonal(self.covariance_tensor(theta, X))
+        cov = self.covariance_tensor(theta, X)
+        parts = low_rank_parts(cov)
+        if parts is None:
+            return pt.diagonal(cov)
+        d, F = parts
+        return d + pt.sum(F**2, axis=1)
 
     def support_logp(self, theta: Any, margin: float = 0.0, softness: float = 0.01) -> Any:
         """Log-density term confining θ to the design: 0 inside, quadratic wall outside.
@@ -880,7 +934,7 @@ class FunctionalEmulator:
     def physics_model(
         self,
         *,
-        covariance: Literal["full", "diagonal"] = "full",
+        covariance: Literal["full", "dense", "diagonal"] = "full",
         name: str | None = None,
         confine: bool = False,
     ) -> FunctionalEmulatedPhysics:
@@ -888,11 +942,15 @@ class FunctionalEmulator:
 
         Parameters
         ----------
-        covariance : {"full", "diagonal"}
+        covariance : {"full", "dense", "diagonal"}
             ``"full"`` (default): ``Σ_η(θ)`` between the calibration rows enters the
-            likelihood covariance; ``"diagonal"``: only its diagonal, added to the
-            noise variance (ignores that the emulator errors of one curve move together,
-            which overstates the information in the data).
+            likelihood covariance, as a diagonal plus low rank when it is one (the
+            likelihood is then evaluated by the Woodbury identity, see
+            :meth:`FunctionalEmulator.covariance_tensor`); ``"dense"``: the same
+            ``Σ_η(θ)`` as a plain ``n × n`` matrix (the likelihood factorizes it, for
+            comparisons); ``"diagonal"``: only its diagonal, added to the noise variance
+            (ignores that the emulator errors of one curve move together, which
+            overstates the information in the data).
         name : str, optional
             Default: the simulator's name + " (PCA emulated)".
         confine : bool
@@ -913,8 +971,10 @@ class FunctionalEmulator:
         >>> em.physics_model().name
         'decay (PCA emulated)'
         """
-        if covariance not in ("full", "diagonal"):
-            raise ValueError(f"covariance must be 'full' or 'diagonal', got {covariance!r}")
+        if covariance not in ("full", "dense", "diagonal"):
+            raise ValueError(
+                f"covariance must be 'full', 'dense' or 'diagonal', got {covariance!r}"
+            )
         return FunctionalEmulatedPhysics(self, covariance=covariance, name=name, confine=confine)
 
     def __repr__(self) -> str:
@@ -946,8 +1006,9 @@ class FunctionalEmulatedPhysics(EmulatedPhysics):
     evaluation, Jacobian, variance and covariance), confined to the design on request.
 
     :meth:`covariance_tensor` is the emulator's full covariance between the calibration
-    rows (dense within a curve), which :func:`kohpymc.model.compose_model` puts into
-    the likelihood covariance of the formulations that accept it.
+    rows (dense within a curve, low rank plus diagonal in ``"full"`` mode), which
+    :func:`kohpymc.model.compose_model` puts into the likelihood covariance of the
+    formulations that accept it.
 
     Examples
     --------
@@ -960,14 +1021,14 @@ class FunctionalEmulatedPhysics(EmulatedPhysics):
         self,
         emulator: FunctionalEmulator,
         *,
-        covariance: Literal["full", "diagonal"] = "full",
+        covariance: Literal["full", "dense", "diagonal"] = "full",
         name: str | None = None,
         confine: bool = False,
     ) -> None:
         self.confine = bool(confine)
         super().__init__(
             emulator,  # type: ignore[arg-type]  # the same mean/variance/covariance interface
-            covariance=covariance,
+            covariance=covariance,  # type: ignore[arg-type]  # "dense": read by covariance_tensor here
             name=name or f"{emulator.physics.name} (PCA emulated)",
         )
 
@@ -991,6 +1052,12 @@ class FunctionalEmulatedPhysics(EmulatedPhysics):
             "confine": self.confine,
             "rotation": None if em.rotation is None else [a.tolist() for a in em.rotation],
         }
+
+    def covariance_tensor(self, theta: Any, X: Any) -> Any:
+        """``Σ_η(X, θ)``: low-rank form in ``"full"`` mode, dense in ``"dense"``, else None."""
+        if self.covariance == "diagonal":
+            return None
+        return self.emulator.covariance_tensor(theta, X, low_rank=self.covariance == "full")
 
     def support_logp(self, theta: Any) -> Any:
         """The emulator's :meth:`~FunctionalEmulator.support_logp` when confined, else None."""

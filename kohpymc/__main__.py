@@ -1,6 +1,6 @@
 """``python -m kohpymc`` is the ``kohpymc`` command."""
 
-from kohpymc.cli import main
+from kohpymc.cli import run
 
 if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+    run()

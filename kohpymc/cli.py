@@ -25,6 +25,7 @@ input, 1 when no replicate could be fitted.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -601,5 +602,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     return args.run(args)
 
 
+def run() -> None:
+    """The ``kohpymc`` command: :func:`main`, then exit at once with its status.
+
+    Output is flushed and every file is closed by then; what is skipped is the
+    interpreter's teardown of PyTensor's, Numba's and nutpie's objects, which took 2–7 s
+    after a beam study on a busy 2-core machine (benchmarks/latency.py, docs/benchmarks.md).
+    Library callers use :func:`main`, which returns the status.
+    """
+    status = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+    run()

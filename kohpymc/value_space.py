@@ -136,6 +136,25 @@ def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarra
     return "other", nan, nan
 
 
+def _expand_mode(mode: str | None) -> str | None:
+    """Compile mode of the expand map: the C backend when the log density is NUMBA's.
+
+    The expand map runs once per kept draw (~50 µs either way on the beam), so its compile
+    time is what counts: numba compiles it at its first call and cannot cache a graph
+    with a Python Op (the physics) across processes (1–3 s per beam formulation), while
+    the C backend finds its modules in PyTensor's on-disk cache.  Without a C compiler
+    the map stays with NUMBA (PyTensor's Python fallback would cost milliseconds per draw).
+
+    Examples
+    --------
+    >>> _expand_mode("FAST_RUN")
+    'FAST_RUN'
+    """
+    if mode != "NUMBA" or not pytensor.config.cxx:
+        return mode
+    return "FAST_RUN"
+
+
 def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     """Compile the flat log density, its gradient and the expand map of ``model``.
 
@@ -144,7 +163,9 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     model : pymc.Model
         A model whose free variables are all continuous.
     mode : str, optional
-        PyTensor compile mode (default: PyTensor's default, the C backend).
+        PyTensor compile mode of the log density and gradient (default: PyTensor's
+        default, the C backend).  With ``"NUMBA"`` the expand map is compiled by the C
+        backend when a C compiler is available (:func:`_expand_mode`).
 
     Returns
     -------
@@ -192,11 +213,13 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     expand_outputs, flat_e = join_nonshared_inputs(
         point=point, outputs=expanded_graphs, inputs=value_vars, make_inputs_shared=False
     )
+    expand_mode = _expand_mode(mode)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Numba will use object mode")
         expand = pm.pytensorf.compile(
-            [flat_e], expand_outputs, on_unused_input="ignore", **compile_kwargs
-        )
+            [flat_e], expand_outputs, on_unused_input="ignore",
+            **({} if expand_mode is None else {"mode": expand_mode}),
+        )  # fmt: skip
     initial = np.concatenate([np.ravel(point[n]) for n in names]).astype(float)
     expanded_shapes = tuple(tuple(np.shape(v)) for v in expand(initial))
     return ValueSpace(

@@ -41,6 +41,20 @@ def test_bad_study_exits_2_and_names_the_key(tmp_path, capsys, write_study):
     assert not out.exists()  # nothing half-written
 
 
+def test_the_command_exits_with_mains_status_and_flushed_output(tmp_path, write_study):
+    """``python -m kohpymc`` (``cli.run``) skips the interpreter's teardown, not the output."""
+    import os
+    import subprocess
+    import sys
+
+    path = write_study(tmp_path, **{"tolerance = 0.75": "tolerance = -1"})
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    command = [sys.executable, "-m", "kohpymc", "study", str(path), "--out", str(tmp_path / "r")]
+    done = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 2
+    assert "validation.tolerance" in done.stderr
+
+
 @pytest.mark.slow
 def test_discover_command_writes_report_and_files(tmp_path, write_study):
     import json

@@ -60,6 +60,7 @@ from kohpymc.identifiability import (
     check_at_point,
     ridge_text,
 )
+from kohpymc.prior_bounds import BoundHit, hits_at_mode, warn_hits
 from kohpymc.reparameterization import Coordinates, Reparameterization
 from kohpymc.value_space import ValueSpace
 
@@ -494,6 +495,9 @@ class PreSampling:
         After the call.
     notes : list of str
         Why a part was skipped.
+    bounds : list of BoundHit
+        Parameters whose mode lies against a prior bound (after the call;
+        :mod:`kohpymc.prior_bounds`), each also warned about.
 
     Examples
     --------
@@ -519,12 +523,16 @@ class PreSampling:
     report: IdentifiabilityReport | None = None
     cost: CostEstimate | None = None
     notes: list[str] = field(default_factory=list)
+    bounds: list[BoundHit] = field(default_factory=list)
 
     def __call__(
         self, space: ValueSpace, reparam: Reparameterization | None, settings: Mapping[str, Any]
     ) -> None:
-        """Check identifiability at the mode, then estimate the cost (warning on either)."""
+        """Check the bounds and identifiability at the mode, then estimate the cost."""
         self.mode = mode_parameters(space, reparam)
+        if reparam is not None and reparam.mode is not None and reparam.value_sd is not None:
+            self.bounds = hits_at_mode(space, reparam.mode.value, reparam.value_sd)
+            warn_hits(self.bounds, f"at the posterior mode of {self.label}", stacklevel=4)
         if self.plain is not None:
             self._check_mode()
         if self.threshold_s is not None and settings.get("sampler", "nutpie") != "smc":
@@ -605,4 +613,5 @@ class PreSampling:
             "identifiability_at_mode": None if self.report is None else self.report.to_dict(),
             "cost": None if self.cost is None else self.cost.to_dict(),
             "notes": list(self.notes),
+            "prior_bounds": [hit.to_dict() for hit in self.bounds],
         }

@@ -237,6 +237,9 @@ class Reparameterization:
         log scale between the bounds, then whitened).
     reason : str
         Why this plan, in words (condition number, correlation, or why none).
+    value_sd : ndarray or None
+        Laplace standard deviations at the mode in PyMC's value space (None without a
+        positive-definite Hessian).
     """
 
     kind: str
@@ -249,6 +252,7 @@ class Reparameterization:
     max_correlation: float = float("nan")
     gaussian_score: float = float("nan")
     warnings: tuple[str, ...] = ()
+    value_sd: np.ndarray | None = None
 
     @property
     def ndim(self) -> int:
@@ -258,6 +262,19 @@ class Reparameterization:
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
         return self.coordinates.to_value(self._unshared(self.mean + self.chol @ np.asarray(z)))[0]
+
+    def laplace_value_sd(self) -> np.ndarray:
+        """Laplace standard deviations at the mode in PyMC's value space.
+
+        The covariance ``L Lᵀ`` of ``w`` carried to ``v`` by the exact Jacobian of the
+        map ``w → v`` at ``μ`` (elementwise derivatives after the variance shares).
+        """
+        shares = self.coordinates.shares
+        unit = np.eye(self.ndim)
+        inner = unit if shares is None else np.array([shares.pull_back(self.mean, e) for e in unit])
+        jac = self.coordinates.to_value(self._unshared(self.mean))[1][:, None] * inner
+        factor = jac @ self.chol
+        return np.sqrt(np.einsum("ij,ij->i", factor, factor))
 
     def _unshared(self, w: np.ndarray) -> np.ndarray:
         shares = self.coordinates.shares
@@ -558,7 +575,9 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
         max_correlation=float(off.max()) if off.size else 0.0,
     )
     score = _gaussian_score(space, plan)
-    return Reparameterization(**{**plan.__dict__, "gaussian_score": score})
+    return Reparameterization(
+        **{**plan.__dict__, "gaussian_score": score, "value_sd": plan.laplace_value_sd()}
+    )
 
 
 def plan(
@@ -671,6 +690,7 @@ def _unwhitened_plan(
         max_correlation=best.max_correlation,
         gaussian_score=best.gaussian_score,
         warnings=_separated_modes(best, mode) + _gradient_mismatch(space, best, seed),
+        value_sd=best.value_sd,
     )
 
 

@@ -7,11 +7,14 @@ the centre that the data inform well near the fit.  Once the sampler has found t
 posterior mode (:func:`kohpymc.reparameterization.plan`), :class:`PreSampling`, called
 by :func:`kohpymc.sampling.sample_posterior` just before the sampler starts,
 
-1. maps the mode to the user's parameters and repeats the Taylor check there
+1. checks whether the mode lies against a prior bound
+   (:func:`kohpymc.prior_bounds.hits_at_mode`), warning with a
+   :class:`~kohpymc.prior_bounds.PriorBoundWarning` for each parameter that does;
+2. maps the mode to the user's parameters and repeats the Taylor check there
    (:func:`kohpymc.identifiability.check_at_point`), warning with an
    :class:`~kohpymc.identifiability.IdentifiabilityWarning` that names the confounded
    combination (rank deficit) or the combination the data inform (ill-conditioned);
-2. estimates the sampling time (:func:`estimate_cost`): seconds per log-density plus
+3. estimates the sampling time (:func:`estimate_cost`): seconds per log-density plus
    gradient evaluation at the mode, times leapfrog steps per draw, times iterations and
    chains, and warns with a :class:`SlowSamplingWarning` when the estimate exceeds a
    threshold (default 10 minutes), saying why: expensive physics (an emulator helps),
@@ -39,7 +42,8 @@ and a plan without a positive-definite Hessian (a flat direction) the tree-depth
 (1023 steps).  Chains share one lock around the Python log density in nutpie, so they
 evaluate one at a time (``parallel=1``).
 
-The estimate's parts and the mode check are recorded in the result's provenance.
+The estimate's parts, the mode check and the bounds found are recorded in the result's
+provenance.
 """
 
 from __future__ import annotations

@@ -76,7 +76,8 @@ class SamplingReport:
         through one lock.
     prior_bounds : list of dict
         Parameters whose draws lie against a prior bound
-        (:func:`kohpymc.prior_bounds.hits_in_draws`), each also warned about.
+        (:func:`kohpymc.prior_bounds.hits_in_draws`), each also warned about (NUTS
+        samplers; not checked after SMC).
     """
 
     sampler: str

@@ -9,6 +9,7 @@ from kohpymc.reparameterization import (
     Coordinates,
     Reparameterization,
     VarianceShare,
+    _bound_ridge_plan,
     _whitened,
     find_mode,
     plan,
@@ -107,6 +108,32 @@ def test_ridge_against_a_bound_is_measured_from_its_regression():
     fd = _finite_difference_gradient(lambda u: reparam.logp_dlogp(space, u)[0], z)
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(reparam.from_value(reparam.to_value(z)), z, atol=1e-8)
+
+
+def test_bound_ridge_with_variance_shares_is_exact():
+    """Noise split between two sds (sampled as total sd and log ratio) next to a slope piled
+    against its bound: the composed map's gradient and round trip hold."""
+    rng = np.random.default_rng(SEED)
+    x = np.linspace(1.0, 3.0, 30)
+    y = 2.0 * x + rng.normal(0.0, 0.3, x.size)
+    with pm.Model() as model:
+        a = pm.HalfNormal("a", 1.0)
+        b = pm.HalfNormal("b", 1.0)
+        c = pm.Uniform("c", 0.5, 1.5)
+        pm.Normal("y", c * x, pm.math.sqrt(a**2 + b**2), observed=y)
+    space = value_space(model)
+    shares = variance_shares(space, [("a", "b")])
+    mode = find_mode(space, seed=SEED)
+    laplace = _whitened(space, Coordinates.identity(3).with_shares(shares), mode.value, mode)
+    bent = _bound_ridge_plan(space, laplace, mode)
+    assert bent.kind == "variance-share-bound-ridge-affine"
+    assert bent.coordinates.ridge.bounded.tolist() == [2]
+    z = np.array([0.3, -0.7, 0.9])
+    logp, grad = bent.logp_dlogp(space, z)
+    fd = _finite_difference_gradient(lambda u: bent.logp_dlogp(space, u)[0], z)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(bent.from_value(bent.to_value(z)), z, atol=1e-8)
+    np.testing.assert_allclose(bent.value_sd, laplace.value_sd, rtol=1e-3)
 
 
 def _piled_moments():

@@ -60,6 +60,7 @@ from kohpymc.multi_output import (
     run_multi_output_study,
 )
 from kohpymc.physics import PhysicsModel, PhysicsModelError
+from kohpymc.prior_bounds import PriorBoundWarning
 from kohpymc.priors import Custom, HalfNormal, LogNormal, LogUniform, Normal, Prior, Uniform
 from kohpymc.progress import TaskDisplay, report_note, report_phase, task_display
 from kohpymc.sbc import CalibrationCheck, check_calibration
@@ -97,6 +98,7 @@ __all__ = [
     "sampler_diagnostics",
     "SamplerTroubleWarning",
     "SlowSamplingWarning",
+    "PriorBoundWarning",
     # several outputs calibrating one θ jointly
     "MultiOutputData",
     "MultiOutputPhysics",

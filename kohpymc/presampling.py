@@ -7,11 +7,14 @@ the centre that the data inform well near the fit.  Once the sampler has found t
 posterior mode (:func:`kohpymc.reparameterization.plan`), :class:`PreSampling`, called
 by :func:`kohpymc.sampling.sample_posterior` just before the sampler starts,
 
-1. maps the mode to the user's parameters and repeats the Taylor check there
+1. checks whether the mode lies against a prior bound
+   (:func:`kohpymc.prior_bounds.hits_at_mode`), warning with a
+   :class:`~kohpymc.prior_bounds.PriorBoundWarning` for each parameter that does;
+2. maps the mode to the user's parameters and repeats the Taylor check there
    (:func:`kohpymc.identifiability.check_at_point`), warning with an
    :class:`~kohpymc.identifiability.IdentifiabilityWarning` that names the confounded
    combination (rank deficit) or the combination the data inform (ill-conditioned);
-2. estimates the sampling time (:func:`estimate_cost`): seconds per log-density plus
+3. estimates the sampling time (:func:`estimate_cost`): seconds per log-density plus
    gradient evaluation at the mode, times leapfrog steps per draw, times iterations and
    chains, and warns with a :class:`SlowSamplingWarning` when the estimate exceeds a
    threshold (default 10 minutes), saying why: expensive physics (an emulator helps),
@@ -39,7 +42,8 @@ and a plan without a positive-definite Hessian (a flat direction) the tree-depth
 (1023 steps).  Chains share one lock around the Python log density in nutpie, so they
 evaluate one at a time (``parallel=1``).
 
-The estimate's parts and the mode check are recorded in the result's provenance.
+The estimate's parts, the mode check and the bounds found are recorded in the result's
+provenance.
 """
 
 from __future__ import annotations
@@ -60,6 +64,7 @@ from kohpymc.identifiability import (
     check_at_point,
     ridge_text,
 )
+from kohpymc.prior_bounds import BoundHit, hits_at_mode, warn_hits
 from kohpymc.reparameterization import Coordinates, Reparameterization
 from kohpymc.value_space import ValueSpace
 
@@ -494,6 +499,9 @@ class PreSampling:
         After the call.
     notes : list of str
         Why a part was skipped.
+    bounds : list of BoundHit
+        Parameters whose mode lies against a prior bound (after the call;
+        :mod:`kohpymc.prior_bounds`), each also warned about.
 
     Examples
     --------
@@ -519,12 +527,16 @@ class PreSampling:
     report: IdentifiabilityReport | None = None
     cost: CostEstimate | None = None
     notes: list[str] = field(default_factory=list)
+    bounds: list[BoundHit] = field(default_factory=list)
 
     def __call__(
         self, space: ValueSpace, reparam: Reparameterization | None, settings: Mapping[str, Any]
     ) -> None:
-        """Check identifiability at the mode, then estimate the cost (warning on either)."""
+        """Check the bounds and identifiability at the mode, then estimate the cost."""
         self.mode = mode_parameters(space, reparam)
+        if reparam is not None and reparam.mode is not None and reparam.value_sd is not None:
+            self.bounds = hits_at_mode(space, reparam.mode.value, reparam.value_sd)
+            warn_hits(self.bounds, f"at the posterior mode of {self.label}", stacklevel=4)
         if self.plain is not None:
             self._check_mode()
         if self.threshold_s is not None and settings.get("sampler", "nutpie") != "smc":
@@ -605,4 +617,5 @@ class PreSampling:
             "identifiability_at_mode": None if self.report is None else self.report.to_dict(),
             "cost": None if self.cost is None else self.cost.to_dict(),
             "notes": list(self.notes),
+            "prior_bounds": [hit.to_dict() for hit in self.bounds],
         }

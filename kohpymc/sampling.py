@@ -36,6 +36,7 @@ import numpy as np
 import pymc as pm
 
 from kohpymc.checks import SAMPLERS, check_sampler
+from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.value_space import ValueSpace, value_space
@@ -73,6 +74,10 @@ class SamplingReport:
     chain_threads : int
         Threads nutpie's chains ran on: one, since every chain calls the log density
         through one lock.
+    prior_bounds : list of dict
+        Parameters whose draws lie against a prior bound
+        (:func:`kohpymc.prior_bounds.hits_in_draws`), each also warned about (NUTS
+        samplers; not checked after SMC).
     """
 
     sampler: str
@@ -83,6 +88,7 @@ class SamplingReport:
     failed_evaluations: int = 0
     compile_mode: str = "C"
     chain_threads: int = 1
+    prior_bounds: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for provenance."""
@@ -95,6 +101,7 @@ class SamplingReport:
             "failed_evaluations": self.failed_evaluations,
             "compile_mode": self.compile_mode,
             "chain_threads": self.chain_threads,
+            "prior_bounds": list(self.prior_bounds),
         }
 
 
@@ -247,6 +254,7 @@ def sample_posterior(
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
         _report_rate(settings, report.timings["sampling"])
         _add_observed_data(idata, model)
+        _check_bounds(space, idata, report)
         if failures:
             report.failed_evaluations = len(failures)
             report.reparameterization.setdefault("warnings", []).append(
@@ -254,6 +262,13 @@ def sample_posterior(
                 f"treated as zero density (first: {failures[0]})"
             )
         return idata, report
+
+
+def _check_bounds(space: ValueSpace, idata: az.InferenceData, report: SamplingReport) -> None:
+    """Record and warn about parameters whose draws lie against a prior bound."""
+    hits = hits_in_draws(space, idata.posterior)
+    report.prior_bounds = [hit.to_dict() for hit in hits]
+    warn_hits(hits, "in the posterior draws", stacklevel=4)
 
 
 def _report_rate(settings: Mapping[str, Any], seconds: float) -> None:

@@ -1,0 +1,274 @@
+r"""Posteriors that lie against a bound of their prior, found at the mode and in the draws.
+
+When the physics model misses a mechanism, its parameters may run to the edge of their
+prior box to make up for it: on the dielectric stand-in without its polarisation current
+(M0), Φ_B piles against its upper bound 1.4 and ln γ against its lower bound 16.1.  The
+posterior is then the prior box's, not the data's, and NUTS pays for the wall (long
+trajectories, divergences).  :func:`against_bounds` is the one check, on the bounded
+(``Uniform``-like, interval-transformed) parameters:
+
+* **at the mode**, before sampling (:func:`hits_at_mode`, from
+  :class:`kohpymc.presampling.PreSampling`): the mode lies within :data:`MODE_SDS`
+  Laplace standard deviations of a finite bound.  The mode is PyMC's, in the
+  interval-transformed value space, whose Jacobian keeps it off the bound: a posterior
+  truncated by the bound has its mode there 1 (exponentially rising density) to 1.4
+  (half-normal) Laplace sds from it, one well inside has it many sds away;
+* **in the draws**, after sampling (:func:`hits_in_draws`, from
+  :func:`kohpymc.sampling.sample_posterior`): at least :data:`DRAW_SHARE` of the draws
+  lie within :data:`NEAR_FRACTION` of the prior width of a bound (1 % of them would be
+  there under a flat posterior over the whole box).
+
+Each finding is a :class:`BoundHit`, stored in the result's provenance (``prior_bounds``
+in ``idata.attrs["presampling"]`` and ``idata.attrs["sampling"]``) and issued as a
+:class:`PriorBoundWarning` naming the parameter, the bound and the value.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy.special import expit
+
+from kohpymc.value_space import ValueSpace
+
+__all__ = [
+    "DRAW_SHARE",
+    "MODE_SDS",
+    "NEAR_FRACTION",
+    "BoundHit",
+    "PriorBoundWarning",
+    "against_bounds",
+    "hits_at_mode",
+    "interval_elements",
+    "hits_in_draws",
+    "warn_hits",
+]
+
+#: the mode lies against a bound when closer to it than this many Laplace sds
+MODE_SDS = 2.0
+#: draws closer to a bound than this fraction of the prior width are "at" the bound
+NEAR_FRACTION = 0.01
+#: the posterior lies against a bound when at least this share of draws is at it
+DRAW_SHARE = 0.1
+
+
+class PriorBoundWarning(UserWarning):
+    """The posterior of a bounded parameter lies against a bound of its prior."""
+
+
+@dataclass(frozen=True)
+class BoundHit:
+    """A parameter whose posterior lies against a prior bound.
+
+    Attributes
+    ----------
+    parameter : str
+        ``"phi_B"``, or ``"theta[2]"`` for an element of a vector parameter.
+    side : str
+        ``"lower"`` or ``"upper"``.
+    bound : float
+    value : float
+        The mode (``evidence="mode"``) or the median of the draws (``"draws"``).
+    evidence : str
+        ``"mode"`` or ``"draws"``.
+    measure : float
+        Laplace sds from the mode to the bound, or the share of draws at the bound.
+    index : int
+        Flat index in PyMC's value space (from :func:`hits_at_mode`,
+        :func:`hits_in_draws`), else the position in ``names``.
+
+    Examples
+    --------
+    >>> BoundHit("phi_B", "upper", 1.4, 1.3995, "mode", 0.8).message()[:52]
+    'phi_B: the posterior lies against its upper prior bo'
+    """
+
+    parameter: str
+    side: str
+    bound: float
+    value: float
+    evidence: str
+    measure: float
+    index: int = -1
+
+    def message(self) -> str:
+        """One line naming the parameter, the bound and the value, and what to do."""
+        found = (
+            f"mode {self.value:.6g}, {self.measure:.2g} Laplace sd from it"
+            if self.evidence == "mode"
+            else f"{self.measure:.0%} of draws within {NEAR_FRACTION:.0%} of the prior "
+            f"width of it, median {self.value:.6g}"
+        )
+        return (
+            f"{self.parameter}: the posterior lies against its {self.side} prior bound "
+            f"{self.bound:.6g} ({found}): the prior box, not the data, limits it — widen "
+            "the prior or add a discrepancy"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values for provenance, with the message."""
+        return {**asdict(self), "message": self.message()}
+
+
+def against_bounds(
+    names: Sequence[str],
+    lower: np.ndarray,
+    upper: np.ndarray,
+    *,
+    mode: np.ndarray | None = None,
+    sd: np.ndarray | None = None,
+    draws: np.ndarray | None = None,
+    evidence: str = "mode",
+) -> list[BoundHit]:
+    """Parameters whose posterior lies against a finite bound (see the module docstring).
+
+    Parameters
+    ----------
+    names : sequence of str
+        One per bounded parameter (element).
+    lower, upper : ndarray
+        Their prior bounds (``±inf`` or NaN: no bound on that side).
+    mode, sd : ndarray, optional
+        The mode and its Laplace sd in the parameters' units (``evidence="mode"``).
+    draws : ndarray, optional
+        Posterior draws, shape ``(n, len(names))`` (``evidence="draws"``).
+    evidence : {"mode", "draws"}
+
+    Returns
+    -------
+    list of BoundHit
+
+    Examples
+    --------
+    >>> hits = against_bounds(["a", "b"], np.array([0.0, 0.0]), np.array([1.0, 1.0]),
+    ...                       mode=np.array([0.999, 0.5]), sd=np.array([0.001, 0.1]))
+    >>> [(h.parameter, h.side) for h in hits]
+    [('a', 'upper')]
+    """
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    if evidence == "mode":
+        value = np.asarray(mode, float)
+        measures = [
+            (np.asarray(value - lower) / sd, lower),
+            (np.asarray(upper - value) / sd, upper),
+        ]
+        near = [m < MODE_SDS for m, _ in measures]
+    else:
+        x = np.asarray(draws, float).reshape(-1, len(names))
+        value = np.median(x, axis=0)
+        width = NEAR_FRACTION * (upper - lower)
+        with np.errstate(invalid="ignore"):  # a one-sided interval: no width, no hit
+            measures = [(np.mean(x < lower + width, axis=0), lower)]
+            measures.append((np.mean(x > upper - width, axis=0), upper))
+        near = [m >= DRAW_SHARE for m, _ in measures]
+    hits = []
+    for (measure, bound), close, side in zip(measures, near, ("lower", "upper"), strict=True):
+        for i in np.flatnonzero(close & np.isfinite(bound) & np.isfinite(measure)):
+            hit = BoundHit(names[i], side, float(bound[i]), float(value[i]), evidence, 0.0, int(i))
+            hits.append(replace(hit, measure=float(measure[i])))
+    return hits
+
+
+def interval_elements(
+    space: ValueSpace,
+) -> tuple[list[str], np.ndarray, list[tuple[str, int, int]]]:
+    """Labels and flat indices of the interval elements, and ``(rv name, start, size)``.
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:
+    ...     s = pm.HalfNormal("s", 1.0)
+    ...     a = pm.Uniform("a", 0.0, 1.0, shape=2)
+    >>> labels, index, _ = interval_elements(value_space(model))
+    >>> labels, index.tolist()
+    (['a[0]', 'a[1]'], [1, 2])
+    """
+    labels, index, blocks = [], [], []
+    start = 0
+    for rv, shape in zip(space.model.free_RVs, space.shapes, strict=True):
+        size = int(np.prod(shape, dtype=int))
+        blocks.append((rv.name, start, size))
+        for k in range(size):
+            if space.transforms[start + k] == "interval":
+                labels.append(rv.name if shape == () else f"{rv.name}[{k}]")
+                index.append(start + k)
+        start += size
+    return labels, np.asarray(index, dtype=int), blocks
+
+
+def hits_at_mode(space: ValueSpace, mode: np.ndarray, value_sd: np.ndarray) -> list[BoundHit]:
+    """:func:`against_bounds` at the value-space ``mode`` with its Laplace sd ``value_sd``.
+
+    Both are mapped to the parameters' units by the interval transform
+    ``x = a + (b − a)·expit(v)`` (the sd by its derivative).
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:
+    ...     a = pm.Uniform("a", 0.0, 1.0)
+    >>> space = value_space(model)
+    >>> [h.side for h in hits_at_mode(space, np.array([8.0]), np.array([1.0]))]
+    ['upper']
+    """
+    labels, index, _ = interval_elements(space)
+    if not labels:
+        return []
+    a, b = space.lower[index], space.upper[index]
+    s = expit(np.asarray(mode, float)[index])
+    x = a + (b - a) * s
+    sd = np.asarray(value_sd, float)[index] * (b - a) * s * (1.0 - s)
+    hits = against_bounds(labels, a, b, mode=x, sd=sd, evidence="mode")
+    return [replace(hit, index=int(index[hit.index])) for hit in hits]
+
+
+def hits_in_draws(space: ValueSpace, posterior: Any) -> list[BoundHit]:
+    """:func:`against_bounds` on the draws of ``posterior`` (an ``idata.posterior``).
+
+    Examples
+    --------
+    >>> import arviz as az, pymc as pm
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:
+    ...     a = pm.Uniform("a", 0.0, 1.0)
+    >>> post = az.from_dict(posterior={"a": np.full((1, 50), 0.999)}).posterior
+    >>> [h.side for h in hits_in_draws(value_space(model), post)]
+    ['upper']
+    """
+    labels, index, blocks = interval_elements(space)
+    if not labels:
+        return []
+    columns = [
+        np.asarray(posterior[name].values, float).reshape(-1, size)
+        for name, _, size in blocks
+        if size
+    ]
+    draws = np.concatenate(columns, axis=1)[:, index]
+    hits = against_bounds(
+        labels, space.lower[index], space.upper[index], draws=draws, evidence="draws"
+    )
+    return [replace(hit, index=int(index[hit.index])) for hit in hits]
+
+
+def warn_hits(hits: Sequence[BoundHit], where: str = "", stacklevel: int = 3) -> None:
+    """One :class:`PriorBoundWarning` per hit; ``where`` (e.g. "at the mode") ends it.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> with warnings.catch_warnings(record=True) as seen:
+    ...     warnings.simplefilter("always")
+    ...     warn_hits([BoundHit("a", "upper", 1.0, 0.999, "mode", 1.0)], "at the mode")
+    >>> str(seen[0].message)[-19:]
+    '(found at the mode)'
+    """
+    suffix = f" (found {where})" if where else ""
+    for hit in hits:
+        warnings.warn(hit.message() + suffix, PriorBoundWarning, stacklevel=stacklevel)

@@ -1,0 +1,76 @@
+"""A posterior against a bound of its prior: found at the mode and in the draws, and said."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from kohpymc import CalibrationData, PhysicsModel, Uniform, calibrate
+from kohpymc.prior_bounds import PriorBoundWarning, against_bounds
+
+SEED = 15
+
+
+def _line(truth):
+    """y = a·x with a ~ Uniform(0.5, 1.5), data generated at ``a = truth``."""
+    physics = PhysicsModel(
+        lambda i, p: p["a"] * i["x"], {"a": Uniform(0.5, 1.5)}, inputs=["x"], name="line"
+    )
+    x = np.linspace(1.0, 3.0, 20)
+    rng = np.random.default_rng(SEED)
+    return physics, CalibrationData(
+        {"x": x}, truth * x + rng.normal(0.0, 0.1, x.size), noise_sd=0.1
+    )
+
+
+def _calibrate(truth):
+    physics, data = _line(truth)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        cal = calibrate(physics, data, draws=200, tune=200, chains=1, random_seed=SEED)
+    texts = [str(w.message) for w in seen if w.category is PriorBoundWarning]
+    return cal, texts
+
+
+def test_truth_outside_the_box_is_said_before_and_after_sampling():
+    cal, texts = _calibrate(2.0)
+    assert len(texts) == 2
+    assert all(
+        t.startswith("a: the posterior lies against its upper prior bound 1.5") for t in texts
+    )
+    assert "at the posterior mode" in texts[0] and "in the posterior draws" in texts[1]
+    before = json.loads(cal.idata.attrs["presampling"])["prior_bounds"]
+    after = json.loads(cal.idata.attrs["sampling"])["prior_bounds"]
+    assert [(h["parameter"], h["side"], h["evidence"]) for h in before] == [("a", "upper", "mode")]
+    assert [(h["parameter"], h["side"], h["evidence"]) for h in after] == [("a", "upper", "draws")]
+    assert 1.49 < before[0]["value"] < 1.5 and after[0]["measure"] > 0.5
+
+
+def test_truth_inside_the_box_is_not_said():
+    cal, texts = _calibrate(1.0)
+    assert texts == []
+    assert json.loads(cal.idata.attrs["presampling"])["prior_bounds"] == []
+    assert json.loads(cal.idata.attrs["sampling"])["prior_bounds"] == []
+
+
+@pytest.mark.parametrize(
+    ("mode", "sd", "expected"),
+    [(0.05, 0.03, ["lower"]), (0.5, 0.2, []), (0.97, 0.02, ["upper"]), (0.9, 0.02, [])],
+)
+def test_mode_criterion_counts_laplace_sds(mode, sd, expected):
+    hits = against_bounds(
+        ["a"], np.array([0.0]), np.array([1.0]), mode=np.array([mode]), sd=np.array([sd])
+    )
+    assert [h.side for h in hits] == expected
+
+
+def test_draw_criterion_counts_the_share_at_the_bound():
+    rng = np.random.default_rng(SEED)
+    flat = rng.uniform(0.0, 1.0, size=(4000, 1))
+    piled = 1.0 - rng.exponential(0.002, size=(4000, 1))
+    assert (
+        against_bounds(["a"], np.array([0.0]), np.array([1.0]), draws=flat, evidence="draws") == []
+    )
+    hits = against_bounds(["a"], np.array([0.0]), np.array([1.0]), draws=piled, evidence="draws")
+    assert [(h.side, h.bound) for h in hits] == [("upper", 1.0)] and hits[0].measure > 0.9

@@ -168,7 +168,9 @@ def against_bounds(
     hits = []
     for (measure, bound), close, side in zip(measures, near, ("lower", "upper"), strict=True):
         for i in np.flatnonzero(close & np.isfinite(bound) & np.isfinite(measure)):
-            hit = BoundHit(names[i], side, float(bound[i]), float(value[i]), evidence, 0.0, int(i))
+            hit = BoundHit(
+                names[int(i)], side, float(bound[i]), float(value[i]), evidence, 0.0, int(i)
+            )
             hits.append(replace(hit, measure=float(measure[i])))
     return hits
 

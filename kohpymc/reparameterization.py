@@ -694,8 +694,8 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
     corr = cov / np.outer(sd, sd)
     off = np.abs(corr - np.eye(len(sd)))
     eig = np.linalg.eigvalsh(corr)
-    kind = {"value": "affine", "log-logit": "log-logit-affine", "log": "log-affine"}
-    kind = kind[coords.name.removeprefix("bound-ridge-")]
+    kinds = {"value": "affine", "log-logit": "log-logit-affine", "log": "log-affine"}
+    kind = kinds[coords.name.removeprefix("bound-ridge-")]
     kind = kind if coords.ridge is None else f"bound-ridge-{kind}"
     kind = kind if coords.shares is None else f"variance-share-{kind}"
     plan = Reparameterization(
@@ -880,8 +880,8 @@ def _ridge_text(space: ValueSpace, plan: Reparameterization) -> str:
     if ridge is None:
         return ""
     labels, index, _ = interval_elements(space)
-    labels = dict(zip(index.tolist(), labels, strict=True))
-    named = ", ".join(labels[int(i)] for i in ridge.bounded)
+    by_index = dict(zip(index.tolist(), labels, strict=True))
+    named = ", ".join(by_index[int(i)] for i in ridge.bounded)
     return (
         f"; {named} against a prior bound: the other coordinates measured from "
         "their regression on it in its own units, which the interval transform bends"

@@ -266,7 +266,7 @@ def sample_posterior(
 
 def _check_bounds(space: ValueSpace, idata: az.InferenceData, report: SamplingReport) -> None:
     """Record and warn about parameters whose draws lie against a prior bound."""
-    hits = hits_in_draws(space, idata.posterior)
+    hits = hits_in_draws(space, idata["posterior"])
     report.prior_bounds = [hit.to_dict() for hit in hits]
     warn_hits(hits, "in the posterior draws", stacklevel=4)
 

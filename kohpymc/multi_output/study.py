@@ -19,6 +19,8 @@ import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 import arviz as az
@@ -231,7 +233,7 @@ def _reusable(
     earlier = folder.finished(label)
     if earlier is None or earlier.attrs.get(CALIBRATION_HASH) != fingerprint:
         return None
-    groups = {g: earlier[g] for g in _CALIBRATION_GROUPS if g in earlier.groups()}
+    groups: dict[str, Any] = {g: earlier[g] for g in _CALIBRATION_GROUPS if g in earlier.groups()}
     idata = az.InferenceData(**groups)
     attrs = dict(earlier.attrs)
     problems = json.loads(attrs.pop("sampler_problems", "[]"))
@@ -285,5 +287,9 @@ def _write_figures(
             preds, val.y, {n: val.inputs[n] for n in names}, output_name=k
         )
     for name, fig in figs.items():
-        folder.write(name, lambda p, f=fig: f.savefig(p, dpi=120, format="png"))
+        folder.write(name, partial(_save_png, fig))
         plt.close(fig)
+
+
+def _save_png(fig: Any, path: Path) -> None:
+    fig.savefig(path, dpi=120, format="png")

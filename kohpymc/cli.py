@@ -279,15 +279,13 @@ def _discover(args: argparse.Namespace) -> int:
 
     from kohpymc.config import StudyConfigError
     from kohpymc.discovery import discover
-    from kohpymc.physics import PhysicsModelError
 
     if _lists_outputs(args.study):
         return _multi_output_discover(args)
     spec = _load(args)
     if spec is None:
         return 2
-    merged = _sampler_overrides(args, spec.sampling)
-    sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
+    options = _discovery_options(args, spec.sampling)
     outputs = [Path(p) for p in (args.json, args.out) if p]
     try:
         _checked_options(
@@ -305,11 +303,9 @@ def _discover(args: argparse.Namespace) -> int:
             spec.validation,
             tolerance=spec.tolerance,
             units=spec.units,
-            random_seed=merged.get("random_seed"),
-            progress=None if args.quiet else lambda msg: print(msg, flush=True),
-            **sampling,
+            **options,
         )
-    except (ValueError, KeyError, TypeError, NotImplementedError, PhysicsModelError) as err:
+    except _discovery_errors() as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
     text = json.dumps(report.to_dict(), indent=2)
@@ -331,14 +327,12 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
 
     from kohpymc.config import StudyConfigError
     from kohpymc.multi_output import discover_outputs, load_multi_output_study
-    from kohpymc.physics import PhysicsModelError
 
     try:
         spec = load_multi_output_study(args.study)
     except StudyConfigError as err:
         return _bad_input(err)
-    merged = _sampler_overrides(args, spec.sampling)
-    sampling = {k: v for k, v in merged.items() if k in ("draws", "tune", "chains")}
+    options = _discovery_options(args, spec.sampling)
     if args.dry_run:
         print(
             f"dry run: {spec.source} is a multi-output study; discovery would run on each of "
@@ -351,11 +345,9 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
             spec.calibration,
             spec.validation,
             tolerance=spec.tolerance,
-            random_seed=merged.get("random_seed"),
-            progress=None if args.quiet else lambda msg: print(msg, flush=True),
-            **sampling,
+            **options,
         )
-    except (ValueError, KeyError, TypeError, NotImplementedError, PhysicsModelError) as err:
+    except _discovery_errors() as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
     text = json.dumps({k: r.to_dict() for k, r in reports.items()}, indent=2)
@@ -365,6 +357,23 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
         Path(args.json) if args.json else None, Path(args.out) if args.out else None,
     )  # fmt: skip
     return 0
+
+
+def _discovery_errors() -> tuple[type[Exception], ...]:
+    """Errors of a discovery run that are the input's fault (exit status 2)."""
+    from kohpymc.physics import PhysicsModelError
+
+    return (ValueError, KeyError, TypeError, NotImplementedError, PhysicsModelError)
+
+
+def _discovery_options(args: argparse.Namespace, sampling: dict) -> dict:
+    """Seed, progress and chain lengths of :func:`kohpymc.discover` from the file and flags."""
+    merged = _sampler_overrides(args, sampling)
+    return {
+        "random_seed": merged.get("random_seed"),
+        "progress": None if args.quiet else lambda msg: print(msg, flush=True),
+        **{k: v for k, v in merged.items() if k in ("draws", "tune", "chains")},
+    }
 
 
 def _write_discovery(reports: dict, text: str, json_path: Path | None, out: Path | None) -> None:

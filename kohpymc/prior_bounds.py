@@ -9,14 +9,19 @@ trajectories, divergences).  :func:`against_bounds` is the one check, on the bou
 
 * **at the mode**, before sampling (:func:`hits_at_mode`, from
   :class:`kohpymc.presampling.PreSampling`): the mode lies within :data:`MODE_SDS`
-  Laplace standard deviations of a finite bound.  The mode is PyMC's, in the
+  Laplace standard deviations of a finite bound, and ± :data:`MODE_SDS` sds fit in the
+  box (a posterior as wide as the box reaches both bounds: the prior's spread, not a
+  pile-up).  The mode is PyMC's, in the
   interval-transformed value space, whose Jacobian keeps it off the bound: a posterior
   truncated by the bound has its mode there 1 (exponentially rising density) to 1.4
   (half-normal) Laplace sds from it, one well inside has it many sds away;
 * **in the draws**, after sampling (:func:`hits_in_draws`, from
   :func:`kohpymc.sampling.sample_posterior`): at least :data:`DRAW_SHARE` of the draws
   lie within :data:`NEAR_FRACTION` of the prior width of a bound (1 % of them would be
-  there under a flat posterior over the whole box).
+  there under a flat posterior over the whole box), and their outermost percentile on that
+  side is within :data:`EDGE_FRACTION` of their own 1–99 % range from it (so a posterior
+  near a bound in the box's units but clear of it on its own scale — τ ≈ 10⁻³ under
+  ``LogUniform(1e-6, 1)`` — is not reported).
 
 Each finding is a :class:`BoundHit`, stored in the result's provenance (``prior_bounds``
 in ``idata.attrs["presampling"]`` and ``idata.attrs["sampling"]``) and issued as a
@@ -37,6 +42,7 @@ from kohpymc.value_space import ValueSpace
 
 __all__ = [
     "DRAW_SHARE",
+    "EDGE_FRACTION",
     "MODE_SDS",
     "NEAR_FRACTION",
     "BoundHit",
@@ -54,6 +60,8 @@ MODE_SDS = 2.0
 NEAR_FRACTION = 0.01
 #: the posterior lies against a bound when at least this share of draws is at it
 DRAW_SHARE = 0.1
+#: ... and its outermost percentile is this close to the bound, in units of its 1-99 % range
+EDGE_FRACTION = 0.05
 
 
 class PriorBoundWarning(UserWarning):
@@ -156,7 +164,10 @@ def against_bounds(
             (np.asarray(value - lower) / sd, lower),
             (np.asarray(upper - value) / sd, upper),
         ]
-        near = [m < MODE_SDS for m, _ in measures]
+        # a posterior as wide as the box (±MODE_SDS sds do not fit in it) is the prior's
+        # spread, not a pile-up at one side: it reaches both bounds
+        narrow = 2.0 * MODE_SDS * np.asarray(sd, float) < upper - lower
+        near = [(m < MODE_SDS) & narrow for m, _ in measures]
     else:
         x = np.asarray(draws, float).reshape(-1, len(names))
         value = np.median(x, axis=0)
@@ -164,7 +175,14 @@ def against_bounds(
         with np.errstate(invalid="ignore"):  # a one-sided interval: no width, no hit
             measures = [(np.mean(x < lower + width, axis=0), lower)]
             measures.append((np.mean(x > upper - width, axis=0), upper))
-        near = [m >= DRAW_SHARE for m, _ in measures]
+        # and the draws reach the bound on the posterior's own scale: its outermost
+        # percentile within EDGE_FRACTION of its 1-99 % range from the bound (a posterior
+        # near a bound in the box's units but well clear of it on its own scale, as
+        # tau ~ 1e-3 under LogUniform(1e-6, 1), is not truncated by it)
+        q01, q99 = np.quantile(x, [0.01, 0.99], axis=0)
+        spread = np.maximum(q99 - q01, np.finfo(float).tiny)
+        reach = [(q01 - lower) / spread < EDGE_FRACTION, (upper - q99) / spread < EDGE_FRACTION]
+        near = [(m >= DRAW_SHARE) & r for (m, _), r in zip(measures, reach, strict=True)]
     hits = []
     for (measure, bound), close, side in zip(measures, near, ("lower", "upper"), strict=True):
         for i in np.flatnonzero(close & np.isfinite(bound) & np.isfinite(measure)):
@@ -240,7 +258,7 @@ def hits_in_draws(space: ValueSpace, posterior: Any) -> list[BoundHit]:
     >>> from kohpymc.value_space import value_space
     >>> with pm.Model() as model:
     ...     a = pm.Uniform("a", 0.0, 1.0)
-    >>> post = az.from_dict(posterior={"a": np.full((1, 50), 0.999)}).posterior
+    >>> post = az.from_dict(posterior={"a": np.linspace(0.99, 1.0, 50)[None]}).posterior
     >>> [h.side for h in hits_in_draws(value_space(model), post)]
     ['upper']
     """

@@ -74,3 +74,24 @@ def test_draw_criterion_counts_the_share_at_the_bound():
     )
     hits = against_bounds(["a"], np.array([0.0]), np.array([1.0]), draws=piled, evidence="draws")
     assert [(h.side, h.bound) for h in hits] == [("upper", 1.0)] and hits[0].measure > 0.9
+
+
+def test_a_posterior_as_wide_as_the_box_is_not_against_either_bound():
+    """The beam's M3 in CI: E's mode 174 in [50, 300] with a Laplace sd of ~90 was reported
+    against both bounds; ±2 sds do not fit in the box, so it is the prior's spread."""
+    hits = against_bounds(
+        ["E"], np.array([50.0]), np.array([300.0]), mode=np.array([174.0]), sd=np.array([90.0])
+    )
+    assert hits == []
+
+
+def test_draws_clear_of_a_bound_on_their_own_scale_are_not_against_it():
+    """tau ~ 8e-4 under LogUniform(1e-6, 1): every draw lies within 1 % of the prior width
+    of the lower bound, but the bound is far below the posterior on its own scale."""
+    rng = np.random.default_rng(SEED)
+    tau = np.exp(rng.normal(np.log(8e-4), 0.1, size=(4000, 1)))
+    hits = against_bounds(["tau"], np.array([1e-6]), np.array([1.0]), draws=tau, evidence="draws")
+    assert hits == []
+    piled = 1e-6 + rng.exponential(1e-5, size=(4000, 1))  # the same box, truncated at 1e-6
+    hits = against_bounds(["tau"], np.array([1e-6]), np.array([1.0]), draws=piled, evidence="draws")
+    assert [h.side for h in hits] == ["lower"]

@@ -56,7 +56,14 @@ def test_truth_inside_the_box_is_not_said():
 
 @pytest.mark.parametrize(
     ("mode", "sd", "expected"),
-    [(0.05, 0.03, ["lower"]), (0.5, 0.2, []), (0.97, 0.02, ["upper"]), (0.9, 0.02, [])],
+    [
+        (0.04, 0.03, ["lower"]),
+        (0.05, 0.03, []),
+        (0.5, 0.2, []),
+        (0.975, 0.02, ["upper"]),
+        (0.96, 0.02, []),
+        (0.9, 0.02, []),
+    ],
 )
 def test_mode_criterion_counts_laplace_sds(mode, sd, expected):
     hits = against_bounds(

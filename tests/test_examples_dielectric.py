@@ -615,9 +615,9 @@ INFORMED = ["ln_NT", "ln_sigma", "ln_gamma", "eps_inf", "E_A"]
 
 @pytest.mark.slow
 @pytest.mark.xfail(
-    reason="issue 15 not reached (2026-11-24): 47-133 leapfrog steps per draw (M0/M1 "
-    "posteriors at the phi_B and ln_gamma bounds, M4 along the curved (phi_B, m*) ridge); "
-    "see docs/paper-reproduction.md",
+    reason="issue 15 not reached (2026-11-25): with the bound-ridge coordinates M0 takes 94 s "
+    "at 10.5 leapfrog steps per draw but keeps 14 divergences (r_hat 1.012); M1 456 s, "
+    "67 divergences, ESS 277; M2-M5 longer; see docs/paper-reproduction.md",
     strict=False,
 )
 def test_six_formulations_converge_at_default_settings():

@@ -77,6 +77,7 @@ from kohpymc.study_files import (
     COMBINED,
     VALIDATION_HASH,
     StudyFolder,
+    calibration_part,
     markdown_table,
     write_atomic,
     write_results,
@@ -263,8 +264,6 @@ def _rebuilt(job: _Job, disc: Discrepancy, payload: tuple) -> Scored:
     return Scored(job.rebuild(disc, idata, problems, report), *rest)
 
 
-#: groups of a formulation's file that are the calibration itself (the rest is validation)
-_CALIBRATION_GROUPS = ("posterior", "sample_stats", "log_likelihood", "observed_data")
 #: attributes of a calibration's InferenceData as :func:`kohpymc.calibrate` sets them
 _CALIBRATION_ATTRS = (
     "formulation",
@@ -290,8 +289,7 @@ def _from_file(job: _Job, label: str, disc: Discrepancy, idata: az.InferenceData
     calibration_hash = job.calibration_hash(label, disc)
     if idata.attrs.get(CALIBRATION_HASH) != calibration_hash:
         return None, "inputs changed"
-    groups: dict[str, Any] = {g: idata[g] for g in _CALIBRATION_GROUPS if g in idata.groups()}
-    own = az.InferenceData(**groups)
+    own = calibration_part(idata)
     own.attrs.update({k: idata.attrs[k] for k in _CALIBRATION_ATTRS if k in idata.attrs})
     problems = json.loads(idata.attrs.get("sampler_problems", "[]"))
     cal = job.rebuild(disc, own, problems, None)

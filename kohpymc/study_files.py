@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable, Mapping
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -182,6 +183,38 @@ def _plain(value: Any) -> Any:
     return value
 
 
+#: groups of a formulation's file that are the calibration itself (the rest is validation)
+CALIBRATION_GROUPS = ("posterior", "sample_stats", "log_likelihood", "observed_data")
+
+
+def calibration_part(idata: az.InferenceData) -> az.InferenceData:
+    """The calibration groups (:data:`CALIBRATION_GROUPS`) of a formulation's file, no attrs.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> full = az.from_dict(posterior={"E": np.zeros((1, 3))},
+    ...                     predictions={"y_pred": np.zeros((1, 3, 2))})
+    >>> calibration_part(full).groups()
+    ['posterior']
+    """
+    groups: dict[str, Any] = {g: idata[g] for g in CALIBRATION_GROUPS if g in idata.groups()}
+    return az.InferenceData(**groups)
+
+
+def write_figures(folder: StudyFolder, figures: Mapping[str, Any]) -> None:
+    """Write each ``name -> matplotlib figure`` as a PNG atomically, then close it."""
+    import matplotlib.pyplot as plt
+
+    for name, fig in figures.items():
+        folder.write(name, partial(_save_png, fig))
+        plt.close(fig)
+
+
+def _save_png(fig: Any, path: Path) -> None:
+    fig.savefig(path, dpi=120, format="png")
+
+
 def write_table(folder: StudyFolder, table: pd.DataFrame) -> None:
     """``table.csv`` and ``table.md``."""
     folder.write("table.csv", lambda p: table.to_csv(p))
@@ -225,7 +258,6 @@ def _write_figures(
     validation: CalibrationData,
     reference: Mapping[str, float] | None,
 ) -> None:
-    import matplotlib.pyplot as plt
 
     from kohpymc.plots import (
         plot_parameter_posteriors,
@@ -250,6 +282,4 @@ def _write_figures(
         {k: validation.inputs[k] for k in names},
         output_name=validation.output_name,
     )
-    for name, fig in figs.items():
-        folder.write(name, lambda p, f=fig: f.savefig(p, dpi=120, format="png"))
-        plt.close(fig)
+    write_figures(folder, figs)

@@ -19,8 +19,6 @@ import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from functools import partial
-from pathlib import Path
 from typing import Any
 
 import arviz as az
@@ -41,13 +39,16 @@ from kohpymc.multi_output.calibration import (
 from kohpymc.multi_output.config import MultiOutputStudySpec
 from kohpymc.multi_output.model import compose_multi_output_model
 from kohpymc.multi_output.reliability import OutputReliability, output_reliability
-from kohpymc.study_files import CALIBRATION_HASH, StudyFolder, write_table
+from kohpymc.study_files import (
+    CALIBRATION_HASH,
+    StudyFolder,
+    calibration_part,
+    write_figures,
+    write_table,
+)
 from kohpymc.validation import derived_seed
 
 __all__ = ["MultiOutputStudyResult", "run_multi_output_study"]
-
-#: groups of a formulation's file written by :func:`calibrate_outputs`
-_CALIBRATION_GROUPS = ("posterior", "sample_stats", "log_likelihood", "observed_data")
 
 
 @dataclass
@@ -233,8 +234,7 @@ def _reusable(
     earlier = folder.finished(label)
     if earlier is None or earlier.attrs.get(CALIBRATION_HASH) != fingerprint:
         return None
-    groups: dict[str, Any] = {g: earlier[g] for g in _CALIBRATION_GROUPS if g in earlier.groups()}
-    idata = az.InferenceData(**groups)
+    idata = calibration_part(earlier)
     attrs = dict(earlier.attrs)
     problems = json.loads(attrs.pop("sampler_problems", "[]"))
     idata.attrs.update(attrs)
@@ -271,8 +271,6 @@ def _write_figures(
     folder: StudyFolder, result: MultiOutputStudyResult, spec: MultiOutputStudySpec
 ) -> None:
     """``posteriors.png`` and one ``predictions_<output>.png`` per validated output."""
-    import matplotlib.pyplot as plt
-
     from kohpymc.plots import plot_parameter_posteriors, plot_validation_predictions
 
     posteriors = {label: cal.idata for label, cal in result.calibrations.items()}
@@ -286,10 +284,4 @@ def _write_figures(
         figs[f"predictions_{k}.png"] = plot_validation_predictions(
             preds, val.y, {n: val.inputs[n] for n in names}, output_name=k
         )
-    for name, fig in figs.items():
-        folder.write(name, partial(_save_png, fig))
-        plt.close(fig)
-
-
-def _save_png(fig: Any, path: Path) -> None:
-    fig.savefig(path, dpi=120, format="png")
+    write_figures(folder, figs)

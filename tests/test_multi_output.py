@@ -498,6 +498,27 @@ def test_study_file_reads_outputs_noise_and_formulations(tmp_path):
     assert spec.formulations["ICM"].kernel == "ExpQuad"
 
 
+def test_study_file_without_formulations_runs_the_single_output_defaults(tmp_path):
+    """No ``[formulations]``: M0–M4 for every output, as in a single-output study (was M0 only)."""
+    from kohpymc import (
+        ConstantBias,
+        GaussianProcess,
+        IIDGaussian,
+        InputDependentGaussian,
+        NoDiscrepancy,
+    )
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path)
+    text = path.read_text()
+    path.write_text(text[: text.index("[formulations]")])
+    forms = load_multi_output_study(path).formulations
+    assert list(forms) == ["M0", "M1", "M2", "M3", "M4"]
+    kinds = [NoDiscrepancy, ConstantBias, IIDGaussian, InputDependentGaussian, GaussianProcess]
+    assert all(isinstance(f, k) for f, k in zip(forms.values(), kinds, strict=True))
+    assert tuple(forms["M4"].inputs) == ("x", "P")
+
+
 def test_study_file_coregionalized_kernel_read_and_a_bad_one_named(tmp_path):
     from kohpymc import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study

@@ -20,7 +20,8 @@ differences::
     [validation]
     tolerance = { u = 0.75, strain = 7.5 }    # per output, in its units
 
-    [formulations]                      # label -> discrepancy of every output
+    [formulations]                      # label -> discrepancy of every output; default
+                                        # M0–M4 of a single-output study, each for all outputs
     M0 = "none"                         # one type for all outputs
     M31 = { u = { type = "input_dependent", mean = ["x", "P", "x*P"] }, strain = "constant" }
     ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
@@ -47,6 +48,7 @@ from kohpymc.config import (
     _require,
     _sampling_section,
 )
+from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
 from kohpymc.multi_output.physics import MultiOutputPhysics
@@ -218,11 +220,15 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
         raise _err(path, "validation.tolerance", f"gives no value for output(s) {missing}")
     if "weights" in val:
         raise _err(path, "validation.weights", "is not supported for multi-output studies yet")
-    table = doc.get("formulations") or {"M0": "none"}
-    formulations = {
-        str(label): _multi_formulation(path, str(label), value, inputs, outputs)
-        for label, value in table.items()
-    }
+    table = doc.get("formulations")
+    formulations = (
+        {
+            str(label): _multi_formulation(path, str(label), value, inputs, outputs)
+            for label, value in table.items()
+        }
+        if table
+        else dict(default_formulations(inputs))  # as a single-output study: M0–M4
+    )
     sampling = _sampling_section(path, doc)
     sampling.pop("workers", None)
     return MultiOutputStudySpec(

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import json
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -42,7 +41,7 @@ from kohpymc.physics import PhysicsModel
 from kohpymc.presampling import SLOW_SAMPLING_S, PreSampling
 from kohpymc.priors import Prior
 from kohpymc.sampling import one_blas_thread, sample_posterior
-from kohpymc.warning_filters import pymc_info_hidden
+from kohpymc.warning_filters import pymc_info_hidden, warn_user
 
 __all__ = ["Calibration", "calibrate", "predict"]
 
@@ -165,16 +164,15 @@ def _identifiability(plain: CalibrationModel, physics: PhysicsModel):
     try:
         report = model_taylor_check(plain)
     except ValueError as err:
-        warnings.warn(f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=3)
+        warn_user(f"identifiability check skipped: {err}", IdentifiabilityWarning)
         return None
     if not report.identifiable:
-        warnings.warn(
+        warn_user(
             f"{label} with {physics.name!r} is not identifiable at the prior centre "
             f"(rank {report.rank} of {len(report.names)}): "
             + "; ".join(report.confounded())
             + " (pass check_identifiability=False to skip this check)",
             IdentifiabilityWarning,
-            stacklevel=3,
         )
     return report
 
@@ -381,10 +379,9 @@ def calibrate(
     ]
     _record_provenance(idata, physics, data, discrepancy, sampling, presampling)
     if problems and warn:
-        warnings.warn(
+        warn_user(
             f"{discrepancy.label} calibration of {physics.name!r}: " + "; ".join(problems),
             SamplerTroubleWarning,
-            stacklevel=2,
         )
     return Calibration(
         physics, data, discrepancy, built, idata, problems, report, noise_sd_prior,

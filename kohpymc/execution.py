@@ -39,6 +39,7 @@ from typing import Any
 
 from kohpymc.checks import check_execution
 from kohpymc.progress import TaskDisplay, reporting_to
+from kohpymc.warning_filters import warn_user
 
 __all__ = [
     "TaskOutcome",
@@ -411,11 +412,10 @@ def worker_compile_dir() -> Path:
         pytensor.config.compiledir = str(target)  # type: ignore[assignment]  # a str is parsed
     except Exception:  # noqa: BLE001 - PyTensor: "can't change ... after initialization"
         if Path(pytensor.config.compiledir) != target:
-            warnings.warn(
+            warn_user(
                 f"PyTensor compiled in this worker process before kohpymc set its compile "
                 f"directory; it keeps sharing {pytensor.config.compiledir}",
                 RuntimeWarning,
-                stacklevel=2,
             )
     _CLAIMED["dir"] = Path(pytensor.config.compiledir)
     return _CLAIMED["dir"]

@@ -67,6 +67,7 @@ from kohpymc.identifiability import (
 from kohpymc.prior_bounds import BoundHit, hits_at_mode, warn_hits
 from kohpymc.reparameterization import Coordinates, Reparameterization
 from kohpymc.value_space import ValueSpace
+from kohpymc.warning_filters import warn_user
 
 __all__ = [
     "SLOW_SAMPLING_S",
@@ -536,7 +537,7 @@ class PreSampling:
         self.mode = mode_parameters(space, reparam)
         if reparam is not None and reparam.mode is not None and reparam.value_sd is not None:
             self.bounds = hits_at_mode(space, reparam.mode.value, reparam.value_sd)
-            warn_hits(self.bounds, f"at the posterior mode of {self.label}", stacklevel=4)
+            warn_hits(self.bounds, f"at the posterior mode of {self.label}")
         if self.plain is not None:
             self._check_mode()
         if self.threshold_s is not None and settings.get("sampler", "nutpie") != "smc":
@@ -564,7 +565,7 @@ class PreSampling:
             if not self.report.identifiable
             else "is practically non-identifiable at the posterior mode: "
         )
-        warnings.warn(f"{self.label} {verdict}{text}", IdentifiabilityWarning, stacklevel=4)
+        warn_user(f"{self.label} {verdict}{text}", IdentifiabilityWarning)
 
     def _estimate(self, space, reparam, settings) -> None:
         parallel = 1 if settings.get("sampler", "nutpie") == "nutpie" else settings["cores"]
@@ -590,14 +591,13 @@ class PreSampling:
         if not self.cost.exceeds:
             return
         self.cost.reasons = slow_reasons(self.cost, reparam, self.report)
-        warnings.warn(
+        warn_user(
             f"{self.label}: sampling is estimated to take {self.cost.summary()}, above "
             f"{_duration(float(self.threshold_s or 0.0))}. Why: "
             + "; ".join(self.cost.reasons)
             + " (estimated before sampling, which goes ahead; see the module "
             "kohpymc.presampling)",
             SlowSamplingWarning,
-            stacklevel=4,
         )
 
     def explaining(self, centre: IdentifiabilityReport | None) -> IdentifiabilityReport | None:

@@ -30,7 +30,6 @@ in ``idata.attrs["presampling"]`` and ``idata.attrs["sampling"]``) and issued as
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -39,6 +38,7 @@ import numpy as np
 from scipy.special import expit
 
 from kohpymc.value_space import ValueSpace
+from kohpymc.warning_filters import warn_user
 
 __all__ = [
     "DRAW_SHARE",
@@ -279,7 +279,7 @@ def hits_in_draws(space: ValueSpace, posterior: Any) -> list[BoundHit]:
     return [replace(hit, index=int(index[hit.index])) for hit in hits]
 
 
-def warn_hits(hits: Sequence[BoundHit], where: str = "", stacklevel: int = 3) -> None:
+def warn_hits(hits: Sequence[BoundHit], where: str = "") -> None:
     """One :class:`PriorBoundWarning` per hit; ``where`` (e.g. "at the mode") ends it.
 
     Examples
@@ -293,4 +293,4 @@ def warn_hits(hits: Sequence[BoundHit], where: str = "", stacklevel: int = 3) ->
     """
     suffix = f" (found {where})" if where else ""
     for hit in hits:
-        warnings.warn(hit.message() + suffix, PriorBoundWarning, stacklevel=stacklevel)
+        warn_user(hit.message() + suffix, PriorBoundWarning)

@@ -268,7 +268,7 @@ def _check_bounds(space: ValueSpace, idata: az.InferenceData, report: SamplingRe
     """Record and warn about parameters whose draws lie against a prior bound."""
     hits = hits_in_draws(space, idata["posterior"])
     report.prior_bounds = [hit.to_dict() for hit in hits]
-    warn_hits(hits, "in the posterior draws", stacklevel=4)
+    warn_hits(hits, "in the posterior draws")
 
 
 def _report_rate(settings: Mapping[str, Any], seconds: float) -> None:

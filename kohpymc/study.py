@@ -91,6 +91,7 @@ from kohpymc.validation import (
     predictive_scores,
     score_calibration,
 )
+from kohpymc.warning_filters import warn_user
 
 __all__ = [
     "StudyResult",
@@ -335,10 +336,9 @@ def _check_identifiability(physics, calibration, formulations, say):
         else:
             text = "; ".join(report.confounded())
             say(f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}), warned:")
-            warnings.warn(
+            warn_user(
                 f"{label} is not identifiable at the prior centre: {text}",
                 IdentifiabilityWarning,
-                stacklevel=3,
             )
         noise = _noise_confounding(physics, calibration, disc)
         if noise is not None:

@@ -12,10 +12,13 @@ routine log lines (:func:`quiet_command_line`).
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import NamedTuple
 
 __all__ = [
@@ -25,7 +28,13 @@ __all__ = [
     "one_line_warning",
     "quiet_command_line",
     "pymc_info_hidden",
+    "warn_user",
 ]
+
+#: files whose frames a warning is never attributed to: kohpymc's own and ``contextlib``'s
+#: (the decorator ``one_blas_thread`` wraps ``calibrate``, so a fixed ``stacklevel`` pointed
+#: into ``contextlib.py``)
+_INTERNAL = (str(Path(__file__).resolve().parent), str(Path(contextlib.__file__).resolve()))
 
 
 class NoiseFilter(NamedTuple):
@@ -118,6 +127,39 @@ def quiet_command_line() -> None:
     for name, level in _QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
     warnings.formatwarning = one_line_warning
+
+
+def _internal(filename: str) -> bool:
+    try:
+        path = str(Path(filename).resolve())
+    except (OSError, ValueError):  # "<string>", "<doctest ...>"
+        return False
+    return path.startswith(_INTERNAL[0] + "/") or path == _INTERNAL[1]
+
+
+def warn_user(message: str, category: type[Warning] = UserWarning) -> None:
+    """Warn, attributed to the first caller outside kohpymc (the user's line).
+
+    Python shows a warning with the file and line it is attributed to; a fixed
+    ``stacklevel`` breaks whenever a call passes through another kohpymc function or
+    a decorator.  This walks the stack instead: the warning names the line of the
+    user's script or notebook that called into kohpymc.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> with warnings.catch_warnings(record=True) as seen:
+    ...     warnings.simplefilter("always")
+    ...     warn_user("E is not identifiable")
+    >>> seen[0].filename.endswith("warning_filters.py")
+    False
+    """
+    frame = sys._getframe(1)
+    level = 1
+    while frame.f_back is not None and _internal(frame.f_code.co_filename):
+        frame = frame.f_back
+        level += 1
+    warnings.warn(message, category, stacklevel=level + 1)
 
 
 @contextmanager

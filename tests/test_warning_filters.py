@@ -160,3 +160,39 @@ def test_pymc_info_hidden_only_inside_and_keeps_warnings(caplog):
     messages = [r.getMessage() for r in caplog.records]
     assert messages == ["a real problem", "after the step"]
     assert logger.level == before
+
+
+def _product(inputs, params):
+    return params["k"] * params["c"] * inputs["x"]
+
+
+def test_calibration_warnings_point_at_the_users_line():
+    """Every warning of ``calibrate`` is attributed to the caller's file, not to kohpymc or
+    ``contextlib`` (the ``one_blas_thread`` decorator made a fixed stacklevel point into
+    ``contextlib.py``, the line Python prints above the message)."""
+    import numpy as np
+
+    physics = kohpymc.PhysicsModel(
+        _product, {"k": kohpymc.LogUniform(1e-8, 1e-6), "c": kohpymc.LogUniform(1e8, 1e10)},
+        inputs=["x"], name="product",
+    )  # fmt: skip
+    x = np.linspace(0.0, 1.0, 8)
+    data = kohpymc.CalibrationData({"x": x}, 30.0 * x + 0.1 * np.sin(7 * x), noise_sd=0.1)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        kohpymc.calibrate(physics, data, draws=30, tune=30, chains=1, random_seed=1)
+    own = [w for w in seen if w.category in OWN_WARNINGS or issubclass(w.category, UserWarning)]
+    own = [w for w in own if w.category.__module__.startswith("kohpymc")]
+    assert any(w.category is kohpymc.IdentifiabilityWarning for w in own)
+    assert any(w.category is kohpymc.SamplerTroubleWarning for w in own)
+    assert {Path(w.filename).name for w in own} == {Path(__file__).name}
+
+
+def test_warn_user_skips_kohpymc_frames():
+    from kohpymc.warning_filters import warn_user
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        warn_user("direct", kohpymc.PriorBoundWarning)
+    assert Path(seen[0].filename).resolve() == Path(__file__).resolve()
+    assert seen[0].category is kohpymc.PriorBoundWarning

@@ -17,7 +17,6 @@ the bands, and the histogram of the standardised errors.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +25,7 @@ from scipy import stats
 
 from kohpymc.emulator.gp import Emulator
 from kohpymc.emulator.runs import SimulatorRuns
+from kohpymc.warning_filters import warn_user
 
 __all__ = ["EmulatorCheck", "EmulatorWarning", "check_emulator"]
 
@@ -227,10 +227,9 @@ def check_emulator(
             f"{max_relative_rmse}): add runs (see kohpymc.emulator.sequential_design)"
         )
     if warn and check.problems:
-        warnings.warn(
+        warn_user(
             f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is not fit for "
             "calibration: " + "; ".join(check.problems),
             EmulatorWarning,
-            stacklevel=2,
         )
     return check

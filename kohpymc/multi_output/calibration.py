@@ -12,7 +12,6 @@ inputs from the joint posterior.
 from __future__ import annotations
 
 import json
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -42,7 +41,7 @@ from kohpymc.multi_output.model import (
 )
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.sampling import SamplingReport, one_blas_thread, sample_posterior
-from kohpymc.warning_filters import pymc_info_hidden
+from kohpymc.warning_filters import pymc_info_hidden, warn_user
 
 __all__ = [
     "MultiOutputCalibration",
@@ -172,15 +171,14 @@ def _identifiability(plain: MultiOutputModel, physics: MultiOutputPhysics):
     try:
         report = stacked_taylor_check(plain)
     except ValueError as err:
-        warnings.warn(f"identifiability check skipped: {err}", IdentifiabilityWarning, stacklevel=3)
+        warn_user(f"identifiability check skipped: {err}", IdentifiabilityWarning)
         return None
     if not report.identifiable:
-        warnings.warn(
+        warn_user(
             f"the joint model of outputs {list(plain.outputs)} of {physics.name!r} is not "
             f"identifiable at the prior centre (rank {report.rank} of {len(report.names)}): "
             + "; ".join(report.confounded()),
             IdentifiabilityWarning,
-            stacklevel=3,
         )
     return report
 
@@ -306,10 +304,9 @@ def _default_target_accept(built: MultiOutputModel, discrepancy: Any) -> float:
 
 def _warn_problems(data: MultiOutputData, problems: list[str]) -> None:
     """Warn of the sampler's problems, attributed to the caller of :func:`calibrate_outputs`."""
-    warnings.warn(
+    warn_user(
         f"joint calibration of {list(data.outputs)}: " + "; ".join(problems),
         SamplerTroubleWarning,
-        stacklevel=3,
     )
 
 

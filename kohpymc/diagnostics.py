@@ -14,6 +14,8 @@ import arviz as az
 import numpy as np
 import pandas as pd
 
+from kohpymc.warning_filters import single_chain_notes_hidden
+
 __all__ = [
     "SamplerTroubleWarning",
     "SlowSamplingWarning",
@@ -100,17 +102,18 @@ def sampler_diagnostics(
     >>> bool(sampler_diagnostics(idata).loc["E", "r_hat"] < 1.01)
     True
     """
-    summary = az.summary(
-        idata,
-        var_names=list(var_names) if var_names else None,
-        kind="all",
-        round_to="none",
-        stat_funcs={
-            "q05": lambda v: np.quantile(v, 0.05),
-            "q95": lambda v: np.quantile(v, 0.95),
-        },
-        extend=True,
-    )
+    with single_chain_notes_hidden():
+        summary = az.summary(
+            idata,
+            var_names=list(var_names) if var_names else None,
+            kind="all",
+            round_to="none",
+            stat_funcs={
+                "q05": lambda v: np.quantile(v, 0.05),
+                "q95": lambda v: np.quantile(v, 0.95),
+            },
+            extend=True,
+        )
     out = summary[["mean", "sd", "q05", "q95", "r_hat", "ess_bulk", "ess_tail"]].copy()
     out.attrs["divergences"] = n_divergences(idata)
     out.attrs["max_tree_depth"] = n_max_tree_depth(idata)
@@ -134,11 +137,16 @@ def convergence_problems(
     ...                                               rng.normal(5, 1, size=300)])})
     >>> convergence_problems(bad)[0].startswith("r_hat")
     True
+    >>> convergence_problems(az.from_dict(posterior={"E": rng.normal(size=(1, 2000))}))
+    ['r_hat needs at least 2 chains (1 ran): convergence not checked']
     """
     table = sampler_diagnostics(idata, var_names)
     problems = []
     worst_rhat = table["r_hat"].max()
-    if np.isnan(worst_rhat) or worst_rhat > rhat_max:
+    chains = int(idata.posterior.sizes.get("chain", 1))
+    if chains < 2:
+        problems.append(f"r_hat needs at least 2 chains ({chains} ran): convergence not checked")
+    elif np.isnan(worst_rhat) or worst_rhat > rhat_max:
         names = table.index[~(table["r_hat"] <= rhat_max)].tolist()
         problems.append(f"r_hat > {rhat_max} for {names} (max {worst_rhat:.3f})")
     low = table.index[(table["ess_bulk"] < ess_min) | (table["ess_tail"] < ess_min)].tolist()

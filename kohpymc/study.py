@@ -91,7 +91,7 @@ from kohpymc.validation import (
     predictive_scores,
     score_calibration,
 )
-from kohpymc.warning_filters import warn_user
+from kohpymc.warning_filters import single_chain_notes_hidden, warn_user
 
 __all__ = [
     "StudyResult",
@@ -769,7 +769,8 @@ def _row(label, scored: Scored, results, identifiability) -> dict[str, Any]:
     for p in params:
         row[f"{p}_mean"] = float(diag.loc[p, "mean"])
         row[f"{p}_sd"] = float(diag.loc[p, "sd"])
-    row["r_hat_max"] = float(az.rhat(results[label].posterior).to_array().max())
+    with single_chain_notes_hidden():
+        row["r_hat_max"] = float(az.rhat(results[label].posterior).to_array().max())
     row["ess_bulk_min"] = float(diag["ess_bulk"].min())
     row["divergences"] = int(diag.attrs["divergences"])
     row["validation_noise"] = describe_noise(scored.noise)

@@ -47,6 +47,7 @@ from kohpymc.data import CalibrationData
 from kohpymc.diagnostics import SamplerTroubleWarning
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.physics import PhysicsModel
+from kohpymc.warning_filters import single_chain_notes_hidden
 
 __all__ = [
     "Reliability",
@@ -337,7 +338,8 @@ def reliability(
     w = w / w.sum()
     per_draw = prob @ w  # (chain, draw)
     mu_r = float(per_draw.mean())
-    mcse = float(np.ravel(az.mcse(per_draw))[0]) if per_draw.shape[1] > 3 else float("nan")
+    with single_chain_notes_hidden():
+        mcse = float(np.ravel(az.mcse(per_draw))[0]) if per_draw.shape[1] > 3 else float("nan")
     pointwise = xr.DataArray(
         prob.mean(axis=(0, 1)),
         dims=("pred",),

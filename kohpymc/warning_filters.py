@@ -28,6 +28,7 @@ __all__ = [
     "one_line_warning",
     "quiet_command_line",
     "pymc_info_hidden",
+    "single_chain_notes_hidden",
     "warn_user",
 ]
 
@@ -185,6 +186,41 @@ def pymc_info_hidden() -> Iterator[None]:
         yield
     finally:
         logger.setLevel(level)
+
+
+class _SingleChainNote(logging.Filter):
+    """Drops ArviZ's "Shape validation failed: ... minimum_shape: (chains=2, ...)" lines."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Shape validation failed")
+
+
+@contextmanager
+def single_chain_notes_hidden() -> Iterator[None]:
+    """Hide ArviZ's log line on a one-chain posterior for the duration of a kohpymc step.
+
+    ArviZ logs "Shape validation failed: input_shape: (1, 200), minimum_shape: (chains=2,
+    draws=4)" each time r̂, ESS or an MCSE is computed on one chain: once per diagnostic
+    and per formulation.  kohpymc says itself, once, that r̂ needs two chains
+    (:func:`kohpymc.diagnostics.convergence_problems`).
+
+    Examples
+    --------
+    >>> import logging
+    >>> import arviz as az, numpy as np
+    >>> with single_chain_notes_hidden():
+    ...     ess = az.ess(np.arange(100.0)[None, :])  # one chain: nothing logged
+    """
+    import arviz
+
+    # ArviZ logs through its own Logger instance, not one registered with logging
+    logger = getattr(arviz, "_log", None) or logging.getLogger("arviz")
+    note = _SingleChainNote()
+    logger.addFilter(note)
+    try:
+        yield
+    finally:
+        logger.removeFilter(note)
 
 
 ignore_noise()  # on import: kohpymc/__init__.py imports this module before anything else

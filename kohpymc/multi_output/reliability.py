@@ -40,6 +40,7 @@ from kohpymc.checks import check_tolerance
 from kohpymc.multi_output.calibration import MultiOutputCalibration, predict_output
 from kohpymc.multi_output.data import MultiOutputData, per_output
 from kohpymc.validation import _measurement_model, validation_noise
+from kohpymc.warning_filters import single_chain_notes_hidden
 
 __all__ = ["OutputReliability", "output_reliability", "reliability_table", "COMBINED"]
 
@@ -73,7 +74,8 @@ def _probabilities(ym: np.ndarray, D: np.ndarray, sd: Any, tolerance: float) -> 
 
 
 def _mcse(per_draw: np.ndarray) -> float:
-    return float(np.ravel(az.mcse(per_draw))[0]) if per_draw.shape[1] > 3 else float("nan")
+    with single_chain_notes_hidden():
+        return float(np.ravel(az.mcse(per_draw))[0]) if per_draw.shape[1] > 3 else float("nan")
 
 
 def output_reliability(

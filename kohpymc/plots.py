@@ -202,11 +202,14 @@ def _series_bands(ax, x_all, groups, others, mean, lo, hi, y_validation) -> None
 
 
 def _pointwise_bands(ax, x, mean, lo, hi, y) -> None:
-    """A vertical 90 % interval and the mean at every validation point, the data on top."""
-    ax.errorbar(
-        x, mean, yerr=np.vstack([mean - lo, hi - mean]), fmt="_", color="C0", ecolor="C0",
-        alpha=0.6, lw=1.2, ms=8, label="90 % band, mean",
-    )  # fmt: skip
+    """A vertical 90 % interval and the mean at every validation point, the data on top.
+
+    The interval and the mean are drawn apart: a skewed predictive distribution (a
+    log-variance extrapolated beyond the calibration inputs) can put the mean outside
+    its own 5–95 % interval, which an error bar around the mean cannot show.
+    """
+    ax.vlines(x, lo, hi, color="C0", alpha=0.6, lw=1.2, label="90 % band")
+    ax.plot(x, mean, "_", color="C0", alpha=0.6, ms=8, label="mean")
     ax.plot(x, y, "o", ms=3.5, color="k", label="validation data")
 
 

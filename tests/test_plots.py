@@ -5,7 +5,7 @@ from __future__ import annotations
 import arviz as az
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.collections import PolyCollection
+from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.container import ErrorbarContainer
 
 from kohpymc.plots import plot_validation_predictions
@@ -31,9 +31,29 @@ def test_a_few_series_get_bands_and_a_scattered_design_gets_per_point_intervals(
     y = rng.normal(size=20)
     fig = plot_validation_predictions({"M0": _predictions(20)}, y, scattered)
     ax = fig.axes[0]
-    (bars,) = [c for c in ax.containers if isinstance(c, ErrorbarContainer)]
-    assert len(bars.lines[0].get_xdata()) == 20
+    (bars,) = [c for c in ax.collections if isinstance(c, LineCollection)]
+    assert len(bars.get_segments()) == 20
     assert not any(isinstance(c, PolyCollection) for c in ax.collections)
+    plt.close(fig)
+
+
+def test_a_mean_outside_its_own_90_percent_interval_is_drawn():
+    """A skewed predictive distribution (one draw in a hundred far out, as a log-variance
+    extrapolated beyond the calibration inputs gives) puts the mean above the 95 % quantile;
+    the scattered design's per-point interval raised "'yerr' must not contain negative
+    values" and failed the study's figures (a Hill curve under M3 from kp.run_study)."""
+    rng = np.random.default_rng(3)
+    draws = rng.normal(size=(2, 50, 6))
+    draws[0, 0, :] = 1e4  # mean ~ 100, 95 % quantile ~ 2
+    pred = az.from_dict(predictions={"y_pred": draws}, dims={"y_pred": ["pred"]})
+    scattered = {"T": rng.uniform(300, 400, 6), "c": rng.uniform(0.5, 2.0, 6)}
+    fig = plot_validation_predictions({"M3": pred}, rng.normal(size=6), scattered)
+    ax = fig.axes[0]
+    (bars,) = [c for c in ax.collections if isinstance(c, LineCollection)]
+    tops = np.array([seg[:, 1].max() for seg in bars.get_segments()])
+    means = [line for line in ax.lines if line.get_label() == "mean"][0].get_ydata()
+    assert np.all(means > tops)  # drawn where it is, outside the band
+    assert not any(isinstance(c, ErrorbarContainer) for c in ax.containers)
     plt.close(fig)
 
 

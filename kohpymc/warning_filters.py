@@ -23,6 +23,8 @@ from typing import NamedTuple
 
 __all__ = [
     "IMPORT_NOISE",
+    "IMPORT_LOG_NOISE",
+    "ignore_log_noise",
     "NoiseFilter",
     "ignore_noise",
     "one_line_warning",
@@ -223,4 +225,41 @@ def single_chain_notes_hidden() -> Iterator[None]:
         logger.removeFilter(note)
 
 
+class _LogNoise(logging.Filter):
+    """Drops a library's log records whose message starts with one of ``starts``."""
+
+    def __init__(self, *starts: str) -> None:
+        super().__init__()
+        self.starts = starts
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(self.starts)
+
+
+#: log lines hidden on ``import kohpymc`` (logger name -> message starts): PyTensor's note,
+#: on its first compile, that it falls back to NumPy's C-API for BLAS (the log densities
+#: run through numba or its C backend either way; the command line hid it, a script did not)
+IMPORT_LOG_NOISE: dict[str, tuple[str, ...]] = {
+    "pytensor.tensor.blas": ("Using NumPy C-API based implementation for BLAS functions",),
+}
+
+
+def ignore_log_noise(noise: dict[str, tuple[str, ...]] = IMPORT_LOG_NOISE) -> None:
+    """Hide exactly these log lines (a filter on each named logger; others still show).
+
+    Examples
+    --------
+    >>> import logging
+    >>> ignore_log_noise({"some.library": ("routine chatter",)})
+    >>> logging.getLogger("some.library").filters[0].filter(
+    ...     logging.makeLogRecord({"msg": "routine chatter, again"}))
+    False
+    """
+    for name, starts in noise.items():
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _LogNoise) and f.starts == starts for f in logger.filters):
+            logger.addFilter(_LogNoise(*starts))
+
+
 ignore_noise()  # on import: kohpymc/__init__.py imports this module before anything else
+ignore_log_noise()

@@ -196,3 +196,21 @@ def test_warn_user_skips_kohpymc_frames():
         warn_user("direct", kohpymc.PriorBoundWarning)
     assert Path(seen[0].filename).resolve() == Path(__file__).resolve()
     assert seen[0].category is kohpymc.PriorBoundWarning
+
+
+def test_pytensor_blas_fallback_note_is_hidden_in_a_script(tmp_path):
+    """PyTensor logs "Using NumPy C-API based implementation for BLAS functions." on its
+    first compile; the command line hid it, a script calling kp.run_study printed it."""
+    script = (
+        "import logging\n"
+        "{imp}"
+        "log = logging.getLogger('pytensor.tensor.blas')\n"
+        "log.warning('Using NumPy C-API based implementation for BLAS functions.')\n"
+        "log.warning('a real BLAS problem')\n"
+    )
+    bare = _python(tmp_path, "-c", script.format(imp="import pytensor\n"))
+    assert "Using NumPy C-API" in bare.stderr  # it does show without kohpymc
+    ours = _python(tmp_path, "-c", script.format(imp="import kohpymc\n"))
+    assert ours.returncode == 0, ours.stderr
+    assert "Using NumPy C-API" not in ours.stderr
+    assert "a real BLAS problem" in ours.stderr

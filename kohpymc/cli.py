@@ -170,6 +170,11 @@ def _multi_output_study(args: argparse.Namespace) -> int:
 
     try:
         spec = load_multi_output_study(args.study)
+        if getattr(args, "workers", None) is not None or getattr(args, "scheduler", None):
+            raise StudyConfigError(
+                f"{spec.source}: --workers/--scheduler: a multi-output study runs its "
+                "formulations in this process"
+            )
     except StudyConfigError as err:
         return _bad_input(err)
     out = Path(args.out) if args.out else spec.source.parent / f"{spec.source.stem}_results"
@@ -330,6 +335,11 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
 
     try:
         spec = load_multi_output_study(args.study)
+        if getattr(args, "workers", None) is not None or getattr(args, "scheduler", None):
+            raise StudyConfigError(
+                f"{spec.source}: --workers/--scheduler: a multi-output study runs its "
+                "formulations in this process"
+            )
     except StudyConfigError as err:
         return _bad_input(err)
     options = _discovery_options(args, spec.sampling)

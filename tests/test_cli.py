@@ -107,6 +107,14 @@ def test_discover_on_a_multi_output_file_dry_run_names_the_outputs(tmp_path, cap
     assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]  # nothing written
 
 
+def test_multi_output_study_refuses_workers_instead_of_ignoring_them(tmp_path, capsys):
+    study = _multi_output_example(tmp_path)
+    assert main(["study", str(study), "--dry-run", "--workers", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "--workers/--scheduler" in err and "Traceback" not in err
+    assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]
+
+
 @pytest.mark.slow
 def test_discover_on_a_multi_output_file_runs_per_output(tmp_path):
     """One report per output, one folder per output: the strain gauge's planted zero offset

@@ -519,6 +519,39 @@ def test_study_file_without_formulations_runs_the_single_output_defaults(tmp_pat
     assert tuple(forms["M4"].inputs) == ("x", "P")
 
 
+@pytest.mark.parametrize(
+    ("extra", "key"),
+    [
+        ("[emulator]\nruns = 20\n", r"\[emulator\]"),
+        ("[execution]\nworkers = 2\n", r"\[execution\]"),
+        ('[output]\ndir = "elsewhere"\n', r"\[output\]"),
+    ],
+)
+def test_study_file_single_output_sections_are_named_not_ignored(tmp_path, extra, key):
+    """[emulator], [execution] and [output] were read and silently ignored (the simulator
+    was then called directly, the formulations ran in one process, the results went
+    elsewhere); now they stop the file with its key named."""
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path)
+    path.write_text(path.read_text() + extra)
+    with pytest.raises(StudyConfigError, match=key + ".*multi-output study cannot"):
+        load_multi_output_study(path)
+
+
+def test_study_file_time_input_is_named_not_ignored(tmp_path):
+    from kohpymc import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    path = _write_study(tmp_path)
+    path.write_text(
+        path.read_text().replace('output = ["u", "strain"]', 'output = ["u", "strain"]\ntime = "x"')
+    )
+    with pytest.raises(StudyConfigError, match=r"\[physics\.time\].*cannot add M5"):
+        load_multi_output_study(path)
+
+
 def test_study_file_coregionalized_kernel_read_and_a_bad_one_named(tmp_path):
     from kohpymc import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study

@@ -150,6 +150,29 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
     return _formulation(path, label, value, inputs, None)
 
 
+#: keys of a single-output study file that a multi-output study does not run (each was
+#: read and silently ignored: an [emulator] section left the slow simulator called directly)
+_SINGLE_OUTPUT_ONLY = (
+    ("emulator", None, "calibrate through an emulator"),
+    ("execution", None, "run formulations on Dask workers"),
+    ("output", None, "take the output folder from the file: pass --out"),
+    ("check", None, "run `kohpymc check`"),
+    ("physics", "time", "add M5"),
+    ("data", "units", "use units in discovery"),
+    ("sampling", "workers", "run formulations on Dask workers"),
+)
+
+
+def _unsupported(path: Path, doc: dict) -> None:
+    """Stop at a section or key that only single-output studies act on, naming it."""
+    for section, key, what in _SINGLE_OUTPUT_ONLY:
+        table = doc.get(section)
+        if table is None or (key is not None and key not in table):
+            continue
+        name = section if key is None else f"{section}.{key}"
+        raise _err(path, name, f"a multi-output study cannot {what} yet; remove it")
+
+
 def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     """Read and check a multi-output study file (keys: see the module docstring).
 
@@ -169,6 +192,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     """
     path = Path(path)
     doc = _read_document(path)
+    _unsupported(path, doc)
     base = path.resolve().parent
     phys = doc["physics"]
     function = _load_callable(

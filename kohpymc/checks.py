@@ -78,6 +78,36 @@ def check_tolerance(tolerance: Any) -> float:
     return float(tolerance)
 
 
+def check_physics_model(physics: Any) -> PhysicsModel:
+    """``physics`` if it is a :class:`~kohpymc.PhysicsModel`, else a ``TypeError``.
+
+    The error says what to pass: an emulator (``kp.emulate(...)``) is not a physics
+    model, its ``physics_model()`` is; a bare function needs wrapping.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> check_physics_model(beam.physics_model()).name
+    'euler_bernoulli'
+    >>> check_physics_model(beam.euler_bernoulli)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    TypeError: physics must be a kohpymc.PhysicsModel, got function: wrap it as ...
+    """
+    if isinstance(physics, PhysicsModel):
+        return physics
+    kind = type(physics).__name__
+    if callable(getattr(physics, "physics_model", None)):
+        raise TypeError(
+            f"physics must be a kohpymc.PhysicsModel, got an {kind}: pass its "
+            "physics_model() (the emulator as a physics model, its uncertainty in the likelihood)"
+        )
+    raise TypeError(
+        f"physics must be a kohpymc.PhysicsModel, got {kind}: wrap it as "
+        "kp.PhysicsModel(function, priors, inputs=[...])"
+    )
+
+
 def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) -> None:
     """The data have the physics inputs; the model (and its Jacobian) run there at the prior mean.
 
@@ -86,6 +116,7 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
     >>> from kohpymc.examples import beam
     >>> check_physics_runs(beam.physics_model(), beam.generate_data(seed=1), "calibration")
     """
+    check_physics_model(physics)
     missing = [k for k in physics.inputs if k not in data.inputs]
     if missing:
         raise KeyError(

@@ -20,6 +20,7 @@ import pymc as pm
 import pytensor
 import pytensor.tensor as pt
 
+from kohpymc.checks import check_physics_model
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.none import NoDiscrepancy
@@ -257,6 +258,7 @@ def compose_model(
     >>> sorted(built.formulation_variables), built.likelihood.independent_rows
     (['delta_mean', 'delta_sd'], True)
     """
+    check_physics_model(physics)
     discrepancy = discrepancy if discrepancy is not None else NoDiscrepancy()
     if not isinstance(discrepancy, Discrepancy):
         raise TypeError(f"discrepancy must be a Discrepancy, got {type(discrepancy).__name__}")

@@ -39,3 +39,17 @@ def test_the_physics_check_runs_once_per_data_set_and_still_catches_a_failure():
     for _ in range(2):  # a failure is not remembered as checked
         with pytest.raises(PhysicsModelError):
             compose_model(bad, data)
+
+
+def test_an_emulator_or_a_bare_function_passed_as_physics_is_named():
+    """``kp.calibrate(kp.emulate(...), data)`` failed deep inside with "'Emulator' object has
+    no attribute 'inputs'"; the error now says to pass its physics_model()."""
+    from kohpymc.emulator import Emulator
+    from kohpymc.examples import beam
+
+    data = beam.generate_data(seed=1)
+    fake = Emulator.__new__(Emulator)  # an emulator without runs: only its type matters
+    with pytest.raises(TypeError, match=r"got an Emulator: pass its physics_model\(\)"):
+        compose_model(fake, data)
+    with pytest.raises(TypeError, match="got function: wrap it as kp.PhysicsModel"):
+        compose_model(beam.euler_bernoulli, data)

@@ -175,9 +175,10 @@ def _multi_output_study(args: argparse.Namespace) -> int:
                 f"{spec.source}: --workers/--scheduler: a multi-output study runs its "
                 "formulations in this process"
             )
+        out = Path(args.out) if args.out else spec.source.parent / f"{spec.source.stem}_results"
+        _checked_options(args, spec, [out])
     except StudyConfigError as err:
         return _bad_input(err)
-    out = Path(args.out) if args.out else spec.source.parent / f"{spec.source.stem}_results"
     overrides = _sampler_overrides(args, {})
     outputs = ", ".join(spec.physics.outputs)
     if args.dry_run:
@@ -340,6 +341,9 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
                 f"{spec.source}: --workers/--scheduler: a multi-output study runs its "
                 "formulations in this process"
             )
+        _checked_options(
+            args, spec, [Path(args.out)] if args.out else [], [Path(args.json)] if args.json else []
+        )
     except StudyConfigError as err:
         return _bad_input(err)
     options = _discovery_options(args, spec.sampling)

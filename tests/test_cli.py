@@ -115,6 +115,26 @@ def test_multi_output_study_refuses_workers_instead_of_ignoring_them(tmp_path, c
     assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]
 
 
+@pytest.mark.parametrize(
+    ("command", "option", "named"),
+    [
+        ("study", ["--out", "{file}/sub"], "is a file, not a folder"),
+        ("study", ["--draws", "0"], "--draws must be an integer >= 1"),
+        ("discover", ["--json", "{file}/report.json"], "is a file, not a folder"),
+    ],
+)
+def test_multi_output_command_line_options_are_checked(tmp_path, capsys, command, option, named):
+    """An --out under a file gave a NotADirectoryError traceback after the first formulation
+    had sampled, and --draws 0 went through to the sampler: now exit 2 before anything runs."""
+    study = _multi_output_example(tmp_path)
+    (tmp_path / "afile").write_text("")
+    option = [o.replace("{file}", str(tmp_path / "afile")) for o in option]
+    assert main([command, str(study), "--dry-run", *option]) == 2
+    err = capsys.readouterr().err
+    assert named in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "study.toml"]
+
+
 @pytest.mark.slow
 def test_discover_on_a_multi_output_file_runs_per_output(tmp_path):
     """One report per output, one folder per output: the strain gauge's planted zero offset

@@ -602,3 +602,41 @@ def test_log_scales_make_an_arrhenius_emulator_usable():
     bad = run_design(signed, space_filling_design({"x": (0.0, 1.0), "a": (-1.0, 1.0)}, 10))
     with pytest.raises(ValueError, match="outputs <= 0"):
         Emulator(bad, signed, log_output=True)
+
+
+@pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
+def test_study_physics_reuses_its_sequential_rounds_on_a_rerun(tmp_path, monkeypatch):
+    import kohpymc.calibration
+    from kohpymc import CalibrationData
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    counter, physics = _counted_physics()
+    physics.parameters["a"] = Uniform(0.2, 2.0)
+    x = np.linspace(0.0, 1.0, 6)
+    data = CalibrationData(
+        {"x": x}, physics.evaluate({"x": x}, {"a": 1.1, "b": 0.3}), noise_sd=0.05
+    )
+    settings = EmulatorSettings(runs=16, sequential=1, new_runs=12, seed=3)
+    sampling = {"draws": 150, "tune": 150, "chains": 2, "random_seed": 5}
+    first = study_physics(settings, physics, data, tmp_path, sampling=sampling)
+    rows = counter.rows
+    assert first.emulator.n_runs > 16  # the round added runs at posterior draws
+
+    def no_calibration(*args, **kwargs):
+        raise AssertionError("the rounds ran again")
+
+    monkeypatch.setattr(kohpymc.calibration, "calibrate", no_calibration)
+    again = study_physics(settings, physics, data, tmp_path, sampling=sampling)
+    assert counter.rows == rows  # nothing simulated either
+    assert again.emulator.n_runs == first.emulator.n_runs
+    rows_z = np.array([[0.1, 0.9, 0.2], [0.7, 1.4, -0.4]])
+    for new, old in zip(
+        again.emulator.predict_matrix(rows_z), first.emulator.predict_matrix(rows_z), strict=True
+    ):
+        np.testing.assert_allclose(new, old, rtol=1e-10)
+    assert not list((tmp_path / "emulator").glob(".*"))  # no temporary files left
+    with pytest.raises(AssertionError, match="ran again"):  # another setting: rounds rerun
+        study_physics(
+            EmulatorSettings(runs=16, sequential=1, new_runs=12, seed=3, tolerance=0.05),
+            physics, data, tmp_path, sampling=sampling,
+        )  # fmt: skip

@@ -281,7 +281,7 @@ def _design_rounds(
     from kohpymc.calibration import calibrate
 
     params = list(physics.parameters)
-    box = _emulator_box(emulator)
+    box = emulator_box(emulator)
     result: SequentialDesign | None = None
     previous: dict[str, float] | None = None
     history: list[dict[str, Any]] = []
@@ -305,7 +305,7 @@ def _design_rounds(
     return result
 
 
-def _emulator_box(emulator: Emulator) -> dict[str, tuple[float, float]]:
+def emulator_box(emulator: Emulator) -> dict[str, tuple[float, float]]:
     """The emulator's unit box as column -> ``(lower, upper)`` (kept by every refit)."""
     return {
         k: (float(lo), float(lo + w))

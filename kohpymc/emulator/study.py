@@ -18,7 +18,11 @@ With it, :func:`study_physics` replaces the study's physics by the emulator: sim
 runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses
 them), the validation of the emulator goes to ``<output>/emulator/check.json`` and
 ``check.png``, the sequential rounds to ``rounds.csv``, the fitted hyperparameters to
-``emulator.json`` and every run (failures with their error) to ``runs.csv``.
+``emulator.json`` and every run (failures with their error) to ``runs.csv``.  The rounds'
+final design goes to ``rounds.json`` with a key of the settings, simulator, data,
+formulation and sampler settings: a rerun with the same key refits the final emulator
+from the cached runs instead of calibrating the rounds again.  Every file is written
+under a temporary name and renamed.
 """
 
 from __future__ import annotations
@@ -36,10 +40,22 @@ from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.emulator.checking import check_emulator
 from kohpymc.emulator.design import DESIGNS
 from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator
-from kohpymc.emulator.sequential import emulate, sequential_design
+from kohpymc.emulator.runs import run_design
+from kohpymc.emulator.sequential import emulate, emulator_box, sequential_design
+from kohpymc.fingerprint import (
+    data_fingerprint,
+    digest,
+    formulation_fingerprint,
+    kohpymc_version,
+    physics_fingerprint,
+)
 from kohpymc.physics import PhysicsModel
+from kohpymc.study_files import write_atomic
 
 __all__ = ["EmulatorSettings", "study_physics"]
+
+#: the sequential rounds' key and final design (a rerun with the same key skips them)
+ROUNDS_RECORD = "rounds.json"
 
 
 @dataclass(frozen=True)
@@ -152,7 +168,38 @@ def study_physics(
     """
     folder = Path(out_dir) / "emulator"
     folder.mkdir(parents=True, exist_ok=True)
-    cache = folder / "runs"
+    key = _rounds_key(settings, physics, calibration, formulations, sampling)
+    emulator = _restored_rounds(folder, key, settings, physics, workers, scheduler)
+    if emulator is None:
+        emulator = _first_emulator(settings, physics, calibration, folder, workers, scheduler)
+        if settings.sequential > 0:
+            emulator = _sequential_rounds(
+                settings,
+                physics,
+                calibration,
+                emulator,
+                folder,
+                formulations=formulations,
+                sampling=sampling,
+                workers=workers,
+                scheduler=scheduler,
+            )
+            _write_rounds_record(folder, key, emulator)
+    settings_text = json.dumps(asdict(settings), indent=1)
+    write_atomic(folder / "settings.json", lambda tmp: tmp.write_text(settings_text))
+    _write_emulator(folder, emulator)
+    return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+
+
+def _first_emulator(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    folder: Path,
+    workers: int,
+    scheduler: Any,
+) -> Emulator:
+    """The initial design, run (cached in ``folder/runs``) and fitted; its check written."""
     emulator = emulate(
         physics,
         calibration,
@@ -160,28 +207,78 @@ def study_physics(
         design=settings.design,  # type: ignore[arg-type]
         kernel=settings.kernel,  # type: ignore[arg-type]
         log_output=settings.log_output,
-        cache=cache,
+        cache=folder / "runs",
         seed=settings.seed,
         workers=workers,
         scheduler=scheduler,
     )
-    check = check_emulator(emulator)
-    _write_check(folder, check)
-    if settings.sequential > 0:
-        emulator = _sequential_rounds(
-            settings,
-            physics,
-            calibration,
-            emulator,
-            folder,
-            formulations=formulations,
-            sampling=sampling,
-            workers=workers,
-            scheduler=scheduler,
-        )
-    (folder / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
-    _write_emulator(folder, emulator)
-    return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+    _write_check(folder, check_emulator(emulator))
+    return emulator
+
+
+def _rounds_key(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    formulations: Mapping[str, Discrepancy] | None,
+    sampling: Mapping[str, Any] | None,
+) -> str:
+    """What the sequential rounds' result depends on: settings, simulator, data, sampler."""
+    return digest(
+        {
+            "settings": asdict(settings),
+            "physics": physics_fingerprint(physics),
+            "data": data_fingerprint(calibration),
+            "formulation": formulation_fingerprint(_round_formulation(settings, formulations)),
+            "sampling": _calibrate_settings(sampling or {}),
+            "version": kohpymc_version(),
+        }
+    )
+
+
+def _write_rounds_record(folder: Path, key: str, emulator: Emulator) -> None:
+    """``rounds.json``: the key and the final design, so a rerun refits without the rounds."""
+    runs = emulator.runs
+    columns = [*runs.inputs, *runs.parameters]
+    record = {
+        "key": key,
+        "columns": columns,
+        "design": runs.points[columns].to_numpy(dtype=float).tolist(),
+        "box": emulator_box(emulator),
+    }
+    text = json.dumps(record)
+    write_atomic(folder / ROUNDS_RECORD, lambda tmp: tmp.write_text(text))
+
+
+def _restored_rounds(
+    folder: Path,
+    key: str,
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    workers: int,
+    scheduler: Any,
+) -> Emulator | None:
+    """The final emulator of earlier rounds with the same ``key``, refitted from the cache.
+
+    None without sequential rounds, without a record, or when the record's key differs
+    (then the rounds run again; their simulator runs still come from the cache).
+    """
+    path = folder / ROUNDS_RECORD
+    if settings.sequential == 0 or not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("key") != key:
+        return None
+    design = pd.DataFrame(record["design"], columns=record["columns"])
+    runs = run_design(physics, design, cache=folder / "runs", workers=workers, scheduler=scheduler)
+    box = {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}
+    return Emulator(
+        runs, physics, box=box, kernel=settings.kernel, seed=settings.seed,
+        log_output=settings.log_output,
+    )  # fmt: skip
 
 
 def _round_formulation(
@@ -225,7 +322,8 @@ def _sequential_rounds(
         scheduler=scheduler,
         **_calibrate_settings(sampling or {}),
     )
-    result.table().to_csv(folder / "rounds.csv")
+    table = result.table()
+    write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
     _write_check(folder, check_emulator(result.emulator))
     return result.emulator
 
@@ -253,17 +351,16 @@ def _write_emulator(folder: Path, emulator: Any) -> None:
         "runs": emulator.n_runs,
         "failed_runs": int(len(emulator.runs.failed)),
     }
-    (folder / "emulator.json").write_text(json.dumps(record, indent=1))
+    text = json.dumps(record, indent=1)
+    write_atomic(folder / "emulator.json", lambda tmp: tmp.write_text(text))
     runs = emulator.runs
     table = runs.points.assign(error="")
     if len(runs.failed):
         table = pd.concat([table, runs.failed.assign(output=float("nan"))], ignore_index=True)
-    table.to_csv(folder / "runs.csv", index=False)
+    write_atomic(folder / "runs.csv", lambda tmp: table.to_csv(tmp, index=False))
 
 
 def _write_check(folder: Path, check: Any) -> None:
-    from kohpymc.study_files import write_atomic
-
     text = json.dumps(check.to_dict(), indent=1)
 
     def write(tmp: Path) -> None:
@@ -273,5 +370,5 @@ def _write_check(folder: Path, check: Any) -> None:
     import matplotlib.pyplot as plt
 
     fig = check.figure()
-    fig.savefig(folder / "check.png", dpi=100)
+    write_atomic(folder / "check.png", lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)

@@ -211,8 +211,13 @@ def _multi_output_study(args: argparse.Namespace) -> int:
         return 1
     print()
     print(result.table.to_string(float_format=lambda v: f"{v:.4g}"))
-    print(f"\nresults in {out}/ (table.md, table.csv, *.nc, figures)")
+    print(f"\nresults in {out}/ ({_written(args)})")
     return 0
+
+
+def _written(args: argparse.Namespace) -> str:
+    """What a study wrote, for its last line (figures only without ``--no-figures``)."""
+    return "table.md, table.csv, *.nc" + ("" if args.no_figures else ", figures")
 
 
 def _study(args: argparse.Namespace) -> int:
@@ -276,7 +281,7 @@ def _study(args: argparse.Namespace) -> int:
     print(result.summary())
     if result.failures:
         print("\nfailed: " + "; ".join(f"{k}: {v}" for k, v in result.failures.items()))
-    print(f"\nresults in {out}/ (table.md, table.csv, *.nc, figures)")
+    print(f"\nresults in {out}/ ({_written(args)})")
     return 0
 
 

@@ -148,7 +148,7 @@ def convergence_problems(
         problems.append(f"r_hat needs at least 2 chains ({chains} ran): convergence not checked")
     elif np.isnan(worst_rhat) or worst_rhat > rhat_max:
         names = table.index[~(table["r_hat"] <= rhat_max)].tolist()
-        problems.append(f"r_hat > {rhat_max} for {names} (max {worst_rhat:.3f})")
+        problems.append(f"r_hat > {rhat_max} for {names} (max {worst_rhat:.4f})")
     low = table.index[(table["ess_bulk"] < ess_min) | (table["ess_tail"] < ess_min)].tolist()
     if low:
         problems.append(

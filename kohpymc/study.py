@@ -335,7 +335,10 @@ def _check_identifiability(physics, calibration, formulations, say):
             say(f"  {label}: identifiable (rank {report.rank} of {len(report.names)})")
         else:
             text = "; ".join(report.confounded())
-            say(f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}), warned:")
+            say(
+                f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}); "
+                "the confounded combinations follow in an IdentifiabilityWarning"
+            )
             warn_user(
                 f"{label} is not identifiable at the prior centre: {text}",
                 IdentifiabilityWarning,

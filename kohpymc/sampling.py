@@ -6,8 +6,12 @@ r"""Running the sampler: nutpie by default, PyMC's NUTS or SMC on request, check
   once by PyTensor (:mod:`kohpymc.value_space`), the posterior mode and a whitening map
   are found (:mod:`kohpymc.reparameterization`), and nutpie's Rust NUTS samples the
   whitened coordinates, with chains started around the mode.  Draws are mapped back,
-  so the InferenceData holds the user's parameters.  When nutpie cannot be used (not
-  installed, or the set-up fails) PyMC's NUTS runs instead and the reason is recorded.
+  so the InferenceData holds the user's parameters.  When the model's log density is
+  pure PyTensor, the density in the sampling coordinates is compiled by numba as a whole
+  (:mod:`kohpymc.native`: no Python per evaluation, chains on ``cores`` threads);
+  otherwise (e.g. a numpy physics function) nutpie calls it through Python on one
+  thread.  When nutpie cannot be used (not installed, or the set-up fails) PyMC's NUTS
+  runs instead and the reason is recorded.
 * ``sampler="pymc"``: :func:`pymc.sample` (PyMC's NUTS), started at the mode when one
   was found.
 * ``sampler="smc"``: :func:`pymc.sample_smc`, which needs no gradient.
@@ -167,7 +171,8 @@ def sample_posterior(
         Default ``"nutpie"``.
     draws, tune, chains, cores, target_accept, random_seed, progressbar :
         The usual sampler settings (``cores`` defaults to ``min(chains, 2)``; it sets
-        PyMC's and SMC's processes: nutpie's chains share one thread, see
+        PyMC's and SMC's processes and nutpie's threads on the native path; through
+        the Python callback nutpie's chains share one thread, see
         :attr:`SamplingReport.chain_threads`).
     reparameterize : bool
         Find the mode and whiten the sampling coordinates (NUTS samplers only).

@@ -42,7 +42,7 @@ __all__ = [
     "density_in_z",
     "expand_draws",
     "native_model",
-    "plan_parameters",
+    "parameters",
     "python_only_ops",
     "symbolic_value",
 ]
@@ -136,48 +136,61 @@ def _value_replacements(space: ValueSpace, v: Any) -> dict[Any, Any]:
     return out
 
 
-def density_in_z(space: ValueSpace, mapping: Reparameterization) -> tuple[Any, Any, Any, Any]:
-    """``z``, the plan's parameters ``θ`` and the log density in ``z`` with its gradient.
+def density_in_z(
+    space: ValueSpace, mapping: Reparameterization
+) -> tuple[Any, Any, Any, Any, list[Any]]:
+    """``z``, the parameters ``θ`` and the log density in ``z`` with its gradient.
 
     ``log p(v(z)) + log|dv/dz|`` (constant terms left out, as
-    :meth:`Reparameterization.logp_dlogp`).  ``θ = (μ, vec L)`` is a second input
-    (:func:`plan_parameters`) and the model's shared variables are frozen as constants,
-    so the graph — and numba's disk cache of it — does not change with the plan.
+    :meth:`Reparameterization.logp_dlogp`).  ``θ`` is a second input holding the plan's
+    ``μ`` and ``L`` and the values of the model's float shared variables (e.g. data
+    swapped in by :func:`kohpymc.sbc.check_calibration`), returned last, in
+    :func:`parameters`' order; other shared variables are frozen as constants.  So the
+    graph — and numba's disk cache of it — does not change with the plan or the data.
 
     Examples
     --------
-    >>> z, theta, logp, grad = density_in_z(space, plan)  # doctest: +SKIP
+    >>> z, theta, logp, grad, shared = density_in_z(space, plan)  # doctest: +SKIP
     >>> f = pytensor.function([z, theta], [logp, grad])  # doctest: +SKIP
-    >>> f(np.zeros(space.ndim), plan_parameters(plan))  # doctest: +SKIP
+    >>> f(np.zeros(space.ndim), parameters(plan, shared))  # doctest: +SKIP
     """
     n = space.ndim
-    z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
-    theta = pt.TensorType("float64", shape=(n + n * n,))(f"{_PREFIX}theta")
-    mean, chol = theta[:n], theta[n:].reshape((n, n))
-    v, logjac = symbolic_value(mapping, z, mean=mean, chol=chol)
-    (logp,) = replace_vars_in_graphs([space.model.logp()], _value_replacements(space, v))
+    logp = space.model.logp()
     shared = [var for var in graph_inputs([logp]) if isinstance(var, SharedVariable)]
-    (logp,) = replace_vars_in_graphs(
-        [logp], {var: pt.constant(var.get_value(), dtype=var.dtype) for var in shared}
-    )
+    packed = [var for var in shared if var.dtype == "float64"]
+    sizes = [int(np.size(var.get_value())) for var in packed]
+    z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
+    theta = pt.TensorType("float64", shape=(n + n * n + sum(sizes),))(f"{_PREFIX}theta")
+    mean, chol = theta[:n], theta[n : n + n * n].reshape((n, n))
+    replacements: dict[Any, Any] = {
+        var: pt.constant(var.get_value(), dtype=var.dtype) for var in shared if var not in packed
+    }
+    start = n + n * n
+    for var, size in zip(packed, sizes, strict=True):
+        shape = np.shape(var.get_value())
+        replacements[var] = pt.specify_shape(theta[start : start + size].reshape(shape), shape)
+        start += size
+    v, logjac = symbolic_value(mapping, z, mean=mean, chol=chol)
+    replacements.update(_value_replacements(space, v))
+    (logp,) = replace_vars_in_graphs([logp], replacements)
     logp = logp + logjac
-    return z, theta, logp, pytensor.grad(logp, z)
+    return z, theta, logp, pytensor.grad(logp, z), packed
 
 
-def plan_parameters(mapping: Reparameterization) -> np.ndarray:
-    """``θ = (μ, vec L)`` of :func:`density_in_z`, C-contiguous.
+def parameters(mapping: Reparameterization, shared: Sequence[Any] = ()) -> np.ndarray:
+    """``θ`` of :func:`density_in_z`: ``μ``, ``vec L`` and the ``shared`` values, C-contiguous.
 
     Examples
     --------
     >>> from kohpymc.reparameterization import Coordinates
     >>> plan = Reparameterization("affine", np.ones(1), 2 * np.eye(1),
     ...                           Coordinates.identity(1), "")
-    >>> plan_parameters(plan)
+    >>> parameters(plan)
     array([1., 2.])
     """
-    return np.ascontiguousarray(
-        np.concatenate([np.ravel(mapping.mean), np.ravel(mapping.chol)]), dtype=float
-    )
+    values = [np.ravel(mapping.mean), np.ravel(mapping.chol)]
+    values += [np.ravel(var.get_value()) for var in shared]
+    return np.ascontiguousarray(np.concatenate(values), dtype=float)
 
 
 def native_model(
@@ -186,9 +199,10 @@ def native_model(
     """Nutpie's numba-compiled model of ``z`` for ``space`` sampled through ``mapping``.
 
     The log density and gradient in ``z`` (:func:`density_in_z`) become one numba C
-    function that reads ``θ`` from nutpie's user-data pointer; its source and numba's
-    object code are cached on disk under a key of the graph, so a later process with
-    the same model loads it instead of compiling (tens of seconds on the beam).  The
+    function that reads ``θ`` (:func:`parameters`) from nutpie's user-data pointer;
+    its source and numba's object code are cached on disk under a key of the graph, so
+    a later process with the same model loads it instead of compiling (~10 s per beam
+    formulation).  The
     draws nutpie keeps are ``z`` itself (a cached copy function); :func:`expand_draws`
     maps them to the user's parameters after sampling.
 
@@ -216,7 +230,7 @@ def native_model(
     """
     from nutpie import compile_pymc as ncp
 
-    z, theta, logp, grad = density_in_z(space, mapping)
+    z, theta, logp, grad, shared = density_in_z(space, mapping)
     python_ops = python_only_ops([logp, grad])
     if python_ops:
         raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
@@ -234,7 +248,7 @@ def native_model(
         compiled_expand_func=_copy_draw(),
         initial_point_func=initial_point,
         shared_data={},
-        user_data=plan_parameters(mapping),
+        user_data=parameters(mapping, shared),
         n_expanded=n,
         shape_info=([z.name], [slice(0, n)], [(n,)]),
         logp_func=function,

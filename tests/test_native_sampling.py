@@ -9,7 +9,7 @@ import pytensor
 import pytest
 
 import kohpymc.native as native
-from kohpymc.native import density_in_z, plan_parameters, python_only_ops, symbolic_value
+from kohpymc.native import density_in_z, parameters, python_only_ops, symbolic_value
 from kohpymc.reparameterization import (
     BoundRidge,
     Coordinates,
@@ -79,14 +79,14 @@ def test_symbolic_map_and_density_equal_the_numpy_ones(space, kind):
     """v(z), log p(v(z)) + log|dv/dz| and its gradient: PyTensor graph against the numpy map
     and Reparameterization.logp_dlogp, to 1e-10 relative, at three points around the mean."""
     plan = _plan(space, _coordinates(space, kind), kind)
-    z_var, theta, logp, grad = density_in_z(space, plan)
+    z_var, theta, logp, grad, shared = density_in_z(space, plan)
     density = pytensor.function([z_var, theta], [logp, grad])
     value = pytensor.function([z_var], symbolic_value(plan, z_var)[0])
     rng = np.random.default_rng(SEED)
     for z in rng.normal(0.0, 0.7, (3, space.ndim)):
         np.testing.assert_allclose(value(z), plan.to_value(z), rtol=1e-10, atol=1e-12)
         expected_logp, expected_grad = plan.logp_dlogp(space, z)
-        got_logp, got_grad = density(z, plan_parameters(plan))
+        got_logp, got_grad = density(z, parameters(plan, shared))
         assert got_logp == pytest.approx(expected_logp, rel=1e-10, abs=1e-10)
         scale = np.max(np.abs(expected_grad))
         np.testing.assert_allclose(got_grad, expected_grad, rtol=1e-10, atol=1e-10 * scale)
@@ -96,15 +96,43 @@ def test_symbolic_map_outside_the_walls_has_zero_density(space):
     """Log-scale coordinates with walls: a point beyond ln b has log density -inf, as in numpy."""
     plan = _plan(space, _coordinates(space, "walls"), "walls")
     z = plan.from_value(plan.to_value(np.zeros(space.ndim)))
-    z_var, theta, logp, grad = density_in_z(space, plan)
+    z_var, theta, logp, grad, shared = density_in_z(space, plan)
     density = pytensor.function([z_var, theta], [logp, grad])
     w = plan.mean + plan.chol @ z
     w[1] = np.log(space.upper[1]) + 0.1  # phi beyond its upper bound
     outside = np.linalg.solve(plan.chol, w - plan.mean)
     assert plan.logp_dlogp(space, outside)[0] == -np.inf
-    got_logp, got_grad = density(outside, plan_parameters(plan))
+    got_logp, got_grad = density(outside, parameters(plan, shared))
     assert got_logp == -np.inf
     assert np.all(np.isfinite(got_grad))
+
+
+def test_shared_data_enter_as_parameters_not_constants():
+    """Observed data in a shared variable (swapped per replicate by the SBC check): its values
+    are read from θ, so the density follows set_value and the compiled graph does not change."""
+    rng = np.random.default_rng(SEED)
+    with pm.Model() as model:
+        y = pytensor.shared(rng.normal(1.0, 0.5, 8), name="y_obs")
+        mu = pm.Normal("mu", 0.0, 5.0)
+        sigma = pm.HalfNormal("sigma", 1.0)
+        pm.Normal("y", mu, sigma, observed=y)
+    space = value_space(model)
+    plan = _plan_for(space)
+    z_var, theta, logp, grad, shared = density_in_z(space, plan)
+    assert [var.name for var in shared] == ["y_obs"]
+    density = pytensor.function([z_var, theta], [logp, grad])
+    z = np.array([0.4, -0.2])
+    for values in (rng.normal(1.0, 0.5, 8), rng.normal(-2.0, 0.1, 8)):
+        y.set_value(values)
+        expected_logp, expected_grad = plan.logp_dlogp(space, z)
+        got_logp, got_grad = density(z, parameters(plan, shared))
+        assert got_logp == pytest.approx(expected_logp, rel=1e-10)
+        np.testing.assert_allclose(got_grad, expected_grad, rtol=1e-10)
+
+
+def _plan_for(space):
+    chol = np.array([[0.3, 0.0], [0.05, 0.2]])
+    return Reparameterization("affine", np.array([1.0, -0.5]), chol, Coordinates.identity(2), "")
 
 
 def test_correlated_gaussian_sampled_natively_matches_its_moments():

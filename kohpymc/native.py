@@ -9,9 +9,10 @@ object mode, e.g. a numpy physics function) this module instead builds the whole
 density symbolically — the affine map ``u = μ + L z``, the bound ridge, the variance
 shares and the elementwise coordinates (the same formulas as the numpy map, written
 once over :class:`~kohpymc.reparameterization.ArrayMath`), then the model's
-``logp`` at ``v(z)`` plus ``log|dv/dw|`` — and hands it, with its PyTensor gradient
-and the expand map (the user's parameters and deterministics), to nutpie's numba
-backend: no Python runs per evaluation and chains run on threads without the GIL.
+``logp`` at ``v(z)`` plus ``log|dv/dw|`` — and hands it, with its PyTensor gradient,
+to nutpie's Rust sampler as a numba C function: no Python runs per evaluation and
+chains run on threads without the GIL.  Nutpie keeps ``z``; :func:`expand_draws` maps
+the kept draws to the user's parameters and deterministics afterwards.
 
 :func:`python_only_ops` says why a model cannot take this path; :func:`native_model`
 raises when it cannot compile (the caller then uses the Python callback and records
@@ -55,7 +56,7 @@ PYTENSOR = ArrayMath(
     lambda out, index, value: pt.inc_subtensor(out[index], value),
 )  # fmt: skip
 
-#: prefix of the helper variables of the flat model (never a user's name)
+#: prefix of the helper variables ``z`` and ``θ`` (never a user's name)
 _PREFIX = "__kohpymc_native_"
 
 
@@ -260,17 +261,20 @@ _LOGP_SOURCE = """
 def logp_c(dim, x_, out_, logp_, user_data_):
     if dim != N_DIM:
         return -1
-    x = carray(x_, (N_DIM,))
-    out = carray(out_, (N_DIM,))
-    logp = carray(logp_, ())
-    theta = carray(user_data_, (N_THETA,), float64)
-    value, grad = jit_fn(x, theta)
-    logp[()] = value
-    out[...] = grad
-    if not np.all(np.isfinite(out)):
-        return 3
-    if not np.isfinite(value):
-        return 4
+    try:
+        x = carray(x_, (N_DIM,))
+        out = carray(out_, (N_DIM,))
+        logp = carray(logp_, ())
+        theta = carray(user_data_, (N_THETA,), float64)
+        value, grad = jit_fn(x, theta)
+        logp[()] = value
+        out[...] = grad
+        if not np.all(np.isfinite(out)):
+            return 3
+        if not np.isfinite(value):
+            return 4
+    except Exception:
+        return 1
     return 0
 """
 
@@ -278,13 +282,14 @@ def logp_c(dim, x_, out_, logp_, user_data_):
 def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
     """Nutpie's log-density C function around PyTensor's numba function ``jit_fn``.
 
-    Its return codes are nutpie's (3: non-finite gradient, 4: non-finite density).
+    Its return codes are those of nutpie's own wrapper (1: the graph raised, 3:
+    non-finite gradient, 4: non-finite density).
     Cached on disk, keyed by PyTensor's key of the graph, when that has one.
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
 
     graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
-    key = None if graph_key is None else f"kohpymc-native-logp-v1-{graph_key}-{n_dim}-{n_theta}"
+    key = None if graph_key is None else f"kohpymc-native-logp-v2-{graph_key}-{n_dim}-{n_theta}"
     env = {
         "N_DIM": n_dim,
         "N_THETA": n_theta,

@@ -49,6 +49,8 @@ from kohpymc.prior_bounds import hits_at_mode, interval_elements
 from kohpymc.value_space import ValueSpace
 
 __all__ = [
+    "NUMPY",
+    "ArrayMath",
     "BoundRidge",
     "Coordinates",
     "Mode",

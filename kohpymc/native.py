@@ -158,13 +158,15 @@ def density_in_z(
     n = space.ndim
     logp = space.model.logp()
     shared = [var for var in graph_inputs([logp]) if isinstance(var, SharedVariable)]
-    packed = [var for var in shared if var.dtype == "float64"]
+    packed = [var for var in shared if getattr(var.type, "dtype", None) == "float64"]
     sizes = [int(np.size(var.get_value())) for var in packed]
     z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
     theta = pt.TensorType("float64", shape=(n + n * n + sum(sizes),))(f"{_PREFIX}theta")
     mean, chol = theta[:n], theta[n : n + n * n].reshape((n, n))
     replacements: dict[Any, Any] = {
-        var: pt.constant(var.get_value(), dtype=var.dtype) for var in shared if var not in packed
+        var: pt.constant(var.get_value(), dtype=getattr(var.type, "dtype", None))
+        for var in shared
+        if var not in packed
     }
     start = n + n * n
     for var, size in zip(packed, sizes, strict=True):

@@ -49,6 +49,8 @@ from kohpymc.prior_bounds import hits_at_mode, interval_elements
 from kohpymc.value_space import ValueSpace
 
 __all__ = [
+    "NUMPY",
+    "ArrayMath",
     "BoundRidge",
     "Coordinates",
     "Mode",
@@ -65,6 +67,76 @@ _GAUSSIAN_DROP = 0.5 * 1.5**2
 #: Laplace maps then fit so badly (scores 20–35 on ``y = k c x`` in prior boxes) that NUTS
 #: fails; a flat ridge sampled along its length scores about 0.5 (a logistic in ``t``)
 _BOX_RIDGE_SCORE = 1.0
+
+
+def _np_put(out: np.ndarray, index: Any, value: Any) -> np.ndarray:
+    out[index] = value
+    return out
+
+
+def _np_add(out: np.ndarray, index: Any, value: Any) -> np.ndarray:
+    out[index] += value
+    return out
+
+
+@dataclass(frozen=True)
+class ArrayMath:
+    """The array operations the coordinate maps use, for numpy or PyTensor.
+
+    The maps ``z → v`` are written once over this namespace: :data:`NUMPY` evaluates
+    them (the Python log density), ``kohpymc.native.PYTENSOR`` builds them as a graph
+    (the native one).  ``copy`` returns an array the ``put``/``add`` updates may modify
+    (in place for numpy, a new variable for PyTensor); ``where`` is elementwise.
+
+    Examples
+    --------
+    >>> NUMPY.put(NUMPY.copy(np.zeros(2)), 1, 3.0)
+    array([0., 3.])
+    """
+
+    exp: Any
+    expm1: Any
+    log: Any
+    expit: Any
+    logaddexp: Any
+    dot: Any
+    where: Any
+    all: Any
+    sum: Any
+    copy: Any
+    put: Any
+    add: Any
+
+
+#: :class:`ArrayMath` of numpy (and scipy's ``expit``)
+NUMPY = ArrayMath(
+    np.exp, np.expm1, np.log, expit, np.logaddexp, np.dot, np.where, np.all, np.sum,
+    lambda x: np.array(x, dtype=float), _np_put, _np_add,
+)  # fmt: skip
+
+
+def _log_logit(w: Any, a: np.ndarray, b: np.ndarray, xp: ArrayMath = NUMPY):
+    """``v = logit((x − a)/(b − a))`` of ``x = a (b/a)^expit(w)``, and ``g = dv/dw``.
+
+    Also returns ``(s, x, x − a, b − x, ln(b/a), ds/dw)`` for the derivatives.
+    """
+    la, lb = np.log(a), np.log(b)
+    c = lb - la
+    s = xp.expit(w)
+    x = xp.exp(la + c * s)
+    above = a * xp.expm1(c * s)  # x - a, without cancellation
+    below = -b * xp.expm1(-c * (1.0 - s))  # b - x
+    ds = s * (1.0 - s)
+    g = (b - a) / (above * below) * x * c * ds
+    return xp.log(above) - xp.log(below), g, (s, x, above, below, c, ds)
+
+
+def _log_walls(w: Any, a: np.ndarray, b: np.ndarray, xp: ArrayMath = NUMPY):
+    """``v = ln(x − a) − ln(b − x)`` of ``x = e^w``, ``g = dv/dw``, and ``(x, x − a, b − x)``."""
+    x = xp.exp(w)
+    above, below = x - a, b - x
+    g = x * (b - a) / (above * below)
+    return xp.log(above) - xp.log(below), g, (x, above, below)
 
 
 @dataclass(frozen=True)
@@ -124,28 +196,50 @@ class Coordinates:
         a, b = self.lower[m], self.upper[m]
         if self.walls:
             return self._log_with_walls(w, v, dv, dlogjac, a, b)
-        la, lb = np.log(a), np.log(b)
-        c = lb - la
-        s = expit(w[m])
-        x = np.exp(la + c * s)
-        above = a * np.expm1(c * s)  # x - a, without cancellation
-        below = -b * np.expm1(-c * (1.0 - s))  # b - x
-        v[m] = np.log(above) - np.log(below)
-        ds = s * (1.0 - s)
-        g = (b - a) / (above * below) * x * c * ds
+        v[m], g, (s, x, above, below, c, ds) = _log_logit(w[m], a, b)
         dv[m] = g
         dlogjac[m] = (2 * x - a - b) / (above * below) * x * c * ds + c * ds + 1.0 - 2.0 * s
         return v, dv, dlogjac, float(np.sum(np.log(g)))
+
+    def value_and_log_jacobian(self, w: Any, xp: ArrayMath = NUMPY) -> tuple[Any, Any]:
+        """``v(w)`` and ``Σ log|dv/dw|`` of the elementwise map, over ``xp``.
+
+        The values of :meth:`to_value` without the derivatives, written for numpy or
+        PyTensor (``xp``).  Outside a wall (``walls=True``) the log-Jacobian is ``−inf``
+        and the walled elements are evaluated at the walls' midpoint, so that ``v`` and
+        a gradient built on it stay finite.
+
+        Examples
+        --------
+        >>> coords = Coordinates(np.array([True]), np.array([1.0]), np.array([4.0]))
+        >>> v, logjac = coords.value_and_log_jacobian(np.array([0.0]))
+        >>> bool(np.isclose(v[0], coords.to_value(np.array([0.0]))[0][0]))
+        True
+        """
+        m = self.log_scale
+        if not m.any():
+            return w, 0.0
+        index = np.flatnonzero(m)
+        a, b = self.lower[m], self.upper[m]
+        w_m = w[index]
+        if self.walls:
+            x = xp.exp(w_m)
+            inside = (x > a) & (x < b)
+            w_m = xp.where(inside, w_m, 0.5 * (np.log(a) + np.log(b)))
+            v_m, g, _ = _log_walls(w_m, a, b, xp)
+            logjac = xp.where(xp.all(inside), xp.sum(xp.log(g)), -np.inf)
+        else:
+            v_m, g, _ = _log_logit(w_m, a, b, xp)
+            logjac = xp.sum(xp.log(g))
+        return xp.put(xp.copy(w), index, v_m), logjac
 
     def _log_with_walls(self, w, v, dv, dlogjac, a, b):
         """``w = ln x``: ``v = ln(x − a) − ln(b − x)``; NaN (zero density) outside."""
         m = self.log_scale
         with np.errstate(all="ignore"):
-            x = np.exp(w[m])
-            above, below = x - a, b - x
+            v_m, g, (x, above, below) = _log_walls(w[m], a, b)
             inside = (above > 0) & (below > 0)
-            v[m] = np.where(inside, np.log(above) - np.log(below), np.nan)
-            g = x * (b - a) / (above * below)
+            v[m] = np.where(inside, v_m, np.nan)
             dv[m] = np.where(inside, g, np.nan)
             dlogjac[m] = np.where(inside, 1.0 - x / above + x / below, np.nan)
             logjac = float(np.sum(np.log(g))) if inside.all() else -np.inf
@@ -193,13 +287,14 @@ class VarianceShare:
     pairs: tuple[tuple[int, int, float], ...]
     names: tuple[tuple[str, str], ...] = ()
 
-    def forward(self, w: np.ndarray) -> np.ndarray:
-        """``(t, u)`` entries of ``w`` replaced by ``(ln σ_a, c ln σ_b)``."""
-        out = np.array(w, dtype=float)
+    def forward(self, w: Any, xp: ArrayMath = NUMPY) -> Any:
+        """``(t, u)`` entries of ``w`` replaced by ``(ln σ_a, c ln σ_b)`` (over ``xp``)."""
+        out = xp.copy(w)
         for i, j, c in self.pairs:
             t, u = w[i], w[j]
-            out[i] = t - 0.5 * np.logaddexp(0.0, 2.0 * u)
-            out[j] = c * (out[i] + u)
+            log_a = t - 0.5 * xp.logaddexp(0.0, 2.0 * u)
+            out = xp.put(out, i, log_a)
+            out = xp.put(out, j, c * (log_a + u))
         return out
 
     def inverse(self, v: np.ndarray) -> np.ndarray:
@@ -295,19 +390,28 @@ class BoundRidge:
         a, b = self.bounds
         v, dv, _, _ = coords.elementwise().to_value(w)
         s = expit(v[self.bounded])
-        return a + (b - a) * s, (b - a) * s * (1.0 - s) * dv[self.bounded]
+        return self._own_units(v), (b - a) * s * (1.0 - s) * dv[self.bounded]
+
+    def _own_units(self, v: Any, xp: ArrayMath = NUMPY) -> Any:
+        """``x_B = a + (b − a)·expit(v_B)`` of a value-space vector ``v``."""
+        a, b = self.bounds
+        return a + (b - a) * xp.expit(v[self.bounded])
+
+    def _bent(self, x: Any, u: Any) -> Any:
+        """``x_B − x_B(μ_B) − x_B'(μ_B)(u_B − μ_B)`` from ``x_B`` at ``u``."""
+        mu, x0 = self.centre
+        return x - x0 - self.slope * (u[self.bounded] - mu)
 
     def _bend(self, coords: Coordinates, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``x_B − x_B(μ_B) − x_B'(μ_B)(u_B − μ_B)`` at ``u`` and its derivative."""
+        """The bend (:meth:`_bent`) at ``u`` and its derivative."""
         x, dx = self.bounded_value(coords, u)
-        mu, x0 = self.centre
-        return x - x0 - self.slope * (u[self.bounded] - mu), dx - self.slope
+        return self._bent(x, u), dx - self.slope
 
-    def forward(self, coords: Coordinates, u: np.ndarray) -> np.ndarray:
-        """``w`` from the sampling coordinates ``u``."""
-        w = np.array(u, dtype=float)
-        w[self.others] += self.beta @ self._bend(coords, u)[0]
-        return w
+    def forward(self, coords: Coordinates, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        """``w`` from the sampling coordinates ``u`` (over ``xp``)."""
+        v, _ = coords.elementwise().value_and_log_jacobian(u, xp)
+        bend = self._bent(self._own_units(v, xp), u)
+        return xp.add(xp.copy(u), self.others, xp.dot(self.beta, bend))
 
     def inverse(self, coords: Coordinates, w: np.ndarray) -> np.ndarray:
         """``u`` from ``w`` (``u_B = w_B``, so the bend is known from ``w``)."""
@@ -405,11 +509,27 @@ class Reparameterization:
         factor = jac @ self.chol
         return np.sqrt(np.einsum("ij,ij->i", factor, factor))
 
-    def _unshared(self, u: np.ndarray) -> np.ndarray:
+    def _unshared(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
         """The input of the elementwise map: ``u`` after the bound ridge and the shares."""
         coords = self.coordinates
-        w = np.asarray(u, float) if coords.ridge is None else coords.ridge.forward(coords, u)
-        return w if coords.shares is None else coords.shares.forward(w)
+        w = u if coords.ridge is None else coords.ridge.forward(coords, u, xp)
+        return w if coords.shares is None else coords.shares.forward(w, xp)
+
+    def value_from_affine(self, u: Any, xp: ArrayMath = NUMPY) -> tuple[Any, Any]:
+        """``v`` and the log-Jacobian of ``u = μ + L z → v`` (constant terms left out).
+
+        Over ``xp``: numpy, or ``kohpymc.native.PYTENSOR`` for a graph.  The bound ridge
+        and the variance shares have constant Jacobians, so the log-Jacobian is the
+        elementwise map's (:meth:`Coordinates.value_and_log_jacobian`).
+
+        Examples
+        --------
+        >>> reparam = Reparameterization("none", np.zeros(1), np.eye(1),
+        ...                              Coordinates.identity(1), "")
+        >>> reparam.value_from_affine(np.array([0.5]))
+        (array([0.5]), 0.0)
+        """
+        return self.coordinates.value_and_log_jacobian(self._unshared(u, xp), xp)
 
     def _pull_back(self, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """Gradient with respect to ``u`` from that with respect to :meth:`_unshared` of ``u``."""

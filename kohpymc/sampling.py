@@ -6,8 +6,12 @@ r"""Running the sampler: nutpie by default, PyMC's NUTS or SMC on request, check
   once by PyTensor (:mod:`kohpymc.value_space`), the posterior mode and a whitening map
   are found (:mod:`kohpymc.reparameterization`), and nutpie's Rust NUTS samples the
   whitened coordinates, with chains started around the mode.  Draws are mapped back,
-  so the InferenceData holds the user's parameters.  When nutpie cannot be used (not
-  installed, or the set-up fails) PyMC's NUTS runs instead and the reason is recorded.
+  so the InferenceData holds the user's parameters.  When the model's log density is
+  pure PyTensor, the density in the sampling coordinates is compiled by numba as a whole
+  (:mod:`kohpymc.native`: no Python per evaluation, chains on ``cores`` threads);
+  otherwise (e.g. a numpy physics function) nutpie calls it through Python on one
+  thread.  When nutpie cannot be used (not installed, or the set-up fails) PyMC's NUTS
+  runs instead and the reason is recorded.
 * ``sampler="pymc"``: :func:`pymc.sample` (PyMC's NUTS), started at the mode when one
   was found.
 * ``sampler="smc"``: :func:`pymc.sample_smc`, which needs no gradient.
@@ -72,8 +76,13 @@ class SamplingReport:
         ``"NUMBA"`` or ``"C"``: the PyTensor backend of the log density, and why when
         NUMBA was wanted but failed (``"C (NUMBA failed: ...)"``).
     chain_threads : int
-        Threads nutpie's chains ran on: one, since every chain calls the log density
-        through one lock.
+        Threads nutpie's chains ran on: ``cores`` on the native path, one through the
+        Python callback (every chain calls the log density through one lock).
+    nutpie_backend : str
+        How nutpie evaluated the log density: ``"numba-native"`` (the whole density in
+        the sampling coordinates compiled by numba, :mod:`kohpymc.native`) or
+        ``"python"`` (a Python callback), with the reason the native path was not
+        taken (``"python (...)"``); empty when nutpie did not run.
     prior_bounds : list of dict
         Parameters whose draws lie against a prior bound
         (:func:`kohpymc.prior_bounds.hits_in_draws`), each also warned about (NUTS
@@ -89,6 +98,7 @@ class SamplingReport:
     compile_mode: str = "C"
     chain_threads: int = 1
     prior_bounds: list[dict[str, Any]] = field(default_factory=list)
+    nutpie_backend: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for provenance."""
@@ -101,6 +111,7 @@ class SamplingReport:
             "failed_evaluations": self.failed_evaluations,
             "compile_mode": self.compile_mode,
             "chain_threads": self.chain_threads,
+            "nutpie_backend": self.nutpie_backend,
             "prior_bounds": list(self.prior_bounds),
         }
 
@@ -160,7 +171,8 @@ def sample_posterior(
         Default ``"nutpie"``.
     draws, tune, chains, cores, target_accept, random_seed, progressbar :
         The usual sampler settings (``cores`` defaults to ``min(chains, 2)``; it sets
-        PyMC's and SMC's processes: nutpie's chains share one thread, see
+        PyMC's and SMC's processes and nutpie's threads on the native path; through
+        the Python callback nutpie's chains share one thread, see
         :attr:`SamplingReport.chain_threads`).
     reparameterize : bool
         Find the mode and whiten the sampling coordinates (NUTS samplers only).
@@ -240,8 +252,9 @@ def sample_posterior(
         if name == "nutpie":
             try:
                 idata = _run_nutpie(
-                    space, reparam, settings, target_accept, progressbar, kwargs, failures
-                )
+                    space, reparam, settings, target_accept, progressbar, kwargs, failures,
+                    report,
+                )  # fmt: skip
             # nutpie's Rust panics arrive as pyo3's PanicException, a BaseException
             except BaseException as err:  # noqa: BLE001 - any failure falls back
                 if isinstance(err, KeyboardInterrupt | SystemExit | GeneratorExit):
@@ -387,26 +400,32 @@ def _run_nutpie(
     progressbar: bool,
     kwargs: dict[str, Any],
     failures: list[str],
+    report: SamplingReport,
 ) -> az.InferenceData:
-    """Nutpie's NUTS on the sampling coordinates ``z`` through a Python log density.
+    """Nutpie's NUTS on the sampling coordinates ``z``, natively when the model allows.
 
-    A log-density evaluation that raises (e.g. a physics function overflowing far in
-    the tails) counts as zero density there; its message is appended to ``failures``.
+    The native path (:func:`kohpymc.native.native_model`) runs the chains on
+    ``settings["cores"]`` threads; when it cannot compile, a Python log density runs
+    on one thread and ``report.nutpie_backend`` says why.  There, a log-density
+    evaluation that raises (e.g. a physics function overflowing far in the tails)
+    counts as zero density; its message is appended to ``failures``.
     """
     import nutpie
 
+    from kohpymc.native import expand_draws
+
     mapping = reparam if reparam is not None else _identity_map(space)
-    compiled = _nutpie_model(space, mapping, failures)
+    coords, dims = _coords_and_dims(space)
+    compiled, cores = _native_or_python(space, mapping, settings, failures, report)
+    report.chain_threads = cores
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
-        return nutpie.sample(
+        idata = nutpie.sample(
             compiled,
             draws=settings["draws"],
             tune=settings["tune"],
             chains=settings["chains"],
-            # one thread: the chains' calls go through one lock (below) and the GIL, so a
-            # second thread only adds contention (beam M4: 28.7 s on two threads, 18.1 s on one)
-            cores=1,
+            cores=cores,
             seed=settings["seed"],
             progress_bar=progressbar,
             target_accept=target_accept,
@@ -414,6 +433,59 @@ def _run_nutpie(
             save_warmup=False,
             **kwargs,
         )
+    if report.nutpie_backend != "numba-native":
+        return idata
+    begin = time.perf_counter()
+    idata = expand_draws(idata, space, mapping, coords, dims)
+    report.timings["expand"] = time.perf_counter() - begin
+    return idata
+
+
+def _native_or_python(
+    space: ValueSpace,
+    mapping: Reparameterization,
+    settings: Mapping[str, Any],
+    failures: list[str],
+    report: SamplingReport,
+) -> tuple[Any, int]:
+    """Nutpie's model of ``z`` and its number of threads: native, else the Python callback.
+
+    The Python callback runs on one thread: the chains' calls go through one lock and
+    the GIL, so a second thread only adds contention (beam M4: 28.7 s on two threads,
+    18.1 s on one).
+    """
+    from kohpymc.native import native_model
+
+    initial_point = _initial_point_fn(space.ndim, mapping.kind)
+    begin = time.perf_counter()
+    try:
+        compiled = native_model(space, mapping, initial_point)
+    except Exception as err:  # noqa: BLE001 - any failure falls back, with the reason
+        first_line = (str(err).splitlines() or [""])[0][:300]
+        report.nutpie_backend = f"python (native: {type(err).__name__}: {first_line})"
+        return _nutpie_model(space, mapping, failures, initial_point), 1
+    finally:
+        report.timings["native_compile"] = time.perf_counter() - begin
+    report.nutpie_backend = "numba-native"
+    return compiled, max(1, int(settings["cores"]))
+
+
+def _initial_point_fn(ndim: int, kind: str) -> Callable[[int], np.ndarray]:
+    """Each chain's start ``z``: uniform within half a posterior sd of the mode.
+
+    Whitened coordinates have unit scale; in PyMC's own (``kind="none"``) ±1.
+
+    Examples
+    --------
+    >>> _initial_point_fn(2, "affine")(1).shape
+    (2,)
+    """
+    jitter = 1.0 if kind == "none" else 0.5
+
+    def initial_point(seed):
+        return np.random.default_rng(seed).uniform(-jitter, jitter, size=ndim)
+
+    return initial_point
 
 
 def _identity_map(space: ValueSpace) -> Reparameterization:
@@ -422,8 +494,13 @@ def _identity_map(space: ValueSpace) -> Reparameterization:
     return Reparameterization("none", space.initial, np.eye(space.ndim), identity, "")
 
 
-def _nutpie_model(space: ValueSpace, mapping: Reparameterization, failures: list[str]):
-    """Nutpie's model of ``z``: log density, expansion to the user's parameters, starts."""
+def _nutpie_model(
+    space: ValueSpace,
+    mapping: Reparameterization,
+    failures: list[str],
+    initial_point: Callable[[int], np.ndarray],
+):
+    """Nutpie's model of ``z`` through Python: log density, expansion, starts."""
     from nutpie.compiled_pyfunc import from_pyfunc
 
     # Chains run in threads that take the GIL for every call anyway; one lock keeps the
@@ -450,12 +527,6 @@ def _nutpie_model(space: ValueSpace, mapping: Reparameterization, failures: list
             return {k: np.asarray(v, order="C") for k, v in values.items()}
 
         return expand
-
-    # whitened coordinates have unit scale: start within half a posterior sd of the mode
-    jitter = 1.0 if mapping.kind == "none" else 0.5
-
-    def initial_point(seed):
-        return np.random.default_rng(seed).uniform(-jitter, jitter, size=space.ndim)
 
     coords, dims = _coords_and_dims(space)
     return from_pyfunc(

@@ -214,7 +214,10 @@ class PytensorBackend(Backend):
         """Evaluate the graph; always raises on NaN/inf (``check_finite`` is not used)."""
         X = np.column_stack([arrays[k] for k in model.inputs])
         theta = np.array([params[k] for k in model.parameters])
-        out = self.tensor(model, pt.as_tensor_variable(theta), pt.as_tensor_variable(X)).eval()
+        out = self.tensor(model, pt.as_tensor_variable(theta), pt.as_tensor_variable(X))
+        # one evaluation of a constant graph: PyTensor's Python implementations compile in
+        # milliseconds, where the first C-backend function of a process took 1-4 s
+        out = out.eval(mode="FAST_COMPILE")
         out = np.asarray(out, dtype=float).reshape(-1)
         if out.shape != (n,):
             raise PhysicsModelError(
@@ -235,7 +238,8 @@ class PytensorBackend(Backend):
         theta = pt.vector("theta", dtype="float64")
         out = self.tensor(model, theta, pt.as_tensor_variable(X))
         jac = pt.jacobian(out, theta)
-        return np.asarray(jac.eval({theta: np.array(list(params.values()))}), dtype=float)
+        values = {theta: np.array(list(params.values()))}
+        return np.asarray(jac.eval(values, mode="FAST_COMPILE"), dtype=float)
 
     def tensor(
         self, model: PhysicsModel, theta: pt.TensorVariable, X: pt.TensorVariable

@@ -1,0 +1,372 @@
+r"""Nutpie's native path: the log density in the sampling coordinates as one numba function.
+
+:mod:`kohpymc.sampling` samples the whitened coordinates ``z`` of
+:class:`~kohpymc.reparameterization.Reparameterization`.  Through a Python callback
+every evaluation crosses Rust → Python → numpy (the map ``z → v``) → a compiled
+PyTensor function, ~70 µs on the beam of which the model's graph is ~5 µs.  When the
+model's log density is pure PyTensor (no Python ``perform`` that numba would run in
+object mode, e.g. a numpy physics function) this module instead builds the whole
+density symbolically — the affine map ``u = μ + L z``, the bound ridge, the variance
+shares and the elementwise coordinates (the same formulas as the numpy map, written
+once over :class:`~kohpymc.reparameterization.ArrayMath`), then the model's
+``logp`` at ``v(z)`` plus ``log|dv/dw|`` — and hands it, with its PyTensor gradient,
+to nutpie's Rust sampler as a numba C function: no Python runs per evaluation and
+chains run on threads without the GIL.  Nutpie keeps ``z``; :func:`expand_draws` maps
+the kept draws to the user's parameters and deterministics afterwards.
+
+:func:`python_only_ops` says why a model cannot take this path; :func:`native_model`
+raises when it cannot compile (the caller then uses the Python callback and records
+why).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numba
+import numpy as np
+import pymc as pm
+import pytensor
+import pytensor.tensor as pt
+from pymc.pytensorf import replace_vars_in_graphs
+from pytensor.compile.sharedvalue import SharedVariable
+from pytensor.graph.traversal import applys_between, graph_inputs
+
+from kohpymc.reparameterization import ArrayMath, Reparameterization
+from kohpymc.value_space import ValueSpace
+
+__all__ = [
+    "PYTENSOR",
+    "density_in_z",
+    "expand_draws",
+    "native_model",
+    "parameters",
+    "python_only_ops",
+    "symbolic_value",
+]
+
+#: :class:`~kohpymc.reparameterization.ArrayMath` building PyTensor graphs
+PYTENSOR = ArrayMath(
+    pt.exp, pt.expm1, pt.log, pt.sigmoid, pt.logaddexp, pt.dot, pt.switch, pt.all, pt.sum,
+    lambda x: x,
+    lambda out, index, value: pt.set_subtensor(out[index], value),
+    lambda out, index, value: pt.inc_subtensor(out[index], value),
+)  # fmt: skip
+
+#: prefix of the helper variables ``z`` and ``θ`` (never a user's name)
+_PREFIX = "__kohpymc_native_"
+
+
+def python_only_ops(graphs: Sequence[Any]) -> list[str]:
+    """Ops in ``graphs`` that numba would run in object mode (Python ``perform``).
+
+    An Op counts when numba has no implementation registered for its type (PyTensor
+    then calls ``perform`` from Python, e.g. the numpy physics Ops); the inner graphs
+    of :class:`~pytensor.compile.builders.OpFromGraph` and the core Ops of
+    :class:`~pytensor.tensor.blockwise.Blockwise` are looked into.  (Implementations
+    that fall back to object mode for some inputs only show when compiling:
+    :func:`native_model` turns that warning into an error.)
+
+    Examples
+    --------
+    >>> import pytensor.tensor as pt
+    >>> x = pt.vector("x")
+    >>> python_only_ops([pt.exp(x).sum()])
+    []
+    """
+    found: list[str] = []
+    for node in applys_between([], list(graphs)):
+        found.extend(_python_only(node.op))
+    return sorted(set(found))
+
+
+def _python_only(op: Any) -> list[str]:
+    """:func:`python_only_ops` of one Op."""
+    from pytensor.compile.builders import OpFromGraph
+    from pytensor.link.numba.dispatch import basic
+    from pytensor.tensor.blockwise import Blockwise
+
+    if isinstance(op, OpFromGraph):
+        return python_only_ops(op.inner_outputs)
+    if isinstance(op, Blockwise):
+        return _python_only(op.core_op)
+    # PyTensor registers numba implementations in any of three dispatchers
+    registries = (
+        basic.numba_funcify,
+        basic.numba_funcify_default_op_cache_key,
+        basic.numba_funcify_and_cache_key,
+    )
+    if all(r.dispatch(type(op)) is r.dispatch(object) for r in registries):
+        return [type(op).__name__]
+    return []
+
+
+def symbolic_value(
+    mapping: Reparameterization, z: Any, *, mean: Any = None, chol: Any = None
+) -> tuple[Any, Any]:
+    """``v(z)`` and ``log|dv/dz|`` (constant terms left out) as PyTensor graphs.
+
+    The same map as :meth:`Reparameterization.to_value` and the Jacobian term of
+    :meth:`Reparameterization.logp_dlogp`; ``mean`` and ``chol`` (default: the plan's,
+    as constants) may be shared variables holding them.
+
+    Examples
+    --------
+    >>> from kohpymc.reparameterization import Coordinates
+    >>> plan = Reparameterization("affine", np.ones(2), 2 * np.eye(2),
+    ...                           Coordinates.identity(2), "")
+    >>> v, _ = symbolic_value(plan, pt.as_tensor(np.array([0.5, -1.0])))
+    >>> v.eval()
+    array([ 2., -1.])
+    """
+    mean = mapping.mean if mean is None else mean
+    chol = mapping.chol if chol is None else chol
+    return mapping.value_from_affine(mean + pt.dot(chol, z), PYTENSOR)
+
+
+def _value_replacements(space: ValueSpace, v: Any) -> dict[Any, Any]:
+    """The model's value variables as slices of the flat vector ``v``."""
+    out, start = {}, 0
+    for var, shape in zip(space.model.value_vars, space.shapes, strict=True):
+        size = int(np.prod(shape, dtype=int))
+        out[var] = v[start : start + size].reshape(shape).astype(var.dtype)
+        start += size
+    return out
+
+
+def density_in_z(
+    space: ValueSpace, mapping: Reparameterization
+) -> tuple[Any, Any, Any, Any, list[Any]]:
+    """``z``, the parameters ``θ`` and the log density in ``z`` with its gradient.
+
+    ``log p(v(z)) + log|dv/dz|`` (constant terms left out, as
+    :meth:`Reparameterization.logp_dlogp`).  ``θ`` is a second input holding the plan's
+    ``μ`` and ``L`` and the values of the model's float shared variables (e.g. data
+    swapped in by :func:`kohpymc.sbc.check_calibration`), returned last, in
+    :func:`parameters`' order; other shared variables are frozen as constants.  So the
+    graph — and numba's disk cache of it — does not change with the plan or the data.
+
+    Examples
+    --------
+    >>> z, theta, logp, grad, shared = density_in_z(space, plan)  # doctest: +SKIP
+    >>> f = pytensor.function([z, theta], [logp, grad])  # doctest: +SKIP
+    >>> f(np.zeros(space.ndim), parameters(plan, shared))  # doctest: +SKIP
+    """
+    n = space.ndim
+    logp = space.model.logp()
+    shared = [var for var in graph_inputs([logp]) if isinstance(var, SharedVariable)]
+    packed = [var for var in shared if getattr(var.type, "dtype", None) == "float64"]
+    sizes = [int(np.size(var.get_value())) for var in packed]
+    z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
+    theta = pt.TensorType("float64", shape=(n + n * n + sum(sizes),))(f"{_PREFIX}theta")
+    mean, chol = theta[:n], theta[n : n + n * n].reshape((n, n))
+    replacements: dict[Any, Any] = {
+        var: pt.constant(var.get_value(), dtype=getattr(var.type, "dtype", None))
+        for var in shared
+        if var not in packed
+    }
+    start = n + n * n
+    for var, size in zip(packed, sizes, strict=True):
+        shape = np.shape(var.get_value())
+        replacements[var] = pt.specify_shape(theta[start : start + size].reshape(shape), shape)
+        start += size
+    v, logjac = symbolic_value(mapping, z, mean=mean, chol=chol)
+    replacements.update(_value_replacements(space, v))
+    (logp,) = replace_vars_in_graphs([logp], replacements)
+    logp = logp + logjac
+    return z, theta, logp, pytensor.grad(logp, z), packed
+
+
+def parameters(mapping: Reparameterization, shared: Sequence[Any] = ()) -> np.ndarray:
+    """``θ`` of :func:`density_in_z`: ``μ``, ``vec L`` and the ``shared`` values, C-contiguous.
+
+    Examples
+    --------
+    >>> from kohpymc.reparameterization import Coordinates
+    >>> plan = Reparameterization("affine", np.ones(1), 2 * np.eye(1),
+    ...                           Coordinates.identity(1), "")
+    >>> parameters(plan)
+    array([1., 2.])
+    """
+    values = [np.ravel(mapping.mean), np.ravel(mapping.chol)]
+    values += [np.ravel(var.get_value()) for var in shared]
+    return np.ascontiguousarray(np.concatenate(values), dtype=float)
+
+
+def native_model(
+    space: ValueSpace, mapping: Reparameterization, initial_point: Callable[[int], np.ndarray]
+):
+    """Nutpie's numba-compiled model of ``z`` for ``space`` sampled through ``mapping``.
+
+    The log density and gradient in ``z`` (:func:`density_in_z`) become one numba C
+    function that reads ``θ`` (:func:`parameters`) from nutpie's user-data pointer;
+    its source and numba's object code are cached on disk under a key of the graph, so
+    a later process with the same model loads it instead of compiling (~10 s per beam
+    formulation).  The
+    draws nutpie keeps are ``z`` itself (a cached copy function); :func:`expand_draws`
+    maps them to the user's parameters after sampling.
+
+    Parameters
+    ----------
+    space : ValueSpace
+    mapping : Reparameterization
+    initial_point : callable
+        ``seed -> z``, each chain's start.
+
+    Returns
+    -------
+    nutpie.compile_pymc.CompiledPyMCModel
+
+    Raises
+    ------
+    ValueError
+        When the graph holds an Op numba can only run from Python.
+    Exception
+        Whatever the compilation raises.
+
+    Examples
+    --------
+    >>> compiled = native_model(space, plan, lambda seed: np.zeros(space.ndim))  # doctest: +SKIP
+    """
+    from nutpie import compile_pymc as ncp
+
+    z, theta, logp, grad, shared = density_in_z(space, mapping)
+    python_ops = python_only_ops([logp, grad])
+    if python_ops:
+        raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="Numba will use object mode")
+        function = pm.pytensorf.compile([z, theta], [logp, grad], mode="NUMBA")
+        logp_c = _logp_cfunc(function.vm.jit_fn, space.ndim, int(theta.type.shape[0]))
+    n = space.ndim
+    return ncp.CompiledPyMCModel(
+        _n_dim=n,
+        dims={},
+        _coords={},
+        _shapes={z.name: (n,)},
+        compiled_logp_func=logp_c,
+        compiled_expand_func=_copy_draw(),
+        initial_point_func=initial_point,
+        shared_data={},
+        user_data=parameters(mapping, shared),
+        n_expanded=n,
+        shape_info=([z.name], [slice(0, n)], [(n,)]),
+        logp_func=function,
+        expand_func=None,
+    )
+
+
+_LOGP_SOURCE = """
+def logp_c(dim, x_, out_, logp_, user_data_):
+    if dim != N_DIM:
+        return -1
+    try:
+        x = carray(x_, (N_DIM,))
+        out = carray(out_, (N_DIM,))
+        logp = carray(logp_, ())
+        theta = carray(user_data_, (N_THETA,), float64)
+        value, grad = jit_fn(x, theta)
+        logp[()] = value
+        out[...] = grad
+        if not np.all(np.isfinite(out)):
+            return 3
+        if not np.isfinite(value):
+            return 4
+    except Exception:
+        return 1
+    return 0
+"""
+
+
+def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
+    """Nutpie's log-density C function around PyTensor's numba function ``jit_fn``.
+
+    Its return codes are those of nutpie's own wrapper (1: the graph raised, 3:
+    non-finite gradient, 4: non-finite density).
+    Cached on disk, keyed by PyTensor's key of the graph, when that has one.
+    """
+    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
+
+    graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
+    key = None if graph_key is None else f"kohpymc-native-logp-v2-{graph_key}-{n_dim}-{n_theta}"
+    env = {
+        "N_DIM": n_dim,
+        "N_THETA": n_theta,
+        "carray": numba.carray,
+        "float64": numba.float64,
+        "np": np,
+        "jit_fn": jit_fn,
+        # numba rebuilds a cached function's environment from an importable module
+        "__name__": __name__,
+    }
+    raw = compile_numba_function_src(_LOGP_SOURCE, "logp_c", env, cache_key=key)
+    signature = numba.types.int64(
+        numba.types.uint64,
+        numba.types.CPointer(numba.types.double),
+        numba.types.CPointer(numba.types.double),
+        numba.types.CPointer(numba.types.double),
+        numba.types.voidptr,
+    )
+    return numba.cfunc(signature, cache=key is not None)(raw)
+
+
+@functools.cache
+def _copy_draw():
+    """Nutpie's expand C function that keeps ``z`` as it is (compiled once, cached)."""
+    signature = numba.types.int64(
+        numba.types.uint64,
+        numba.types.uint64,
+        numba.types.CPointer(numba.types.double),
+        numba.types.CPointer(numba.types.double),
+        numba.types.voidptr,
+    )
+    return numba.cfunc(signature, cache=True)(_copy)
+
+
+def _copy(dim, expanded, x_, out_, user_data_):  # pragma: no cover - runs compiled
+    if dim != expanded:
+        return -1
+    x = numba.carray(x_, (dim,))
+    out = numba.carray(out_, (dim,))
+    out[:] = x
+    return 0
+
+
+def expand_draws(
+    idata: Any,
+    space: ValueSpace,
+    mapping: Reparameterization,
+    coords: dict[str, Any],
+    dims: dict[str, tuple[str, ...]],
+) -> Any:
+    """``idata`` with its posterior of ``z`` replaced by the user's parameters (in place).
+
+    Each draw goes through ``mapping.to_value`` and ``space.expand``, as the Python
+    callback path's expand function does; dims and coords as there.
+    """
+    import xarray as xr
+
+    name = f"{_PREFIX}z"
+    z = idata.posterior[name].values
+    chains, draws = z.shape[:2]
+    values = [space.expand(mapping.to_value(point)) for point in z.reshape(chains * draws, -1)]
+    variables = {}
+    for key, shape in zip(space.expanded_names, space.expanded_shapes, strict=True):
+        array = np.stack([value[key] for value in values]).reshape(chains, draws, *shape)
+        var_dims = dims.get(key) or tuple(f"{key}_dim_{i}" for i in range(len(shape)))
+        variables[key] = (("chain", "draw", *var_dims), array)
+    used = {d for _, (var_dims, _) in variables.items() for d in var_dims}
+    posterior = xr.Dataset(
+        variables,
+        coords={
+            "chain": idata.posterior["chain"].values,
+            "draw": idata.posterior["draw"].values,
+            **{k: np.asarray(v) for k, v in coords.items() if k in used},
+        },
+        attrs=dict(idata.posterior.attrs),
+    )
+    idata.posterior = posterior
+    return idata

@@ -224,6 +224,9 @@ def native_model(
     ------
     ValueError
         When the graph holds an Op numba can only run from Python.
+    NotImplementedError
+        When ``mapping`` is a plan with its own map (e.g. a
+        :class:`~kohpymc.reparameterization.BoxRidgePlan`), which has no symbolic form.
     Exception
         Whatever the compilation raises.
 
@@ -233,6 +236,8 @@ def native_model(
     """
     from nutpie import compile_pymc as ncp
 
+    if type(mapping) is not Reparameterization:
+        raise NotImplementedError(f"no symbolic form of a {type(mapping).__name__}'s map")
     z, theta, logp, grad, shared = density_in_z(space, mapping)
     python_ops = python_only_ops([logp, grad])
     if python_ops:

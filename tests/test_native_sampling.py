@@ -232,3 +232,28 @@ def test_python_only_ops_sees_the_physics_op():
     assert "_PhysicsOp" in python_only_ops([model.logp()])
     symbolic = build_model(beam.physics_model(backend="pytensor"), data, beam.formulations()["M0"])
     assert python_only_ops([symbolic.logp()]) == []
+
+
+def test_a_plan_with_its_own_map_samples_through_python_and_says_why():
+    """y = k·c·x with k, c in uniform boxes gets a box-ridge plan, whose map has no
+    symbolic form: the Python callback samples it (a native run would have used the
+    plan's μ and L as if it were affine), and the informed product is recovered."""
+    import kohpymc as kp
+    from kohpymc.priors import Uniform
+
+    x = np.linspace(0.05, 1.0, 20)
+    rng = np.random.default_rng(SEED)
+    data = kp.CalibrationData({"x": x}, 30.0 * x + rng.normal(0.0, 0.5, x.size), noise_sd=0.5)
+    physics = kp.PhysicsModel(
+        lambda inputs, p: p["k"] * p["c"] * inputs["x"],
+        {"k": Uniform(1e-8, 1e-6), "c": Uniform(1e8, 1e10)},
+        inputs=["x"],
+        backend="pytensor",
+    )
+    cal = kp.calibrate(physics, data, None, draws=300, tune=300, chains=2, random_seed=SEED)
+    sampling = json.loads(cal.idata.attrs["sampling"])
+    assert sampling["reparameterization"]["kind"] == "box-ridge-log"
+    assert sampling["nutpie_backend"].startswith("python (native: NotImplementedError")
+    product = (cal.idata.posterior["k"] * cal.idata.posterior["c"]).values.ravel()
+    slope_sd = 0.5 / np.sqrt(np.sum(x**2))  # least-squares sd of the slope k·c
+    assert abs(product.mean() - 30.0) < 4 * slope_sd

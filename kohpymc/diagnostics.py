@@ -143,7 +143,7 @@ def convergence_problems(
     table = sampler_diagnostics(idata, var_names)
     problems = []
     worst_rhat = table["r_hat"].max()
-    chains = int(idata.posterior.sizes.get("chain", 1))
+    chains = int(idata["posterior"].sizes.get("chain", 1))
     if chains < 2:
         problems.append(f"r_hat needs at least 2 chains ({chains} ran): convergence not checked")
     elif np.isnan(worst_rhat) or worst_rhat > rhat_max:

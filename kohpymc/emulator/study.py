@@ -276,7 +276,8 @@ def _restored_rounds(
     runs = run_design(physics, design, cache=folder / "runs", workers=workers, scheduler=scheduler)
     box = {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}
     return Emulator(
-        runs, physics, box=box, kernel=settings.kernel, seed=settings.seed,
+        runs, physics, box=box, kernel=settings.kernel,  # type: ignore[arg-type]
+        seed=settings.seed,
         log_output=settings.log_output,
     )  # fmt: skip
 

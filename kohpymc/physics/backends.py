@@ -217,18 +217,17 @@ class PytensorBackend(Backend):
         out = self.tensor(model, pt.as_tensor_variable(theta), pt.as_tensor_variable(X))
         # one evaluation of a constant graph: PyTensor's Python implementations compile in
         # milliseconds, where the first C-backend function of a process took 1-4 s
-        out = out.eval(mode="FAST_COMPILE")
-        out = np.asarray(out, dtype=float).reshape(-1)
-        if out.shape != (n,):
+        values = np.asarray(out.eval(mode="FAST_COMPILE"), dtype=float).reshape(-1)
+        if values.shape != (n,):
             raise PhysicsModelError(
-                f"physics function {model.name!r} returned shape {out.shape}, expected ({n},)"
+                f"physics function {model.name!r} returned shape {values.shape}, expected ({n},)"
             )
-        if not np.all(np.isfinite(out)):
+        if not np.all(np.isfinite(values)):
             raise PhysicsModelError(
                 f"physics function {model.name!r} returned non-finite values "
                 f"at parameters {format_params(params)}"
             )
-        return out
+        return values
 
     def jacobian(
         self, model: PhysicsModel, arrays: dict[str, np.ndarray], n: int, params: dict[str, float]

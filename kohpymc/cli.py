@@ -89,6 +89,21 @@ def _checked_build(spec, formulations) -> None:
         raise StudyConfigError(f"{spec.source}: [formulations.{err.label}] {err}") from err
 
 
+def _checked_multi_output_build(spec) -> None:
+    """Every formulation's joint model composes on the calibration data (before sampling)."""
+    from kohpymc.config import StudyConfigError
+    from kohpymc.multi_output.model import compose_multi_output_model
+
+    for label, formulation in spec.formulations.items():
+        try:
+            compose_multi_output_model(spec.physics, spec.calibration, formulation)
+        except Exception as err:  # noqa: BLE001 - any failure to build is the file's
+            raise StudyConfigError(
+                f"{spec.source}: [formulations.{label}] does not build on the calibration "
+                f"data: {type(err).__name__}: {err}"
+            ) from err
+
+
 def _dry_run_summary(spec, what: str, outputs: Sequence[Path], detail: str = "") -> int:
     """The ``--dry-run`` report: what was checked and what a real run would do."""
     print(
@@ -177,6 +192,7 @@ def _multi_output_study(args: argparse.Namespace) -> int:
             )
         out = Path(args.out) if args.out else spec.source.parent / f"{spec.source.stem}_results"
         _checked_options(args, spec, [out])
+        _checked_multi_output_build(spec)
     except StudyConfigError as err:
         return _bad_input(err)
     overrides = _sampler_overrides(args, {})
@@ -185,8 +201,8 @@ def _multi_output_study(args: argparse.Namespace) -> int:
         print(
             f"dry run: {spec.source} is a multi-output study (outputs {outputs}; "
             f"parameters {', '.join(spec.physics.parameter_names)}); formulations "
-            f"{', '.join(spec.formulations)}\nwould write to {out}; nothing sampled, "
-            "nothing written"
+            f"{', '.join(spec.formulations)} (each builds on the calibration data)\n"
+            f"would write to {out}; nothing sampled, nothing written"
         )
         return 0
     print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")

@@ -287,3 +287,20 @@ def test_a_multi_output_study_file_runs_through_the_study_command(tmp_path, caps
     capsys.readouterr()
     assert main(["study", str(bad), "--dry-run"]) == 2
     assert "noise_sd" in capsys.readouterr().err
+
+
+def test_multi_output_formulations_are_built_before_anything_runs(tmp_path, capsys):
+    """As in a single-output study, every formulation composes on the calibration data
+    first: --dry-run says so, and one that cannot is named (it used to fail mid-study)."""
+    from kohpymc import ConstantBias
+    from kohpymc.cli import _checked_multi_output_build
+    from kohpymc.config import StudyConfigError
+    from kohpymc.multi_output import load_multi_output_study
+
+    study = _multi_output_example(tmp_path)
+    assert main(["study", str(study), "--dry-run"]) == 0
+    assert "(each builds on the calibration data)" in capsys.readouterr().out
+    spec = load_multi_output_study(study)
+    spec.formulations["MX"] = {"zz": ConstantBias()}  # names an output the file lacks
+    with pytest.raises(StudyConfigError, match=r"\[formulations\.MX\] does not build.*'zz'"):
+        _checked_multi_output_build(spec)

@@ -21,7 +21,10 @@ trajectories, divergences).  :func:`against_bounds` is the one check, on the bou
   there under a flat posterior over the whole box), and their outermost percentile on that
   side is within :data:`EDGE_FRACTION` of their own 1–99 % range from it (so a posterior
   near a bound in the box's units but clear of it on its own scale — τ ≈ 10⁻³ under
-  ``LogUniform(1e-6, 1)`` — is not reported).
+  ``LogUniform(1e-6, 1)`` — is not reported).  For a positive parameter whose box spans
+  :data:`LOG_SCALE_RATIO` or more, the posterior's own scale is the log: a posterior spread
+  over decades (10⁻⁵–10⁻² under ``LogUniform(1e-6, 1)``) reaches 1e-6 on the box's scale
+  (0.1 % of its range) but stays a decade clear of it on its own.
 
 Each finding is a :class:`BoundHit`, stored in the result's provenance (``prior_bounds``
 in ``idata.attrs["presampling"]`` and ``idata.attrs["sampling"]``) and issued as a
@@ -43,6 +46,7 @@ from kohpymc.warning_filters import warn_user
 __all__ = [
     "DRAW_SHARE",
     "EDGE_FRACTION",
+    "LOG_SCALE_RATIO",
     "MODE_SDS",
     "NEAR_FRACTION",
     "BoundHit",
@@ -64,6 +68,9 @@ NEAR_FRACTION = 0.01
 DRAW_SHARE = 0.1
 #: ... and its outermost percentile is this close to the bound, in units of its 1-99 % range
 EDGE_FRACTION = 0.05
+#: positive parameters whose box spans at least this ratio reach a bound (EDGE_FRACTION) on the
+#: log scale
+LOG_SCALE_RATIO = 10.0
 
 
 class PriorBoundWarning(UserWarning):
@@ -180,10 +187,15 @@ def against_bounds(
         # and the draws reach the bound on the posterior's own scale: its outermost
         # percentile within EDGE_FRACTION of its 1-99 % range from the bound (a posterior
         # near a bound in the box's units but well clear of it on its own scale, as
-        # tau ~ 1e-3 under LogUniform(1e-6, 1), is not truncated by it)
-        q01, q99 = np.quantile(x, [0.01, 0.99], axis=0)
+        # tau ~ 1e-3 under LogUniform(1e-6, 1), is not truncated by it); for a positive
+        # parameter whose box spans decades that scale is the log
+        own, own_lower, own_upper = _log_where_wide(x, lower, upper)
+        q01, q99 = np.quantile(own, [0.01, 0.99], axis=0)
         spread = np.maximum(q99 - q01, np.finfo(float).tiny)
-        reach = [(q01 - lower) / spread < EDGE_FRACTION, (upper - q99) / spread < EDGE_FRACTION]
+        reach = [
+            (q01 - own_lower) / spread < EDGE_FRACTION,
+            (own_upper - q99) / spread < EDGE_FRACTION,
+        ]
         near = [(m >= DRAW_SHARE) & r for (m, _), r in zip(measures, reach, strict=True)]
     hits = []
     for (measure, bound), close, side in zip(measures, near, ("lower", "upper"), strict=True):
@@ -193,6 +205,20 @@ def against_bounds(
             )
             hits.append(replace(hit, measure=float(measure[i])))
     return hits
+
+
+def _log_where_wide(
+    x: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Draws and bounds, on the log scale for positive boxes spanning ``LOG_SCALE_RATIO``+."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wide = (lower > 0) & np.isfinite(upper) & (upper >= LOG_SCALE_RATIO * lower)
+    if not wide.any():
+        return x, lower, upper
+    x, lower, upper = x.copy(), lower.copy(), upper.copy()
+    x[:, wide] = np.log(np.maximum(x[:, wide], lower[wide]))
+    lower[wide], upper[wide] = np.log(lower[wide]), np.log(upper[wide])
+    return x, lower, upper
 
 
 def interval_elements(

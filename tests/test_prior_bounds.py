@@ -102,3 +102,17 @@ def test_draws_clear_of_a_bound_on_their_own_scale_are_not_against_it():
     piled = 1e-6 + rng.exponential(1e-5, size=(4000, 1))  # the same box, truncated at 1e-6
     hits = against_bounds(["tau"], np.array([1e-6]), np.array([1.0]), draws=piled, evidence="draws")
     assert [h.side for h in hits] == ["lower"]
+
+
+def test_a_posterior_over_decades_under_a_wide_log_box_is_judged_on_the_log_scale():
+    """τ spread over 1e-5..1e-2 under LogUniform(1e-6, 1): every draw is within 1 % of the
+    box's width of 1e-6 and its 1st percentile 0.1 % of its range from it, so it was
+    reported against the bound; on its own (log) scale it stays a decade clear.  A
+    posterior piled against 1e-6 is still found."""
+    rng = np.random.default_rng(SEED)
+    lower, upper = np.array([1e-6]), np.array([1.0])
+    spread = np.exp(rng.uniform(np.log(1e-5), np.log(1e-2), 4000))[:, None]
+    assert against_bounds(["tau"], lower, upper, draws=spread, evidence="draws") == []
+    piled = 1e-6 * np.exp(np.abs(rng.normal(0.0, 0.3, 4000)))[:, None]
+    hits = against_bounds(["tau"], lower, upper, draws=piled, evidence="draws")
+    assert [(h.parameter, h.side, h.bound) for h in hits] == [("tau", "lower", 1e-6)]

@@ -168,7 +168,11 @@ def study_physics(
     """
     folder = Path(out_dir) / "emulator"
     folder.mkdir(parents=True, exist_ok=True)
-    key = _rounds_key(settings, physics, calibration, formulations, sampling)
+    key = (
+        _rounds_key(settings, physics, calibration, formulations, sampling)
+        if settings.sequential > 0
+        else ""
+    )
     emulator = _restored_rounds(folder, key, settings, physics, workers, scheduler)
     if emulator is None:
         emulator = _first_emulator(settings, physics, calibration, folder, workers, scheduler)

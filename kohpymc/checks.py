@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -56,8 +56,9 @@ class FormulationBuildError(ValueError):
         self.label = label
 
 
-def _where(data: CalibrationData) -> str:
-    return f" ({data.source})" if data.source else ""
+def _where(data: Any) -> str:
+    source = getattr(data, "source", None)
+    return f" ({source})" if source else ""
 
 
 def check_tolerance(tolerance: Any) -> float:
@@ -149,12 +150,17 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
 
 
 def check_formulations_build(
-    physics: PhysicsModel, data: CalibrationData, formulations: Mapping[str, Any]
+    physics: Any,
+    data: Any,
+    formulations: Mapping[str, Any],
+    compose: Callable[..., Any] | None = None,
 ) -> None:
     """Each formulation's model composes on the calibration data (nothing compiled or sampled).
 
     Raises :class:`FormulationBuildError` naming the first formulation that does not (a
-    grid GP on data that are not a grid, an input the data lack, ...).
+    grid GP on data that are not a grid, an input the data lack, ...).  ``compose``
+    builds one model (default :func:`kohpymc.model.compose_model`; a multi-output study
+    passes :func:`kohpymc.multi_output.compose_multi_output_model`).
 
     Examples
     --------
@@ -164,9 +170,10 @@ def check_formulations_build(
     """
     from kohpymc.model import compose_model
 
+    compose = compose_model if compose is None else compose
     for label, formulation in formulations.items():
         try:
-            compose_model(physics, data, formulation)
+            compose(physics, data, formulation)
         except Exception as err:  # noqa: BLE001 - any failure is this formulation's
             raise FormulationBuildError(
                 label,

@@ -78,30 +78,22 @@ def _checked_options(
         raise StudyConfigError(f"{spec.source}: {err}") from err
 
 
-def _checked_build(spec, formulations) -> None:
+def _checked_build(spec, formulations, compose=None) -> None:
     """Every formulation's model composes on the calibration data (before any sampling)."""
     from kohpymc.checks import FormulationBuildError, check_formulations_build
     from kohpymc.config import StudyConfigError
 
     try:
-        check_formulations_build(spec.physics, spec.calibration, formulations)
+        check_formulations_build(spec.physics, spec.calibration, formulations, compose)
     except FormulationBuildError as err:
         raise StudyConfigError(f"{spec.source}: [formulations.{err.label}] {err}") from err
 
 
 def _checked_multi_output_build(spec) -> None:
     """Every formulation's joint model composes on the calibration data (before sampling)."""
-    from kohpymc.config import StudyConfigError
     from kohpymc.multi_output.model import compose_multi_output_model
 
-    for label, formulation in spec.formulations.items():
-        try:
-            compose_multi_output_model(spec.physics, spec.calibration, formulation)
-        except Exception as err:  # noqa: BLE001 - any failure to build is the file's
-            raise StudyConfigError(
-                f"{spec.source}: [formulations.{label}] does not build on the calibration "
-                f"data: {type(err).__name__}: {err}"
-            ) from err
+    _checked_build(spec, spec.formulations, compose=compose_multi_output_model)
 
 
 def _dry_run_summary(spec, what: str, outputs: Sequence[Path], detail: str = "") -> int:

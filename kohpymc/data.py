@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-__all__ = ["CalibrationData", "pooled_replicate_sd", "read_csv_table"]
+__all__ = ["CalibrationData", "non_numeric_entry", "pooled_replicate_sd", "read_csv_table"]
 
 #: the largest magnitude a data value may have: its square (variances, distances) and sums
 #: of squares over millions of rows stay finite floats
@@ -103,6 +103,34 @@ def pooled_replicate_sd(values: Sequence[float], groups: Sequence[Any]) -> float
         raise ValueError("replicates: no setting has two or more measurements; cannot estimate")
     ss = float(((frame["v"] - grouped.transform("mean")) ** 2).sum())
     return float(np.sqrt(ss / dof))
+
+
+def non_numeric_entry(values: Any) -> str:
+    """Describe the first entry of a column that is not a number, for an error message.
+
+    Parameters
+    ----------
+    values : array-like
+        A column as read from a file or passed in (strings, numbers, missing values).
+
+    Returns
+    -------
+    str
+        ``"'abc' in data row 3 (file line 4 under a header)"``; rows count from 1 after
+        the header. Missing values (empty cells, NaN) are not reported.
+
+    Examples
+    --------
+    >>> non_numeric_entry(["1.5", "2", "abc"])
+    "'abc' in data row 3 (file line 4 under a header)"
+    """
+    column = pd.Series(np.asarray(values, dtype=object).reshape(-1))
+    numbers = pd.to_numeric(column, errors="coerce")
+    bad = np.flatnonzero((column.notna() & numbers.isna()).to_numpy())
+    if not bad.size:
+        return "(not found row by row)"
+    row = int(bad[0])
+    return f"{column.iloc[row]!r} in data row {row + 1} (file line {row + 2} under a header)"
 
 
 class CalibrationData:
@@ -206,7 +234,9 @@ class CalibrationData:
         try:
             arr = np.asarray(values, dtype=float)
         except (TypeError, ValueError) as err:
-            raise TypeError(f"column {name!r}{where} is not numeric: {err}") from err
+            raise TypeError(
+                f"column {name!r}{where} has a non-numeric value {non_numeric_entry(values)}"
+            ) from err
         if arr.ndim != 1:
             arr = arr.reshape(-1) if arr.ndim == 2 and 1 in arr.shape else arr
         if arr.ndim != 1:

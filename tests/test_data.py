@@ -103,3 +103,13 @@ def test_subset_re_pools_the_replicate_noise_estimate():
     assert low.noise_sd == pytest.approx(np.sqrt((0.02 + 0.02) / 2))  # by hand: ss / dof
     assert high.noise_sd == pytest.approx(np.sqrt(2.0))
     assert data.noise_sd == pytest.approx(np.sqrt((0.02 + 0.02 + 2.0) / 3))
+
+
+def test_non_numeric_cell_named_with_its_file_line(tmp_path):
+    path = tmp_path / "calib.csv"
+    path.write_text("x,P,u\n1.0,2.5,0.3\n2.0,2.5,abc\n3.0,2.5,0.9\n")
+    with pytest.raises(TypeError, match=r"'u' in .*calib.csv.*'abc' in data row 2 \(file line 3"):
+        CalibrationData.from_csv(path, inputs=["x", "P"], output="u")
+    path.write_text("x,P,u\n1.0,2.5,0.3\n2.0,2.5,0.5\n3.0,2.5x,0.9\n")
+    with pytest.raises(TypeError, match=r"'P' in .*calib.csv.*'2.5x' in data row 3 \(file line 4"):
+        CalibrationData.from_csv(path, inputs=["x", "P"], output="u")

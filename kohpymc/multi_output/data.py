@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from kohpymc.data import CalibrationData, read_csv_table
+from kohpymc.data import CalibrationData, non_numeric_entry, read_csv_table
 
 __all__ = ["MultiOutputData", "per_output"]
 
@@ -133,10 +133,9 @@ class MultiOutputData:
             column = pd.to_numeric(frame[name], errors="coerce")
             bad = frame[name].notna() & column.isna()
             if bad.any():
-                row = int(np.flatnonzero(bad.to_numpy())[0])
                 raise TypeError(
                     f"output column {name!r}{where} has a non-numeric value "
-                    f"{frame[name].iloc[row]!r} (row {row})"
+                    f"{non_numeric_entry(frame[name])}"
                 )
             keep = column.notna().to_numpy()
             if not keep.any():

@@ -9,9 +9,10 @@ trajectories, divergences).  :func:`against_bounds` is the one check, on the bou
 
 * **at the mode**, before sampling (:func:`hits_at_mode`, from
   :class:`kohpymc.presampling.PreSampling`): the mode lies within :data:`MODE_SDS`
-  Laplace standard deviations of a finite bound, and ± :data:`MODE_SDS` sds fit in the
-  box (a posterior as wide as the box reaches both bounds: the prior's spread, not a
-  pile-up).  The mode is PyMC's, in the
+  Laplace standard deviations of a finite bound (measured on the log scale for a
+  positive parameter whose box spans :data:`LOG_SCALE_RATIO` or more), and
+  ± :data:`MODE_SDS` sds fit in the box (a posterior as wide as the box reaches both
+  bounds: the prior's spread, not a pile-up).  The mode is PyMC's, in the
   interval-transformed value space, whose Jacobian keeps it off the bound: a posterior
   truncated by the bound has its mode there 1 (exponentially rising density) to 1.4
   (half-normal) Laplace sds from it, one well inside has it many sds away;
@@ -169,13 +170,17 @@ def against_bounds(
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     if evidence == "mode":
         value = np.asarray(mode, float)
+        # on the posterior's own scale: the log for a positive box spanning decades, where
+        # a mode at 6e-5 under LogUniform(1e-9, 1e-3) with a linearised sd of 1e-4 is 0.5
+        # "sds" from 1e-9 but eleven e-folds clear of it (near a bound both scales agree)
+        own, own_sd, own_lower, own_upper = _mode_on_own_scale(value, sd, lower, upper)
         measures = [
-            (np.asarray(value - lower) / sd, lower),
-            (np.asarray(upper - value) / sd, upper),
+            (np.asarray(own - own_lower) / own_sd, lower),
+            (np.asarray(own_upper - own) / own_sd, upper),
         ]
         # a posterior as wide as the box (±MODE_SDS sds do not fit in it) is the prior's
         # spread, not a pile-up at one side: it reaches both bounds
-        narrow = 2.0 * MODE_SDS * np.asarray(sd, float) < upper - lower
+        narrow = 2.0 * MODE_SDS * own_sd < own_upper - own_lower
         near = [(m < MODE_SDS) & narrow for m, _ in measures]
     else:
         x = np.asarray(draws, float).reshape(-1, len(names))
@@ -207,12 +212,32 @@ def against_bounds(
     return hits
 
 
+def _wide_positive(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Positive boxes spanning ``LOG_SCALE_RATIO`` or more: judged on the log scale."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (lower > 0) & np.isfinite(upper) & (upper >= LOG_SCALE_RATIO * lower)
+
+
+def _mode_on_own_scale(
+    value: np.ndarray, sd: Any, lower: np.ndarray, upper: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Mode, sd and bounds, on the log scale (sd by the delta method) where the box is wide."""
+    sd = np.broadcast_to(np.asarray(sd, float), value.shape)
+    wide = _wide_positive(lower, upper)
+    if not wide.any():
+        return value, sd, lower, upper
+    value, sd, lower, upper = value.copy(), sd.copy(), lower.copy(), upper.copy()
+    sd[wide] = sd[wide] / value[wide]
+    value[wide] = np.log(value[wide])
+    lower[wide], upper[wide] = np.log(lower[wide]), np.log(upper[wide])
+    return value, sd, lower, upper
+
+
 def _log_where_wide(
     x: np.ndarray, lower: np.ndarray, upper: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Draws and bounds, on the log scale for positive boxes spanning ``LOG_SCALE_RATIO``+."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        wide = (lower > 0) & np.isfinite(upper) & (upper >= LOG_SCALE_RATIO * lower)
+    wide = _wide_positive(lower, upper)
     if not wide.any():
         return x, lower, upper
     x, lower, upper = x.copy(), lower.copy(), upper.copy()

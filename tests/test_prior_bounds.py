@@ -116,3 +116,18 @@ def test_a_posterior_over_decades_under_a_wide_log_box_is_judged_on_the_log_scal
     piled = 1e-6 * np.exp(np.abs(rng.normal(0.0, 0.3, 4000)))[:, None]
     hits = against_bounds(["tau"], lower, upper, draws=piled, evidence="draws")
     assert [(h.parameter, h.side, h.bound) for h in hits] == [("tau", "lower", 1e-6)]
+
+
+def test_a_mode_decades_above_a_wide_log_box_bound_is_judged_on_the_log_scale():
+    """Arrhenius prefactor A ~ LogUniform(1e-9, 1e-3), mode 5.8e-5 with a linearised Laplace
+    sd of 1.1e-4 (an unseen viscosity study): 0.5 sd from 1e-9 in A's units, so it was
+    reported against the bound, but 5.8 sds (ln(5.8e-5 / 1e-9) / (1.1e-4 / 5.8e-5)) clear
+    of it on the log scale.  Modes near either bound of the same box are still found, with
+    the measure the linear one agrees with there (ln(x/a) ≈ (x − a)/a)."""
+    lower, upper = np.array([1e-9]), np.array([1e-3])
+    far = against_bounds(["A"], lower, upper, mode=np.array([5.8e-5]), sd=np.array([1.1e-4]))
+    assert far == []
+    low = against_bounds(["A"], lower, upper, mode=np.array([1.01e-9]), sd=np.array([1e-11]))
+    assert [h.side for h in low] == ["lower"] and low[0].measure == pytest.approx(1.0, rel=0.01)
+    high = against_bounds(["A"], lower, upper, mode=np.array([0.99e-3]), sd=np.array([1e-5]))
+    assert [h.side for h in high] == ["upper"] and high[0].measure == pytest.approx(1.0, rel=0.02)

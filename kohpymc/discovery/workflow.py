@@ -220,6 +220,10 @@ def discover(
 
     say("calibrating the model as given ...")
     fit = _locate_residuals(physics, calibration, run)
+    if joint is not None:
+        lenders = joint.lenders()
+        say(f"θ from the {joint.describe()['source']}; information borrowed from "
+            f"{_and(lenders) if lenders else 'no other output'}")  # fmt: skip
     if generated:
         pool += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
     say(f"comparing {len(pool)} candidate terms ...")

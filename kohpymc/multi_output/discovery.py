@@ -15,8 +15,13 @@ default):
   information and ``AᵀA Δθ̂ = Σ_{j≠k} J_jᵀ r_j / s_j²`` their estimate
   (:func:`borrowed_rows`), so a parameter the output cannot pin down on its own is
   not free to drift and a drifting parameter is not mistaken for a missing effect;
-* the augmented model (or the GP fallback) is calibrated jointly again, the other
-  outputs as given, and viewed from the output for the validation scores.
+* the augmented model (or the GP fallback) is calibrated jointly again with the other
+  outputs, and viewed from the output for the validation scores;
+* an output's missing effect pulls the joint θ, so the search runs again (up to
+  ``passes`` rounds) for each output whose *other* outputs were found wanting: their
+  found terms, with a constant, are then fitted freely alongside θ, both in what is
+  borrowed from them (only the information on θ left after those terms) and in the
+  joint re-calibration.  An output that needed a GP discrepancy lends nothing.
 
 ``theta="per_output"`` runs :func:`kohpymc.discover` on each output on its own (θ
 calibrated from that output alone), as before.
@@ -45,6 +50,7 @@ def discover_outputs(
     tolerance: float | Mapping[str, float],
     outputs: Sequence[str] | None = None,
     theta: Literal["joint", "per_output"] = "joint",
+    passes: int = 3,
     **options: Any,
 ) -> dict[str, DiscoveryReport]:
     """Run :func:`kohpymc.discover` on every output (or the named ones).
@@ -61,6 +67,11 @@ def discover_outputs(
         ``"joint"`` (default): θ from the joint calibration of all outputs, borrowed by
         each output's search (module docstring); the report's ``theta`` says so.
         ``"per_output"``: θ calibrated from each output alone.
+    passes : int
+        With ``theta="joint"``, at most this many rounds: after the first, an output
+        is searched again when the effects found on the *other* outputs changed, those
+        effects (with a constant) then fitted freely alongside θ in what is borrowed
+        from them and in the joint re-calibration; stops when nothing changes.
     **options :
         Passed to :func:`kohpymc.discover` for every output (``units`` may be a mapping
         output -> units table).
@@ -78,6 +89,8 @@ def discover_outputs(
     """
     if theta not in ("joint", "per_output"):
         raise ValueError(f"theta must be 'joint' or 'per_output', got {theta!r}")
+    if not (isinstance(passes, int) and passes >= 1):
+        raise ValueError(f"passes must be an integer >= 1, got {passes!r}")
     chosen = list(calibration.outputs if outputs is None else outputs)
     tolerances = per_output(tolerance, calibration.outputs, "tolerance")
     units = options.pop("units", None)
@@ -100,22 +113,42 @@ def discover_outputs(
             tolerance=tolerances[name], units=per_units[name], joint=joint, **options,
         )  # fmt: skip
 
+    used = {name: {} for name in chosen}
     reports = {name: run(name, {}) for name in chosen}
-    if shared is not None:
+    for _ in range(passes - 1 if shared is not None else 0):
         found = {k: _found(r) for k, r in reports.items() if r.significant}
-        for name in chosen:  # second pass: other outputs' found effects fitted freely
-            if any(k != name for k in found):
-                reports[name] = run(name, found)
+        again = [name for name in chosen if _others(found, name) != _others(used[name], name)]
+        for name in again:  # other outputs' found effects fitted freely alongside θ
+            used[name] = found
+            reports[name] = run(name, found)
+        if not again:
+            break
     return reports
 
 
-def _found(report: DiscoveryReport) -> tuple[str, list | None]:
-    """A found effect: its text and its term functions (None: a GP fallback)."""
+def _others(found: Mapping[str, _Effect], name: str) -> dict[str, str]:
+    """The effects found on outputs other than ``name``, by text."""
+    return {k: e.text for k, e in found.items() if k != name}
+
+
+@dataclass(frozen=True)
+class _Effect:
+    """A missing effect found on an output in the first pass."""
+
+    text: str
+    #: the added term functions (the constant comes with them); None for a GP fallback
+    terms: list | None
+    #: the augmented physics model (None for a GP fallback)
+    model: Any
+
+
+def _found(report: DiscoveryReport) -> _Effect:
+    """The effect a report found: its text, its terms and the augmented model."""
     if report.fallback is not None:
-        return str(report.effect), None
+        return _Effect(str(report.effect), None, None)
     sel = report.selection
     best = next((subset for subset, _ in sel.subsets if subset), ())
-    return str(report.effect), [sel.terms[n] for n in best if n != "1"]
+    return _Effect(str(report.effect), [sel.terms[n] for n in best if n != "1"], report.physics)
 
 
 def borrowed_rows(
@@ -193,41 +226,59 @@ def _span(N: np.ndarray) -> np.ndarray:
     return U[:, sv > 1e-10 * sv.max()] if sv.size and sv.max() > 0 else U[:, :0]
 
 
-class _Widened:
-    """An output's physics function taking (and ignoring) the augmented parameters."""
+class _Embedded:
+    """An output's physics function within a joint model with more (or renamed) parameters.
 
-    def __init__(self, base: Any, names: Sequence[str]) -> None:
-        self.base, self.names = base, list(names)
+    ``rename`` maps the model's own parameter names to their names in the joint model;
+    every other joint parameter is ignored (its Jacobian column is zero).
+    """
+
+    def __init__(self, base: Any, rename: Mapping[str, str], names: Sequence[str]) -> None:
+        self.base, self.rename, self.names = base, dict(rename), list(names)
         self.__wrapped__ = base.function
         self.__name__ = base.name
 
+    def _own(self, params: Any) -> dict:
+        return {k: params[v] for k, v in self.rename.items()}
+
     def __call__(self, inputs: Any, params: Any) -> Any:
-        return self.base.function(inputs, {k: params[k] for k in self.base.parameters})
+        return self.base.function(inputs, self._own(params))
 
     def jacobian(self, inputs: Any, params: Any) -> np.ndarray:
-        own = self.base.jacobian_matrix(inputs, {k: params[k] for k in self.base.parameters})
-        return np.hstack([own, np.zeros((own.shape[0], len(self.names)))])
+        own = self.base.jacobian_matrix(inputs, self._own(params))
+        full = np.zeros((own.shape[0], len(self.names)))
+        for j, k in enumerate(self.base.parameters):
+            full[:, self.names.index(self.rename[k])] = own[:, j]
+        return full
 
 
-def _with_output(physics: MultiOutputPhysics, output: str, model: Any) -> MultiOutputPhysics:
-    """``physics`` with one output's model replaced (its extra parameters shared by all)."""
+def _joint_physics(physics: MultiOutputPhysics, models: Mapping[str, Any]) -> MultiOutputPhysics:
+    """A joint model of the outputs ``models`` names (output -> its physics model).
+
+    θ is shared; the coefficients an output's model adds keep their names for the
+    output searched (the first) and get the output's prefix (``strain::c_1``) for the
+    others, so every output's added effect has its own coefficients.
+    """
     from kohpymc.physics import PhysicsModel
 
-    if model is physics.output(output):
-        return physics
-    extra = [k for k in model.parameters if k not in physics.parameters]
+    first = next(iter(models))
+    priors = dict(physics.parameters)
+    renames = {}
+    for name, model in models.items():
+        own = {k: k if k in physics.parameters or name == first else f"{name}::{k}"
+               for k in model.parameters}  # fmt: skip
+        priors.update({v: model.parameters[k] for k, v in own.items()})
+        renames[name] = own
     new = object.__new__(MultiOutputPhysics)
     new.__dict__.update(physics.__dict__)
-    new.parameters = dict(model.parameters)
-    new.models = {}
-    for name in physics.outputs:
-        if name == output:
+    new.outputs, new.parameters, new.models = tuple(models), priors, {}
+    for name, model in models.items():
+        if list(model.parameters) == list(priors):
             new.models[name] = model
             continue
-        base = physics.output(name)
-        widened = _Widened(base, extra)
+        embedded = _Embedded(model, renames[name], list(priors))
         new.models[name] = PhysicsModel(
-            widened, model.parameters, base.inputs, jacobian=widened.jacobian, name=base.name
+            embedded, priors, model.inputs, jacobian=embedded.jacobian, name=model.name
         )
     return new
 
@@ -259,8 +310,9 @@ class _SharedFit:
         from kohpymc.multi_output.calibration import calibrate_outputs
         from kohpymc.validation import derived_seed
 
+        data = self.calibration.select(list(physics.outputs))
         return calibrate_outputs(
-            physics, self.calibration, discrepancy, random_seed=derived_seed(self.seed, label, 0),
+            physics, data, discrepancy, random_seed=derived_seed(self.seed, label, 0),
             warn=False, check_identifiability=False, **self.settings,
         )  # fmt: skip
 
@@ -273,8 +325,7 @@ class _JointTheta:
     output: str
     validation: Any
     tolerance: float
-    #: other outputs' missing effects found in a first pass: output -> (effect, the
-    #: term functions, or None when it fell back to a GP and lends nothing)
+    #: other outputs' missing effects found in a first pass (output -> _Effect)
     found: dict = field(default_factory=dict)
 
     def fit_and_score(self, model: Any, label: str, formulation: Any):
@@ -284,7 +335,11 @@ class _JointTheta:
         if model is self.shared.physics.output(self.output) and formulation is None:
             joint = self.shared.as_given()
         else:
-            physics = _with_output(self.shared.physics, self.output, model)
+            models = {self.output: model}
+            for name in self.lenders():
+                effect = self.found.get(name)
+                models[name] = self.shared.physics.output(name) if effect is None else effect.model
+            physics = _joint_physics(self.shared.physics, models)
             discrepancy = None if formulation is None else {self.output: formulation}
             joint = self.shared.calibrate(physics, discrepancy, f"{self.output}: {label}")
         view = _output_view(joint, self.output, model, formulation)
@@ -303,9 +358,8 @@ class _JointTheta:
     def lenders(self) -> list[str]:
         """Other outputs whose information on θ is borrowed (not those that needed a GP)."""
         outputs = self.shared.calibration.outputs
-        return [
-            k for k in outputs if k != self.output and self.found.get(k, ("", []))[1] is not None
-        ]
+        gp = [k for k, effect in self.found.items() if effect.terms is None]
+        return [k for k in outputs if k != self.output and k not in gp]
 
     def borrowed_rows(self, theta: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """:func:`borrowed_rows` of the other outputs at ``theta`` (the joint mean).
@@ -320,9 +374,7 @@ class _JointTheta:
             jac.append(model.jacobian_matrix(part.inputs, theta))
             res.append(part.y - model.evaluate(part.inputs, theta))
             scales.append(self._noise(name))
-            terms = self.found[name][1] if name in self.found else None
-            columns = None if terms is None else [np.ones(part.n)] + [t(part.inputs) for t in terms]
-            nuisance.append(None if columns is None else np.column_stack(columns))
+            nuisance.append(_effect_columns(self.found.get(name), part))
         if not jac:
             p = len(physics.parameters)
             return np.zeros((0, p)), np.zeros(0)
@@ -338,12 +390,22 @@ class _JointTheta:
             "source": f"joint calibration of the outputs {', '.join(outputs)} (no discrepancy)",
             "outputs": outputs,
             "borrowed_from": self.lenders(),
-            "profiled": {k: effect for k, (effect, _) in self.found.items() if k != self.output},
+            "profiled": {k: e.text for k, e in self.found.items() if k != self.output},
+            "refit": "jointly with "
+            + (", ".join(self.lenders()) or "no other output")
+            + " (their found effects, if any, fitted alongside)",
             "values": {k: float(post[k].mean()) for k in names},
             "sd": {k: float(post[k].std()) for k in names},
             "noise_sd": {k: self._noise(k) for k in outputs},
             "sampler_problems": list(joint.problems),
         }
+
+
+def _effect_columns(effect: _Effect | None, data: Any) -> np.ndarray | None:
+    """The constant and the terms of a found effect on an output's rows (None: nothing)."""
+    if effect is None:
+        return None
+    return np.column_stack([np.ones(data.n), *(t(data.inputs) for t in effect.terms or [])])
 
 
 def _output_view(joint: Any, output: str, model: Any, formulation: Any):

@@ -113,7 +113,7 @@ def discover_outputs(
             tolerance=tolerances[name], units=per_units[name], joint=joint, **options,
         )  # fmt: skip
 
-    used = {name: {} for name in chosen}
+    used: dict[str, dict[str, _Effect]] = {name: {} for name in chosen}
     reports = {name: run(name, {}) for name in chosen}
     for _ in range(passes - 1 if shared is not None else 0):
         found = {k: _found(r) for k, r in reports.items() if r.significant}

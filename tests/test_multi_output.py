@@ -744,33 +744,34 @@ def _rc_physics():
     return MultiOutputPhysics(_rc_outputs, priors, inputs=["t", "Vs"], outputs=["V", "I"])
 
 
-def _rc_data(times, seed):
+def _rc_data(times, seed, known=True):
     rng = np.random.default_rng(seed)
     t, vs = np.meshgrid(times, [5.0, 10.0])
     inputs = {"t": t.ravel(), "Vs": vs.ravel()}
     truth = _rc_outputs(inputs, RC_TRUE)
     return MultiOutputData({
-        k: CalibrationData(inputs, truth[k] + rng.normal(0, sd, t.size), noise_sd=sd)
+        k: CalibrationData(inputs, truth[k] + rng.normal(0, sd, t.size),
+                           noise_sd=sd if known else None)
         for k, sd in RC_NOISE.items()
     })  # fmt: skip
 
 
-def _rc_discovery(theta, seed=0):
+def _rc_discovery(theta, seed=0, known=True):
     from kohpymc.multi_output import discover_outputs
 
-    cal, val = (
-        _rc_data(np.linspace(0.3, 12, 12), seed),
-        _rc_data(np.linspace(0.8, 14, 6), seed + 100),
-    )
+    cal = _rc_data(np.linspace(0.3, 12, 12), seed, known)
+    val = _rc_data(np.linspace(0.8, 14, 6), seed + 100, known)
     return discover_outputs(_rc_physics(), cal, val, tolerance=RC_TOLERANCE, theta=theta,
                             draws=400, tune=400, chains=2, random_seed=seed)  # fmt: skip
 
 
-def test_discovery_borrows_theta_so_a_confounded_output_raises_no_drift():
+@pytest.mark.parametrize("known", [True, False], ids=["noise-known", "noise-calibrated"])
+def test_discovery_borrows_theta_so_a_confounded_output_raises_no_drift(known):
     """Data from the model itself.  With θ from the joint calibration (the default) neither
     output raises anything, and the report says which θ was used: the joint posterior
-    mean, within 3 of its sds of the truth (R and C pinned by I)."""
-    reports = _rc_discovery("joint")
+    mean, within 3 of its sds of the truth (R and C pinned by I).  With the noise sds
+    calibrated, the borrowed rows use their joint posterior means."""
+    reports = _rc_discovery("joint", known=known)
     for name, report in reports.items():
         out = report.to_dict()
         assert out["significant"] is False and out["effect"] is None, name

@@ -339,6 +339,10 @@ def _discover(args: argparse.Namespace) -> int:
 def _multi_output_discover(args: argparse.Namespace) -> int:
     """``kohpymc discover`` on a file with several outputs: discovery on each output.
 
+    θ is borrowed from the joint calibration of all outputs
+    (:func:`kohpymc.multi_output.discover_outputs`); each output's report says so
+    (``"theta"``).
+
     The JSON report maps output -> that output's report; ``--out`` gets one folder per
     output (``<out>/<output>/report.json``, ``before.nc``, ``after.nc``, ``residuals.png``).
     """
@@ -363,7 +367,8 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(
             f"dry run: {spec.source} is a multi-output study; discovery would run on each of "
-            f"the outputs {', '.join(spec.physics.outputs)}; nothing sampled, nothing written"
+            f"the outputs {', '.join(spec.physics.outputs)}, with θ borrowed from their joint "
+            "calibration; nothing sampled, nothing written"
         )
         return 0
     try:

@@ -9,6 +9,7 @@ attributes (``idata.attrs["sampler_problems"]``) and issues a
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import arviz as az
 import numpy as np
@@ -23,6 +24,7 @@ __all__ = [
     "convergence_problems",
     "RHAT_MAX",
     "ESS_MIN",
+    "rhat_limit",
 ]
 
 #: r̂ above this is reported as non-convergence (Vehtari et al. 2021).
@@ -118,6 +120,61 @@ def sampler_diagnostics(
     out.attrs["divergences"] = n_divergences(idata)
     out.attrs["max_tree_depth"] = n_max_tree_depth(idata)
     return out
+
+
+def rhat_limit(draws: Any, *, parameters: int = 1, level: float = 0.01) -> float:
+    """The largest r̂ that well-mixed chains like these reach by chance, at least 1.01.
+
+    Split-r̂ of ``M = 2 × chains`` half-chains of ``n`` draws, each worth ``n_e`` independent
+    draws, is ``r̂² ≈ 1 − 1/n + X / n_e`` with ``X ~ χ²_{M−1}/(M−1)`` when the chains mix
+    (the variance of the half-chain means is ``σ²/n_e``).  ``n_e`` comes from each
+    chain's *own* bulk ESS (summed over the chains, divided by ``M``), so chains that
+    disagree do not lower it and so raise their own limit.  The quantile is
+    ``1 − level / (2 × parameters)``: ArviZ's r̂ is the larger of the bulk and folded
+    (tail) r̂, and a fit is flagged when any of ``parameters`` exceeds its limit, so a
+    fit of well-mixed chains is flagged with probability at most about ``level``.
+    Never below :data:`RHAT_MAX` (Vehtari et al. 2021), which long chains keep.
+
+    Parameters
+    ----------
+    draws : array (chain, draw)
+        One scalar's posterior draws.
+    parameters : int
+        Number of parameters whose r̂ is checked in the same fit.
+    level : float
+        Chance that well-mixed chains of the fit are flagged.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> rhat_limit(rng.normal(size=(2, 5000)))  # long chains: Vehtari's 1.01
+    1.01
+    >>> x = np.zeros((2, 400))  # AR(1), ρ = 0.8: 400 draws are worth ~45 per chain
+    >>> e = rng.normal(size=(2, 400))
+    >>> for t in range(1, 400):
+    ...     x[:, t] = 0.8 * x[:, t - 1] + e[:, t]
+    >>> 1.05 < rhat_limit(x, parameters=3) < 1.2
+    True
+    """
+    from scipy.stats import chi2
+
+    draws = np.asarray(draws, dtype=float)
+    chains, n = draws.shape
+    if chains < 2 or n < 4:
+        return RHAT_MAX
+    with single_chain_notes_hidden():
+        within = sum(float(az.ess(draws[c][None, :], method="bulk")) for c in range(chains))
+    halves = 2 * chains
+    if not (np.isfinite(within) and within > 0):
+        return RHAT_MAX
+    x = chi2.ppf(1.0 - level / (2 * max(parameters, 1)), halves - 1) / (halves - 1)
+    squared = 1.0 - 1.0 / (n // 2) + x * halves / within
+    return float(max(RHAT_MAX, np.sqrt(max(squared, 1.0))))
 
 
 def convergence_problems(

@@ -60,6 +60,11 @@ class DiscoveryReport:
     units : dict or None
         With units given: ``{"given": {name: SI text}, "pi_groups": [...],
         "coefficients": {term name: unit of its coefficient}, "offset": unit of c_0}``.
+    theta : dict or None
+        Where θ came from when it was borrowed from a joint calibration of several
+        outputs (:func:`kohpymc.multi_output.discover_outputs`): ``{"source",
+        "outputs", "borrowed_from", "values", "sd", ...}``; None (and absent from the
+        JSON) when θ was calibrated from this output alone.
     """
 
     significant: bool
@@ -81,6 +86,7 @@ class DiscoveryReport:
     fallback: dict | None = None
     formulation: Any = None
     units: dict | None = None
+    theta: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON report.
@@ -94,7 +100,7 @@ class DiscoveryReport:
         (False, None)
         """
         sel = self.selection
-        return {
+        out = {
             "significant": self.significant,
             "effect": self.effect,
             "inputs": list(self.inputs),
@@ -118,6 +124,9 @@ class DiscoveryReport:
             "merged_candidates": len(sel.merged),
             "top_subsets": [{"terms": list(s), "probability": p} for s, p in sel.subsets[:5]],
         }
+        if self.theta is not None:
+            out["theta"] = self.theta
+        return out
 
     def _units(self) -> dict | None:
         """The units summary with ``c_k`` of the added terms (and ``c_0``) spelled out."""

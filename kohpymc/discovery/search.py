@@ -70,6 +70,14 @@ class Design:
     terms: dict[str, CandidateTerm | None]
     rejected: dict[str, str] = field(default_factory=dict)
     merged: dict[str, str] = field(default_factory=dict)
+    #: rows appended below the data's (θ borrowed from other outputs): terms are 0 there
+    borrowed: int = 0
+
+    def pad(self, v: np.ndarray) -> np.ndarray:
+        """Data-row values (a vector or columns) with zeros on the borrowed rows."""
+        if not self.borrowed:
+            return v
+        return np.concatenate([v, np.zeros((self.borrowed, *v.shape[1:]))], axis=0)
 
     def project(self, v: np.ndarray) -> np.ndarray:
         """``v`` with the span of ``J`` and the constant removed (columns of a matrix too)."""
@@ -91,10 +99,14 @@ def _basis(J: np.ndarray, rtol: float) -> np.ndarray:
     return U[:, s > rtol * s.max()] if s.size and s.max() > 0 else np.zeros((J.shape[0], 0))
 
 
-def _unit_columns(design: Design, C: np.ndarray, names, rtol: float):
-    """Project, reject (with reasons) and normalise fixed columns; indices kept."""
-    Ct = C - design.Q @ (design.Q.T @ C)
-    Ca = design.project(C)
+def _unit_columns(design: Design, C: np.ndarray, names, rtol: float, own: np.ndarray):
+    """Project, reject (with reasons) and normalise fixed columns; indices kept.
+
+    ``own`` is a basis of the span of the data rows' own Jacobian: a term the parameters
+    can mimic on these rows is rejected even when θ is borrowed from elsewhere.
+    """
+    Ct = C - own @ (own.T @ C)
+    Ca = design.project(design.pad(C))
     norm = np.linalg.norm(C, axis=0)
     spread = np.linalg.norm(C - C.mean(axis=0), axis=0)
     kept: list[int] = []
@@ -120,7 +132,7 @@ def _merge_duplicates(design: Design, U: np.ndarray, names, complexity):
     order = sorted(range(len(names)), key=lambda j: (complexity[j], j))
     keep: list[int] = []
     for j in order:
-        key = np.round(U[:, j] * sign[j], 6).tobytes()
+        key = (np.round(U[:, j] * sign[j], 6) + 0.0).tobytes()  # + 0.0: -0.0 equals 0.0
         if key in groups:
             design.merged[names[j]] = names[groups[key]]
         else:
@@ -140,7 +152,7 @@ def _shaped_scan(design: Design, term: CandidateTerm, inputs) -> _Shaped | None:
     else:
         grid = np.geomspace(lo, hi, _GRID)
     cols = np.column_stack([term.shape(inputs, c) for c in grid])  # type: ignore[misc]
-    cols = design.project(cols)
+    cols = design.project(design.pad(cols))
     norms = np.linalg.norm(cols, axis=0)
     if not np.all(np.isfinite(cols)) or norms.max() <= 1e-9:
         design.rejected[term.name] = "not finite, or a constant (with the parameters), here"
@@ -155,6 +167,7 @@ def build_design(
     *,
     inputs: dict | None = None,
     rtol: float = 1e-7,
+    borrowed: np.ndarray | None = None,
 ) -> Design:
     """The residual-independent part of the search.
 
@@ -171,6 +184,11 @@ def build_design(
         The data's inputs, to evaluate terms.
     rtol : float
         Relative tolerance below which a projected column counts as zero.
+    borrowed : array (m, p), optional
+        Rows ``A`` appended below the Jacobian: what other data say about Δθ (θ
+        borrowed, :func:`kohpymc.discovery.select_terms`).  Candidate terms and the
+        constant are zero on them; a term is still rejected when the parameters can
+        mimic it on the data rows alone.
 
     Returns
     -------
@@ -186,10 +204,16 @@ def build_design(
     """
     J = np.asarray(jacobian, dtype=float)
     n = J.shape[0]
+    own = _basis(J, rtol)
+    m = 0 if borrowed is None else int(np.shape(borrowed)[0])
+    if m:
+        J = np.vstack([J, np.asarray(borrowed, dtype=float).reshape(m, J.shape[1])])
     Q = _basis(J, rtol)
-    one = np.ones(n) - Q @ (Q.T @ np.ones(n))
+    ones = np.r_[np.ones(n), np.zeros(m)]
+    one = ones - Q @ (Q.T @ ones)
     u = one / np.linalg.norm(one) if np.linalg.norm(one) > 1e-6 * np.sqrt(n) else None
-    design = Design(n, Q.shape[1], Q, u, [], np.zeros((n, 0)), [], [], inputs, {})
+    design = Design(n + m, Q.shape[1], Q, u, [], np.zeros((n + m, 0)), [], [], inputs, {},
+                    borrowed=m)  # fmt: skip
     if isinstance(candidates, np.ndarray):
         if names is None or len(names) != candidates.shape[1]:
             raise ValueError("an array of candidates needs one name per column")
@@ -206,7 +230,7 @@ def build_design(
         C = np.column_stack([t(inputs) for t in fixed]) if fixed else np.zeros((n, 0))
         design.shaped = [s for t in terms if t.shape is not None
                          if (s := _shaped_scan(design, t, inputs)) is not None]  # fmt: skip
-    kept, U = _unit_columns(design, C, fixed_names, rtol)
+    kept, U = _unit_columns(design, C, fixed_names, rtol, own)
     keep = _merge_duplicates(
         design, U, [fixed_names[j] for j in kept], [complexity[j] for j in kept]
     )
@@ -224,7 +248,7 @@ def _fit_shaped(design: Design, shaped: _Shaped, rc: np.ndarray, gains, *, refin
     hi = shaped.grid[min(i + 1, shaped.grid.size - 1)]
 
     def unit(c: float) -> np.ndarray:
-        col = design.project(shaped.term.shape(design.inputs, c))  # type: ignore[misc,arg-type]
+        col = design.project(design.pad(shaped.term.shape(design.inputs, c)))  # type: ignore[misc,arg-type]
         norm = np.linalg.norm(col)
         return col / norm if np.isfinite(norm) and norm > 1e-12 else np.zeros_like(col)
 

@@ -120,6 +120,7 @@ def select_terms(
     partners: int = 5,
     g: float | None = None,
     rtol: float = 1e-7,
+    borrowed: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> TermSelection:
     """Posterior over explanations of the residual of a calibrated model.
 
@@ -151,6 +152,12 @@ def select_terms(
         The g-prior's g (default n).
     rtol : float
         Tolerance of the identifiability (span) check.
+    borrowed : (A, b), optional
+        θ borrowed from other data (other outputs): rows ``b = A Δθ + ε`` appended to
+        the residual, in its units and with its noise, that carry what those data say
+        about Δθ (``AᵀA`` their information, ``AᵀA Δθ̂ = Aᵀb`` their estimate).  The
+        terms are zero on these rows; Δθ is re-fitted from the residual *and* them.
+        See :func:`kohpymc.multi_output.discovery.borrowed_rows`.
 
     Returns
     -------
@@ -171,7 +178,14 @@ def select_terms(
     r = np.asarray(residual, dtype=float).reshape(-1)
     J = np.asarray(jacobian, dtype=float).reshape(r.size, -1)
     _check(r, J, candidates, names, max_terms, false_alarm)
-    design = _usable_design(J, candidates, names, inputs, rtol)
+    A = None
+    if borrowed is not None:
+        A = np.asarray(borrowed[0], dtype=float).reshape(-1, J.shape[1])
+        b = np.asarray(borrowed[1], dtype=float).reshape(A.shape[0])
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+            raise ValueError("borrowed rows must be finite")
+        r = np.r_[r, b]
+    design = _usable_design(J, candidates, names, inputs, rtol, A)
     search: dict[str, Any] = dict(max_terms=max_terms, screen=screen, partners=partners, g=g)
     log_post, log_bf, fitted = explain(design, r, noise_sd=noise_sd, **search)
     post = _posterior(log_post)
@@ -183,9 +197,9 @@ def select_terms(
     return _selection(design, post, log_bf, fitted, p_value, false_alarm)
 
 
-def _usable_design(J, candidates, names, inputs, rtol: float):
+def _usable_design(J, candidates, names, inputs, rtol: float, borrowed=None):
     """The candidate design (:func:`build_design`); an error when every term was rejected."""
-    design = build_design(J, candidates, names, inputs=inputs, rtol=rtol)
+    design = build_design(J, candidates, names, inputs=inputs, rtol=rtol, borrowed=borrowed)
     if design.size == 0:
         raise ValueError(
             "every candidate term was rejected: "

@@ -93,6 +93,7 @@ def discover(
     chains: int = 4,
     random_seed: int | None = None,
     progress: Any = None,
+    joint: Any = None,
 ) -> DiscoveryReport:
     """Find, name and add a missing effect; show the validation gap before and after.
 
@@ -173,6 +174,12 @@ def discover(
         Sampler settings of both calibrations.
     progress : callable, optional
         Called with a line of text per step.
+    joint : optional
+        θ borrowed from a joint calibration of several outputs (built by
+        :func:`kohpymc.multi_output.discover_outputs`, which passes it): the
+        calibrations are joint ones viewed from this output, and the search re-fits θ
+        from this output's residual *and* the other outputs' information.  Default
+        None: θ is calibrated from ``calibration`` alone.
 
     Returns
     -------
@@ -200,16 +207,23 @@ def discover(
         raise ValueError(f"gp_level must be in (0, 1), got {gp_level!r}")
 
     def run(model, label, formulation=None, scored_out=None):
-        scored = fit_and_score(
-            model, calibration, validation, formulation, tolerance=tolerance,
-            random_seed=random_seed, label=label, warn=False, **sampler,
-        )  # fmt: skip
+        if joint is not None:
+            scored = joint.fit_and_score(model, label, formulation)
+        else:
+            scored = fit_and_score(
+                model, calibration, validation, formulation, tolerance=tolerance,
+                random_seed=random_seed, label=label, warn=False, **sampler,
+            )  # fmt: skip
         if scored_out is not None:
             scored_out.append(scored)
         return scored.combined_idata(), scored.scores, scored.constant
 
     say("calibrating the model as given ...")
     fit = _locate_residuals(physics, calibration, run)
+    if joint is not None:
+        lenders = joint.lenders()
+        say(f"θ from the {joint.describe()['source']}; information borrowed from "
+            f"{_and(lenders) if lenders else 'no other output'}")  # fmt: skip
     if generated:
         pool += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
     say(f"comparing {len(pool)} candidate terms ...")
@@ -225,6 +239,7 @@ def discover(
         false_alarm=threshold,
         null_draws=null_draws,
         random_seed=seed,
+        borrowed=None if joint is None else joint.borrowed_rows(fit.theta),
     )
     common = {
         "selection": selection,
@@ -232,6 +247,7 @@ def discover(
         "threshold": threshold,
         "before": fit.idata,
         "units": None if parsed is None else _units_summary(units, parsed, groups, selection),
+        "theta": None if joint is None else joint.describe(),
     }
     return _conclude(
         physics, calibration, validation, fit, selection, jacobian, common, run, say,

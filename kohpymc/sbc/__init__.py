@@ -19,7 +19,8 @@ of the replicates.  The coverage table gives each fraction with its binomial sta
 error ``√(p(1−p)/N)``; the verdict fails a parameter whose 90 % or 50 % coverage is more
 than three null standard errors (``√(α(1−α)/N)``) from ``α`` or whose rank histogram a
 chi-square test rejects at ``p < 0.001``.  Replicates whose fit shows sampler trouble
-(r̂ > 1.01, bulk or tail ESS below ``max(100, L + 1)``, divergences) are listed and left
+(r̂ above :func:`kohpymc.diagnostics.rhat_limit` — at least 1.01, higher for short chains
+whose r̂ is noisy —, bulk or tail ESS below ``max(100, L + 1)``, divergences) are listed and left
 out of the table; more than 10 % of them fails the check, since leaving them out then
 biases it.
 

@@ -391,21 +391,29 @@ def load_study(path: str | Path) -> StudySpec:
         execution=execution,
         check=check,
         units=_units_table(path, doc["data"].get("units"), inputs, output),
-        emulator=_emulator_section(path, doc),
+        emulator=_emulator_section(path, doc, formulations),
     )
 
 
-def _emulator_section(path: Path, doc: dict) -> Any:
+def _emulator_section(path: Path, doc: dict, formulations: Mapping[str, Any]) -> Any:
     """``[emulator]``: :class:`kohpymc.emulator.study.EmulatorSettings`, or None."""
     from kohpymc.emulator.study import EmulatorSettings
 
     if "emulator" not in doc:
         return None
     try:
-        return EmulatorSettings.from_table(doc["emulator"])
+        settings = EmulatorSettings.from_table(doc["emulator"])
     except KeyError as err:
         why = "; ".join(getattr(err, "__notes__", [])) or "invalid"
         raise _err(path, f"emulator.{err.args[0]}", why) from err
+    label = settings.formulation
+    if label is not None and label not in formulations:
+        raise _err(
+            path,
+            "emulator.formulation",
+            f"{label!r} is not one of the formulations {list(formulations)}",
+        )
+    return settings
 
 
 def _read_document(path: Path) -> dict:

@@ -240,3 +240,15 @@ def test_check_table_mistakes_name_the_key(tmp_path, write_study, old, new, key)
     with pytest.raises(StudyConfigError, match=key) as info:
         load_study(path)
     assert str(path) in str(info.value)
+
+
+def test_emulator_formulation_must_be_a_study_formulation(tmp_path, write_study):
+    """A label typed wrongly in ``[emulator] formulation`` is an error before any run (it
+    used to pass ``--dry-run`` and fail only when the sequential rounds started)."""
+    table = '\n[emulator]\nruns = 20\nsequential = 1\nformulation = "{}"\n'
+    text = write_study(tmp_path).read_text()
+    spec = load_study(write_study(tmp_path, text + table.format("M0")))
+    assert spec.emulator.formulation == "M0"
+    path = write_study(tmp_path, text + table.format("M9"))
+    with pytest.raises(StudyConfigError, match=r"\[emulator\.formulation\] 'M9' is not one of"):
+        load_study(path)

@@ -129,6 +129,23 @@ def test_failed_runs_are_recorded_and_skipped(tmp_path):
     assert counter.calls == calls + 1
 
 
+def test_an_emulator_fitted_around_failed_runs_says_so():
+    """Failed runs leave a hole the GP knows nothing of: the fit warns with the count and
+    the simulator's error; with fewer than 2 good runs the error says why they failed."""
+    from kohpymc.emulator import Emulator, EmulatorWarning
+
+    _, physics = _counted_physics()
+    design = pd.DataFrame(
+        {"x": [0.1, 0.5, 0.9, 0.3, 0.7], "a": [1.0, 0.05, 1.5, 0.6, 0.01], "b": [0.2] * 5}
+    )
+    runs = run_design(physics, design)
+    with pytest.warns(EmulatorWarning, match=r"2 of 5 simulator runs failed .*solver diverged"):
+        Emulator(runs, physics)
+    all_failed = run_design(physics, design.assign(a=0.05))
+    with pytest.raises(ValueError, match=r"got 0: 5 of 5 simulator runs failed .*solver diverged"):
+        Emulator(all_failed, physics)
+
+
 @pytest.mark.slow
 def test_runs_on_a_local_dask_cluster_match_in_process_runs(tmp_path):
     import os

@@ -23,15 +23,11 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from kohpymc.emulator.gp import Emulator
+from kohpymc.emulator.gp import Emulator, EmulatorWarning
 from kohpymc.emulator.runs import SimulatorRuns
 from kohpymc.warning_filters import warn_user
 
 __all__ = ["EmulatorCheck", "EmulatorWarning", "check_emulator"]
-
-
-class EmulatorWarning(UserWarning):
-    """An emulator that is not fit for calibration (bands miss, or large errors)."""
 
 
 @dataclass

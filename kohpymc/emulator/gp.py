@@ -35,8 +35,14 @@ from scipy import linalg, optimize
 from kohpymc.emulator.design import log_scaled
 from kohpymc.emulator.runs import SimulatorRuns
 from kohpymc.physics import PhysicsModel
+from kohpymc.warning_filters import warn_user
 
-__all__ = ["EmulatedPhysics", "Emulator", "GPHyperparameters", "KERNELS"]
+__all__ = ["EmulatedPhysics", "Emulator", "EmulatorWarning", "GPHyperparameters", "KERNELS"]
+
+
+class EmulatorWarning(UserWarning):
+    """An emulator that is not fit for calibration (bands miss, large errors, failed runs)."""
+
 
 #: kernels :class:`Emulator` knows
 KERNELS = ("se", "matern52")
@@ -230,7 +236,17 @@ class Emulator:
             )
         X, y = runs.X, runs.y
         if len(y) < 2:
-            raise ValueError(f"Emulator needs at least 2 successful runs, got {len(y)}")
+            raise ValueError(
+                f"Emulator of {physics.name!r} needs at least 2 successful runs, got {len(y)}"
+                + (f": {runs.failure_summary()}" if len(runs.failed) else "")
+            )
+        if len(runs.failed):
+            warn_user(
+                f"emulator of {physics.name!r}: {runs.failure_summary()}; it is fitted to the "
+                f"{len(y)} others and knows nothing of where these failed (a posterior there "
+                "rests on no run; see runs.failed)",
+                EmulatorWarning,
+            )
         self.physics = physics
         self.runs = runs
         self.kernel = kernel

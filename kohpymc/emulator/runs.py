@@ -106,6 +106,23 @@ class SimulatorRuns:
     cached: int = 0
     seconds: float = 0.0
 
+    def failure_summary(self) -> str:
+        """``"3 of 40 simulator runs failed (first: ...)"``, or ``""`` when none failed.
+
+        Examples
+        --------
+        >>> from kohpymc.examples import beam
+        >>> runs = run_design(beam.physics_model(),
+        ...                   pd.DataFrame({"x": [400.0], "P": [2.5], "E": [200.0]}))
+        >>> runs.failure_summary()
+        ''
+        """
+        if not len(self.failed):
+            return ""
+        total = len(self.failed) + len(self.points)
+        first = str(self.failed["error"].iloc[0])
+        return f"{len(self.failed)} of {total} simulator runs failed (first: {first})"
+
     @property
     def X(self) -> np.ndarray:
         """``(n, d + p)``: input columns, then parameter columns, of the successful runs."""

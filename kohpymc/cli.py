@@ -146,6 +146,7 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
         sampling=sampling,
         workers=kwargs.get("workers", 1),
         scheduler=kwargs.get("scheduler"),
+        validation=kwargs["validation"],
     )
     print(f"emulator: {physics.emulator!r} (checks in {out}/emulator/)")
     return physics

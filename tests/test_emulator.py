@@ -518,6 +518,30 @@ def test_study_physics_reuses_cached_runs(tmp_path):
     assert (tmp_path / "emulator" / "emulator.json").is_file()
 
 
+@pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")
+def test_study_physics_warns_when_validation_inputs_leave_the_design_box(tmp_path):
+    """The design box spans the calibration inputs; validation rows beyond it are
+    predicted by extrapolating the GP (a decay study validated at later times)."""
+    import warnings
+
+    from kohpymc import CalibrationData
+    from kohpymc.emulator import EmulatorWarning
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    _, physics = _counted_physics()
+    physics.parameters["a"] = Uniform(0.2, 2.0)  # no failing runs here
+    data = CalibrationData({"x": np.linspace(0, 1, 5)}, np.zeros(5), noise_sd=0.1)
+    later = CalibrationData({"x": np.array([0.5, 1.8])}, np.zeros(2), noise_sd=0.1)
+    settings = EmulatorSettings(runs=12)
+    with pytest.warns(EmulatorWarning, match=r"validation inputs leave .* x in \[0.5, 1.8\]"):
+        study_physics(settings, physics, data, tmp_path, validation=later)
+    inside = CalibrationData({"x": np.array([0.2, 0.9])}, np.zeros(2), noise_sd=0.1)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        study_physics(settings, physics, data, tmp_path, validation=inside)
+    assert not [w for w in seen if "design box" in str(w.message)]
+
+
 def test_a_refitted_emulator_has_another_fingerprint_so_a_study_does_not_reuse_old_results():
     from kohpymc.fingerprint import physics_fingerprint
 

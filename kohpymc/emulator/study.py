@@ -33,13 +33,14 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.emulator.checking import check_emulator
 from kohpymc.emulator.design import DESIGNS
-from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator
+from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator, EmulatorWarning
 from kohpymc.emulator.runs import run_design
 from kohpymc.emulator.sequential import emulate, emulator_box, sequential_design
 from kohpymc.fingerprint import (
@@ -51,6 +52,7 @@ from kohpymc.fingerprint import (
 )
 from kohpymc.physics import PhysicsModel
 from kohpymc.study_files import write_atomic
+from kohpymc.warning_filters import warn_user
 
 __all__ = ["EmulatorSettings", "study_physics"]
 
@@ -134,6 +136,7 @@ def study_physics(
     sampling: Mapping[str, Any] | None = None,
     workers: int = 1,
     scheduler: Any = None,
+    validation: CalibrationData | None = None,
 ) -> EmulatedPhysics:
     """Build (or rebuild from cached runs) a study's emulator; return it as physics.
 
@@ -152,6 +155,9 @@ def study_physics(
         Sampler settings of the rounds' calibrations (``draws``, ``chains``, ...).
     workers, scheduler :
         Where the simulator runs go.
+    validation : CalibrationData, optional
+        The study's validation data: an ``EmulatorWarning`` names every input whose
+        validation values lie outside the design box (predictions there extrapolate).
 
     Returns
     -------
@@ -192,7 +198,32 @@ def study_physics(
     settings_text = json.dumps(asdict(settings), indent=1)
     write_atomic(folder / "settings.json", lambda tmp: tmp.write_text(settings_text))
     _write_emulator(folder, emulator)
+    if validation is not None:
+        _warn_if_extrapolating(emulator, validation, "validation")
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+
+
+def _warn_if_extrapolating(emulator: Emulator, data: CalibrationData, what: str) -> None:
+    """``EmulatorWarning`` naming the inputs of ``data`` beyond the design box (> 1 %)."""
+    outside = []
+    for j, name in enumerate(emulator.columns[: emulator.n_inputs]):
+        values = np.asarray(data.inputs[name], dtype=float)
+        ends = np.array([values.min(), values.max()])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scaled = np.log(np.abs(ends)) if emulator.log_columns[j] else ends
+        unit = (scaled - emulator.lower[j]) / emulator.width[j]
+        if unit.min() < -0.01 or unit.max() > 1.01:
+            box = emulator.runs.points[name]
+            outside.append(
+                f"{name} in [{ends[0]:.4g}, {ends[1]:.4g}] (runs cover "
+                f"[{box.min():.4g}, {box.max():.4g}])"
+            )
+    if outside:
+        warn_user(
+            f"emulator of {emulator.physics.name!r}: the {what} inputs leave its design box, "
+            f"{'; '.join(outside)}: predictions there extrapolate the emulator",
+            EmulatorWarning,
+        )
 
 
 def _first_emulator(

@@ -50,6 +50,14 @@ def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
     | formulation | mu_r |
     |---|---|
     | M1 | 0.5123 |
+
+    A MultiIndex (a multi-output study's formulation and output) gives a column per level:
+
+    >>> rows = pd.MultiIndex.from_tuples([("M0", "u")], names=["formulation", "output"])
+    >>> print(markdown_table(pd.DataFrame({"mu_r": [0.5]}, index=rows)))
+    | formulation | output | mu_r |
+    |---|---|---|
+    | M0 | u | 0.5 |
     """
 
     def cell(v: Any) -> str:
@@ -57,11 +65,12 @@ def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
             return "" if np.isnan(v) else f"{v:.{digits}g}"
         return str(v).replace("|", "\\|")
 
-    name = frame.index.name or "formulation"
-    lines = ["| " + " | ".join([name, *map(str, frame.columns)]) + " |"]
-    lines.append("|" + "---|" * (len(frame.columns) + 1))
+    names = [str(n or "formulation") for n in frame.index.names]
+    lines = ["| " + " | ".join([*names, *map(str, frame.columns)]) + " |"]
+    lines.append("|" + "---|" * (len(frame.columns) + len(names)))
     for idx, row in frame.iterrows():
-        lines.append("| " + " | ".join([cell(idx), *(cell(v) for v in row)]) + " |")
+        keys = idx if isinstance(idx, tuple) else (idx,)
+        lines.append("| " + " | ".join([*map(cell, keys), *(cell(v) for v in row)]) + " |")
     return "\n".join(lines)
 
 

@@ -131,6 +131,19 @@ def test_markdown_table_formats_and_escapes():
     assert lines[3] == "| r2 |  | z |"
 
 
+def test_markdown_table_gives_each_index_level_its_column():
+    """A multi-output table (formulation, output) once printed "('M0', 'T')" in one cell
+    under a "formulation" header, and no "output" column."""
+    rows = pd.MultiIndex.from_tuples(
+        [("M0", "T"), ("M0", "combined")], names=["formulation", "output"]
+    )
+    frame = pd.DataFrame({"n": [5, 8], "tolerance": [1.0, np.nan]}, index=rows)
+    lines = markdown_table(frame).splitlines()
+    assert lines[0] == "| formulation | output | n | tolerance |"
+    assert lines[1] == "|---|---|---|---|"
+    assert lines[2:] == ["| M0 | T | 5 | 1 |", "| M0 | combined | 8 |  |"]
+
+
 @pytest.mark.parametrize("tolerance", [0.0, -1.0, float("nan")])
 def test_bad_tolerance(beam_physics, beam_data, beam_validation, tolerance):
     with pytest.raises(ValueError, match="tolerance"):

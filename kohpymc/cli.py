@@ -152,6 +152,15 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
     return physics
 
 
+def _emulator_note(spec: Any, what: str) -> None:
+    """Say that ``[emulator]`` is for ``kohpymc study``: ``check``/``discover`` run the physics."""
+    if spec.emulator is not None:
+        print(
+            f"note: {spec.source}: [emulator] is used by `kohpymc study` only; `kohpymc {what}` "
+            "calls the physics function itself at every evaluation (no emulator)"
+        )
+
+
 def _lists_outputs(path: str) -> bool:
     """Whether a study file's ``[physics] output`` is a list (a multi-output study)."""
     import tomllib
@@ -305,6 +314,7 @@ def _discover(args: argparse.Namespace) -> int:
     spec = _load(args)
     if spec is None:
         return 2
+    _emulator_note(spec, "discover")
     options = _discovery_options(args, spec.sampling)
     outputs = [Path(p) for p in (args.json, args.out) if p]
     try:
@@ -526,6 +536,7 @@ def _check(args: argparse.Namespace) -> int:
     spec = _load(args)
     if spec is None:
         return 2
+    _emulator_note(spec, "check")
     label = args.formulation or spec.check.formulation or "M0"
     out = Path(args.out) if args.out else Path(f"{spec.out_dir}_check_{label}")
     try:

@@ -306,3 +306,17 @@ def test_multi_output_formulations_are_built_before_anything_runs(tmp_path, caps
         StudyConfigError, match=r"\[formulations\.MX\].* built on the calibration data.*'zz'"
     ):
         _checked_multi_output_build(spec)
+
+
+def test_check_and_discover_say_they_do_not_use_the_emulator(tmp_path, capsys, write_study):
+    """`[emulator]` is read by `kohpymc study` only; `check` and `discover` called the
+    (possibly expensive) physics function directly without a word."""
+    text = write_study(tmp_path).read_text() + "\n[emulator]\nruns = 20\n"
+    study = write_study(tmp_path, text)
+    for command, extra in (("check", ["--replicates", "2"]), ("discover", [])):
+        assert main([command, str(study), "--dry-run", *extra]) == 0
+        out = capsys.readouterr().out
+        assert f"[emulator] is used by `kohpymc study` only; `kohpymc {command}`" in out
+    assert main(["study", str(study), "--dry-run"]) == 0
+    assert "note:" not in capsys.readouterr().out
+

@@ -533,6 +533,13 @@ def _check(args: argparse.Namespace) -> int:
     from kohpymc.config import StudyConfigError
     from kohpymc.sbc import check_calibration
 
+    if _lists_outputs(args.study):
+        return _bad_input(
+            StudyConfigError(
+                f"{args.study}: [physics.output] `kohpymc check` takes one output; "
+                "this file lists several (a multi-output study)"
+            )
+        )
     spec = _load(args)
     if spec is None:
         return 2

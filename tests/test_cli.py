@@ -320,3 +320,10 @@ def test_check_and_discover_say_they_do_not_use_the_emulator(tmp_path, capsys, w
     assert main(["study", str(study), "--dry-run"]) == 0
     assert "note:" not in capsys.readouterr().out
 
+
+def test_check_on_a_multi_output_file_says_so(tmp_path, capsys):
+    study = _multi_output_example(tmp_path)
+    assert main(["check", str(study), "--replicates", "2", "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "`kohpymc check` takes one output" in err and "Traceback" not in err
+    assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]

@@ -770,8 +770,9 @@ class FunctionalEmulator:
     def _training_tensors(self) -> dict[str, Any]:
         """The weight GPs' training data as shared variables, made once per emulator.
 
-        Shared, not constants: a compiled log density reads them at run time, so its
-        code (and numba's cache of it) depends on the shapes, not on the runs.
+        Shared, not constants: a compiled log density reads them at run time, so numba
+        does not inline megabytes of arrays into its code (a minute of compiling the
+        dielectric emulator, never cached) and its disk cache can serve the next run.
         """
         tensors = self.__dict__.get("_tensors")
         if tensors is None:

@@ -416,3 +416,26 @@ def test_kernel_quadratic_matches_numpy_and_finite_differences(kernel):
         step = 1e-6
         fd = [(f(at + step * e)[3] - f(at - step * e)[3]) / (2 * step) for e in np.eye(p)]
         np.testing.assert_allclose(grad_v, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+
+
+def test_leave_one_out_of_the_low_rank_likelihood_is_the_dense_one():
+    import xarray as xr
+
+    import kohpymc as kp
+    from kohpymc.loo import loo_log_likelihood
+    from kohpymc.model import compose_model
+
+    em, _ = _emulator(20)
+    data = _data()
+    draws = np.random.default_rng(2).uniform([1.6, 0.7, 0.3], [1.8, 0.9, 0.5], size=(1, 4, 3))
+    posterior = xr.Dataset(
+        {k: (("chain", "draw"), draws[..., j]) for j, k in enumerate("akc")},
+        coords={"chain": [0], "draw": np.arange(4)},
+    )
+    values = [
+        loo_log_likelihood(
+            posterior, compose_model(em.physics_model(covariance=mode), data, kp.NoDiscrepancy())
+        )["y"].values
+        for mode in ("full", "dense")
+    ]
+    np.testing.assert_allclose(values[0], values[1], rtol=1e-8, atol=1e-10)

@@ -178,6 +178,11 @@ def report(result: dict, direct_path: Path, emulated_path: Path, out: Path) -> s
         f"calibration {sec['calibration']:.0f} s. Direct {direct_wall:.0f} s (least-squares "
         f"fit included).",
         "",
+        "Inside the emulated calibration (s): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in result.get("calibration timings", {}).items())
+        + f"; nutpie backend {result.get('nutpie backend', '?')}, "
+        f"{result.get('steps per draw', float('nan')):.1f} leapfrog steps per draw.",
+        "",
         f"Sampler diagnostics: direct {diag(direct)}; emulated {diag(emulated)}.",
         "",
     ]
@@ -203,10 +208,10 @@ def run_direct(out: Path) -> None:
     )
     wall = time.perf_counter() - t0
     idata = az.InferenceData(posterior=res.idata.posterior, sample_stats=res.idata.sample_stats)
-    idata.posterior.attrs.update(wall_s=wall, fit_s=t_fit)
+    idata.posterior.attrs.update(wall_s=wall, fit_s=t_fit, sampling=res.idata.attrs["sampling"])
     idata.to_netcdf(out)
     print(az.summary(idata, var_names=PARAMS))
-    print(f"direct M0: {wall:.0f} s (least squares {t_fit:.0f} s)")
+    print(f"direct M0: {wall:.0f} s (least squares {t_fit:.0f} s)", res.idata.attrs["sampling"])
 
 
 def main() -> None:
@@ -279,7 +284,11 @@ def main() -> None:
         args.emulated
     )
     print(az.summary(emulated, var_names=PARAMS), flush=True)
+    sampling = json.loads(emulated.attrs["sampling"])
     result = {
+        "calibration timings": sampling["timings_s"],
+        "nutpie backend": sampling["nutpie_backend"],
+        "steps per draw": float(emulated.sample_stats["n_steps"].mean()),
         "runs": runs.n_runs + held.n_runs,
         "training runs": runs.n_runs,
         "held-out runs": held.n_runs,

@@ -52,6 +52,7 @@ __all__ = [
     "gaussian_log_density",
     "GaussianLikelihood",
     "LowRankCovariance",
+    "WoodburyLogDensity",
     "add_to_covariance",
     "covariance_solve",
     "low_rank_covariance",
@@ -318,17 +319,144 @@ def _capacitance(d: Any, F: Any) -> tuple[pt.TensorVariable, pt.TensorVariable]:
     return scaled, pt.linalg.cholesky(inner, lower=True)
 
 
-def woodbury_log_density(r: Any, diagonal: Any, factor: Any) -> pt.TensorVariable:
-    r"""``log N(r; 0, diag(d) + F Fᵀ)`` in ``O(n k²)`` (Woodbury and determinant lemma).
+def _woodbury_parts(
+    r: np.ndarray, d: np.ndarray, F: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """``(log p, C⁻¹ r, diag C⁻¹, C⁻¹ F)`` of :class:`WoodburyLogDensity` with numpy/LAPACK."""
+    n, k = F.shape
+    if not np.all(d > 0):
+        return -np.inf, np.zeros(n), np.zeros(n), np.zeros((n, k))
+    scaled = F / d[:, None]
+    chol, info = lapack.dpotrf(np.eye(k) + F.T @ scaled, lower=1, clean=1)
+    if info != 0 or not np.all(np.isfinite(chol)):
+        return -np.inf, np.zeros(n), np.zeros(n), np.zeros((n, k))
+    b = scaled.T @ r
+    c, _ = lapack.dtrtrs(chol, b, lower=1)
+    inverse, _ = lapack.dpotri(chol, lower=1)
+    inverse = np.tril(inverse) + np.tril(inverse, -1).T
+    quad = float(np.sum(r**2 / d) - c @ c)
+    log_det = float(np.sum(np.log(d)) + 2.0 * np.sum(np.log(np.diagonal(chol))))
+    solved = scaled @ inverse  # C⁻¹ F = D⁻¹ F A⁻¹
+    alpha = r / d - solved @ b
+    diag_inverse = 1.0 / d - np.sum(solved * scaled, axis=1)
+    return -0.5 * (quad + log_det + n * _LOG_2PI), alpha, diag_inverse, solved
 
-    With ``A = I_k + Fᵀ D⁻¹ F = L Lᵀ`` and ``c = L⁻¹ Fᵀ D⁻¹ r``:
+
+class WoodburyLogDensity(Op):
+    r"""``log N(r; 0, diag(d) + F Fᵀ)`` with ``C⁻¹ r``, ``diag C⁻¹`` and ``C⁻¹ F``, in ``O(n k²)``.
+
+    With ``A = I_k + Fᵀ D⁻¹ F = L Lᵀ`` and ``c = L⁻¹ Fᵀ D⁻¹ r`` (Woodbury identity and
+    matrix determinant lemma):
 
     .. math::
 
         r^\top C^{-1} r = r^\top D^{-1} r - c^\top c, \qquad
-        \log|C| = \textstyle\sum_i \log d_i + 2 \sum_j \log L_{jj}.
+        \log|C| = \textstyle\sum_i \log d_i + 2 \sum_j \log L_{jj},
 
-    Differentiable (PyTensor's Cholesky and triangular solve of the ``k × k`` matrix);
+    and the gradient is written with the other three outputs (``α = C⁻¹ r``,
+    ``C⁻¹ F = D⁻¹ F A⁻¹``): ``∂/∂r = -α``, ``∂/∂d = ½ (α² - diag C⁻¹)``,
+    ``∂/∂F = α (αᵀ F) - C⁻¹ F``.  One op instead of PyTensor's Cholesky, triangular
+    solves and their gradients: fewer nodes, and none of the ``AllocDiag`` graphs of the
+    Cholesky gradient, whose late inlining (PyTensor 2.38) brought a second copy of
+    everything upstream of ``F`` into a compiled gradient.  ``-inf`` when some
+    ``d_i ≤ 0`` or ``A`` is not positive definite.  The gradient is defined for the
+    first output.
+
+    Examples
+    --------
+    >>> import numpy as np, pytensor.tensor as pt
+    >>> from scipy.stats import multivariate_normal
+    >>> d, F, r = np.array([1.0, 2.0, 0.5]), np.array([[1.0], [0.5], [2.0]]), np.ones(3)
+    >>> logp = WoodburyLogDensity()(pt.as_tensor(r), pt.as_tensor(d), pt.as_tensor(F))[0]
+    >>> dense = multivariate_normal(np.zeros(3), np.diag(d) + F @ F.T).logpdf(r)
+    >>> bool(np.isclose(logp.eval(), dense))
+    True
+    """
+
+    __props__ = ()
+
+    def make_node(self, r, d, F):  # noqa: D102
+        r, d, F = (pt.as_tensor_variable(a).astype("float64") for a in (r, d, F))
+        if r.ndim != 1 or d.ndim != 1 or F.ndim != 2:
+            raise ValueError("WoodburyLogDensity needs vectors r, d and a matrix F")
+        return Apply(self, [r, d, F], [pt.dscalar(), pt.dvector(), pt.dvector(), pt.dmatrix()])
+
+    def perform(self, node, inputs, outputs):  # noqa: D102
+        logp, alpha, diag_inverse, solved = _woodbury_parts(*inputs)
+        outputs[0][0] = np.array(logp)
+        outputs[1][0] = alpha
+        outputs[2][0] = diag_inverse
+        outputs[3][0] = solved
+
+    def L_op(self, inputs, outputs, output_grads):  # noqa: D102
+        g_logp, *others = output_grads
+        for g in others:
+            if not isinstance(g.type, DisconnectedType):
+                raise NotImplementedError("WoodburyLogDensity: gradient of outputs 1-3")
+        _, _, F = inputs
+        _, alpha, diag_inverse, solved = outputs
+        g_F = pt.outer(alpha, pt.dot(alpha, F)) - solved
+        return [-g_logp * alpha, 0.5 * g_logp * (alpha**2 - diag_inverse), g_logp * g_F]
+
+    def connection_pattern(self, node):  # noqa: D102
+        return [[True] * 4] * 3
+
+    def infer_shape(self, fgraph, node, shapes):  # noqa: D102
+        n, k = shapes[2]
+        return [(), (n,), (n,), (n, k)]
+
+
+_woodbury_log_density = WoodburyLogDensity()
+
+
+def _register_woodbury_numba() -> None:
+    """Compile :class:`WoodburyLogDensity` natively in PyTensor's NUMBA mode (and nutpie)."""
+    try:
+        from pytensor.link.numba.dispatch import basic as numba_basic
+        from pytensor.link.numba.dispatch.basic import register_funcify_default_op_cache_key
+        from pytensor.link.numba.dispatch.linalg.decomposition.cholesky import _cholesky
+    except ImportError:  # pragma: no cover - numba is a PyTensor dependency here
+        return
+
+    @register_funcify_default_op_cache_key(WoodburyLogDensity)
+    def _numba_woodbury_log_density(op, node, **kwargs):
+        @numba_basic.numba_njit
+        def woodbury_log_density(r, d, F):
+            n, k = F.shape
+            if not np.all(d > 0):
+                return np.array(-np.inf), np.zeros(n), np.zeros(n), np.zeros((n, k))
+            scaled = F / d.reshape((n, 1))
+            inner = np.eye(k) + F.T @ scaled
+            chol = _cholesky(np.ascontiguousarray(inner), True, False)
+            diag = np.diag(chol)
+            if not np.all(np.isfinite(diag)) or not np.all(diag > 0):
+                return np.array(-np.inf), np.zeros(n), np.zeros(n), np.zeros((n, k))
+            b = scaled.T @ r
+            c = np.empty(k)  # forward substitution, L c = b
+            for i in range(k):
+                s = b[i]
+                for j in range(i):
+                    s -= chol[i, j] * c[j]
+                c[i] = s / chol[i, i]
+            inverse = np.linalg.inv(inner)
+            quad = np.sum(r**2 / d) - c @ c
+            log_det = np.sum(np.log(d)) + 2.0 * np.sum(np.log(diag))
+            solved = scaled @ inverse
+            alpha = r / d - solved @ b
+            diag_inverse = 1.0 / d - np.sum(solved * scaled, axis=1)
+            logp = -0.5 * (quad + log_det + n * _LOG_2PI)
+            return np.array(logp), alpha, diag_inverse, solved
+
+        return woodbury_log_density, 1
+
+
+_register_woodbury_numba()
+
+
+def woodbury_log_density(r: Any, diagonal: Any, factor: Any) -> pt.TensorVariable:
+    r"""``log N(r; 0, diag(d) + F Fᵀ)`` in ``O(n k²)`` (Woodbury and determinant lemma).
+
+    Through :class:`WoodburyLogDensity` (one op, its gradient in closed form);
     ``-inf`` when some ``d_i ≤ 0``.
 
     Examples
@@ -340,13 +468,8 @@ def woodbury_log_density(r: Any, diagonal: Any, factor: Any) -> pt.TensorVariabl
     >>> bool(np.isclose(logp, multivariate_normal(np.zeros(3), np.diag(d) + F @ F.T).logpdf(r)))
     True
     """
-    r, d, F = (pt.as_tensor_variable(a).astype("float64") for a in (r, diagonal, factor))
-    scaled, chol = _capacitance(d, F)
-    c = pt.linalg.solve_triangular(chol, pt.dot(pt.transpose(scaled), r), lower=True)
-    quad = pt.sum(r**2 / d) - pt.sum(c**2)
-    log_det = pt.sum(pt.log(d)) + 2.0 * pt.sum(pt.log(pt.diagonal(chol)))
-    logp = -0.5 * (quad + log_det + r.shape[0] * _LOG_2PI)
-    return pt.switch(pt.all(d > 0), logp, -np.inf)
+    outputs = cast(list[pt.TensorVariable], _woodbury_log_density(r, diagonal, factor))
+    return outputs[0]
 
 
 def covariance_solve(cov: Any, rhs: Any) -> pt.TensorVariable:

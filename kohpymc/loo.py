@@ -22,6 +22,7 @@ import numpy as np
 import pymc as pm
 import xarray as xr
 
+from kohpymc.gaussian import _woodbury_parts, low_rank_parts
 from kohpymc.model import CalibrationModel
 
 __all__ = ["gaussian_loo_log_density", "loo_log_likelihood", "pointwise_log_likelihood"]
@@ -69,6 +70,13 @@ def gaussian_loo_log_density(y: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> 
     return 0.5 * (np.log(precision_diag) - np.log(2 * np.pi) - alpha**2 / precision_diag)
 
 
+def _low_rank_loo(resid: np.ndarray, diagonal: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """:func:`gaussian_loo_log_density` for ``cov = diag(d) + F Fᵀ``, by the Woodbury identity."""
+    _, alpha, precision_diag, _ = _woodbury_parts(resid, diagonal, factor)
+    with np.errstate(divide="ignore"):
+        return 0.5 * (np.log(precision_diag) - np.log(2 * np.pi) - alpha**2 / precision_diag)
+
+
 def loo_log_likelihood(
     posterior: xr.Dataset,
     built: CalibrationModel,
@@ -88,7 +96,10 @@ def loo_log_likelihood(
     obs_dim : str
         Name of the observation dimension of the result.
     chunk_size : int
-        Draws per batched Cholesky (memory ``chunk_size · n²`` floats).
+        Draws per batched Cholesky (memory ``chunk_size · n²`` floats).  A covariance
+        built by :func:`~kohpymc.gaussian.low_rank_covariance` (an emulator's ``Σ_η``)
+        is not formed: ``C⁻¹ r`` and ``diag C⁻¹`` come from the Woodbury identity,
+        ``O(n k²)`` per draw.
 
     Returns
     -------
@@ -111,7 +122,10 @@ def loo_log_likelihood(
             f"{built.formulation.label or type(built.formulation).__name__}: exact "
             "leave-one-out needs the likelihood's covariance, which its record does not give"
         )
-    fn, names = built.natural_function([record.mean, record.covariance])
+    parts = low_rank_parts(record.covariance)  # diagonal + low rank: Woodbury, O(n k²)
+    fn, names = built.natural_function(
+        [record.mean, record.covariance] if parts is None else [record.mean, *parts]
+    )
     var_name = record.observed
     y = np.asarray(built.model.rvs_to_values[built.model[var_name]].data, dtype=float)
     n = y.size
@@ -126,7 +140,7 @@ def loo_log_likelihood(
     shapes = {k: posterior[k].shape[2:] for k in names}
     total = n_chain * n_draw
     out = np.empty((total, n))
-    for start in range(0, total, chunk_size):
+    for start in range(0, total if parts is None else 0, chunk_size):
         stop = min(start + chunk_size, total)
         mus = np.empty((stop - start, n))
         covs = np.empty((stop - start, n, n))
@@ -135,6 +149,10 @@ def loo_log_likelihood(
             mus[j] = np.broadcast_to(m, (n,))
             covs[j] = c
         out[start:stop] = gaussian_loo_log_density(y, mus, covs)
+    if parts is not None:
+        for d in range(total):
+            mean, diagonal, factor = fn(*(flat[k][d].reshape(shapes[k]) for k in names))
+            out[d] = _low_rank_loo(y - np.broadcast_to(mean, (n,)), diagonal, factor)
     values = out.reshape(n_chain, n_draw, n)
     coords = {"chain": posterior["chain"].values, "draw": posterior["draw"].values}
     ds = xr.Dataset({var_name: (("chain", "draw", obs_dim), values)}, coords=coords)

@@ -338,3 +338,104 @@ def test_the_woodbury_posterior_is_the_dense_one():
     )
     for name, (mean, sd) in dense.items():
         assert abs(full[name][0] - mean) < 0.1 * sd, (name, full[name], mean, sd)
+
+
+@pytest.mark.parametrize(
+    ("kernel", "settings", "mode"),
+    [
+        ("se", 1, "FAST_RUN"),
+        ("matern52", 3, "FAST_RUN"),
+        # NUMBA, as nutpie runs it: compiling the whole model takes minutes from empty caches
+        pytest.param("se", 1, "NUMBA", marks=pytest.mark.slow),
+    ],
+)
+def test_the_compiled_weight_gps_give_the_graph_log_density(kernel, settings, mode, monkeypatch):
+    """KernelQuadratic (the default) against the plain PyTensor graph it replaced."""
+    import pytensor
+
+    import kohpymc as kp
+    from kohpymc.model import compose_model
+
+    em, _ = _emulator(25, kernel=kernel)
+    data = _data()
+    inputs = data.inputs
+    keep = np.isin(inputs["x"], [0.0, 0.5, 1.0][:settings])
+    data = CalibrationData({k: v[keep] for k, v in inputs.items()}, data.y[keep], noise_sd=_NOISE)
+    results = {}
+    for op in (True, False):
+        monkeypatch.setattr(FunctionalEmulator, "triangular_op", op)
+        model = compose_model(em.physics_model(confine=True), data, kp.NoDiscrepancy()).model
+        point = _theta_point(model, {"a": 1.6, "k": 0.75, "c": 0.35})
+        for run in (mode, "FAST_RUN") if op else ("FAST_RUN",):
+            logp, grad = model.compile_fn([model.logp(), model.dlogp()], mode=run)(point)
+            results[op, run] = (float(logp), np.asarray(grad))
+        ops = [type(n.op).__name__ for n in pytensor.graph.traversal.applys_between(
+            [], [model.logp()])]  # fmt: skip
+        assert ("KernelQuadratic" in ops) == op
+    reference, reference_grad = results[False, "FAST_RUN"]
+    for (op, run), (logp, grad) in results.items():
+        assert logp == pytest.approx(reference, rel=1e-10), (op, run)
+        scale = np.max(np.abs(reference_grad))
+        np.testing.assert_allclose(grad, reference_grad, rtol=1e-8, atol=1e-9 * scale)
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+def test_kernel_quadratic_matches_numpy_and_finite_differences(kernel):
+    import pytensor
+
+    from kohpymc.emulator.gp import _kernel_numpy
+    from kohpymc.emulator.quadratic import kernel_quadratic
+
+    rng = np.random.default_rng(3)
+    K, N, p, m = 2, 9, 3, 2
+    U = rng.uniform(size=(N, p))
+    LS = rng.uniform(0.3, 1.0, size=(K, p))
+    amp = np.array([1.5, 0.7])
+    base = rng.uniform(0.0, 0.5, size=(K, m, N))
+    chol_inv = np.empty((K, N, N))
+    for k in range(K):
+        gram = _kernel_numpy(kernel, U, U, LS[k], amp[k])[0] + 1e-4 * np.eye(N)
+        chol_inv[k] = np.linalg.inv(np.linalg.cholesky(gram))
+        chol_inv[k][np.triu_indices(N, 1)] = np.nan  # the upper triangle is never read
+    u = pt.dvector("u")
+    kc, Q, W, r2 = kernel_quadratic(kernel, chol_inv, U, LS, amp, base, u)
+    weights = rng.normal(size=(K, m, m)), rng.normal(size=(K, m, N))
+    loss = pt.sum(Q * weights[0]) + pt.sum(kc * weights[1]) + pt.sum(r2**2)
+    at = rng.uniform(size=p)
+    for mode in ("NUMBA", "FAST_RUN"):
+        f = pytensor.function([u], [kc, Q, W, loss, pytensor.grad(loss, u)], mode=mode)
+        kc_v, Q_v, W_v, loss_v, grad_v = f(at)
+        for k in range(K):  # dense numpy: K⁻¹ from the kernel matrix itself
+            r2_k = base[k] + np.sum(((U - at) / LS[k]) ** 2, axis=1)
+            gram = _kernel_numpy(kernel, U, U, LS[k], amp[k])[0] + 1e-4 * np.eye(N)
+            kern = kc_v[k]
+            if kernel == "se":
+                np.testing.assert_allclose(kern, amp[k] * np.exp(-0.5 * r2_k), rtol=1e-12)
+            np.testing.assert_allclose(Q_v[k], kern @ np.linalg.solve(gram, kern.T), rtol=1e-8)
+            np.testing.assert_allclose(W_v[k], np.linalg.solve(gram, kern.T).T, rtol=1e-7)
+        step = 1e-6
+        fd = [(f(at + step * e)[3] - f(at - step * e)[3]) / (2 * step) for e in np.eye(p)]
+        np.testing.assert_allclose(grad_v, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+
+
+def test_leave_one_out_of_the_low_rank_likelihood_is_the_dense_one():
+    import xarray as xr
+
+    import kohpymc as kp
+    from kohpymc.loo import loo_log_likelihood
+    from kohpymc.model import compose_model
+
+    em, _ = _emulator(20)
+    data = _data()
+    draws = np.random.default_rng(2).uniform([1.6, 0.7, 0.3], [1.8, 0.9, 0.5], size=(1, 4, 3))
+    posterior = xr.Dataset(
+        {k: (("chain", "draw"), draws[..., j]) for j, k in enumerate("akc")},
+        coords={"chain": [0], "draw": np.arange(4)},
+    )
+    values = [
+        loo_log_likelihood(
+            posterior, compose_model(em.physics_model(covariance=mode), data, kp.NoDiscrepancy())
+        )["y"].values
+        for mode in ("full", "dense")
+    ]
+    np.testing.assert_allclose(values[0], values[1], rtol=1e-8, atol=1e-10)

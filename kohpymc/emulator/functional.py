@@ -65,13 +65,13 @@ from scipy import linalg, stats
 
 from kohpymc.emulator.design import log_scaled
 from kohpymc.emulator.gp import (
-    _SQRT5,
     KERNELS,
     EmulatedPhysics,
     GPHyperparameters,
     _fit_hyperparameters,
     _kernel_numpy,
 )
+from kohpymc.emulator.quadratic import kernel_quadratic, kernel_values
 from kohpymc.emulator.runs import (
     _cache_folder,
     _read_cache,
@@ -762,6 +762,41 @@ class FunctionalEmulator:
         }
 
     # ----------------------------------------------------------------- pytensor
+    #: evaluate the weight GPs' ``k`` and ``kᵀ K⁻¹ k`` by one compiled op,
+    #: :class:`~kohpymc.emulator.quadratic.KernelQuadratic` (``False``: plain PyTensor
+    #: products with ``L⁻¹``, the reference it is tested against)
+    triangular_op: bool = True
+
+    def _training_tensors(self) -> dict[str, Any]:
+        """The weight GPs' training data as shared variables, made once per emulator.
+
+        Shared, not constants: a compiled log density reads them at run time, so numba
+        does not inline megabytes of arrays into its code (a minute of compiling the
+        dielectric emulator, never cached) and its disk cache can serve the next run.
+        """
+        tensors = self.__dict__.get("_tensors")
+        if tensors is None:
+            values = {
+                "U": self.U,
+                "alpha": np.array([gp.alpha for gp in self._gps]),  # (K, N)
+                "chol_inv": np.array([gp.chol_inv for gp in self._gps]),  # (K, N, N)
+                "lengthscales": np.array([h.lengthscales for h in self.hypers]),  # (K, q)
+                "amplitude": np.array([h.amplitude for h in self.hypers]),
+                "nugget": np.array([h.nugget for h in self.hypers]),
+                "lower": self.lower,
+                "width": self.width,
+            }
+            if self.rotation is not None:
+                values["center"], values["matrix"] = self.rotation
+            tensors = {k: _shared(v, f"emulator_{k}") for k, v in values.items()}
+            self.__dict__["_tensors"] = tensors
+        return tensors
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_tensors", None)  # shared variables: made again on demand
+        return state
+
     def _latent_tensor(self, theta: Any, X: np.ndarray, low_rank: bool = False) -> tuple[Any, Any]:
         """Latent mean and covariance at the rows: all K weight GPs as batched tensors.
 
@@ -771,17 +806,21 @@ class FunctionalEmulator:
         loc = self._locate(X)
         w_mean, cov_w = self._weight_moments(theta, loc)
         B = loc.interp @ self.basis  # (n, K)
+        B_t = _shared(B, "emulator_basis_at_rows")
         idx = loc.setting_index
         trunc = self._truncation(loc)
         s = self.curve_scale
-        mean = loc.interp @ self.mean_curve + s * pt.sum(B.T * w_mean[:, idx], axis=0)
-        factor = self._low_rank_factor(B, loc, trunc, cov_w) if low_rank else None
+        one = len(loc.settings) == 1
+        w_rows = pt.dot(B_t, w_mean[:, 0]) if one else pt.sum(B_t.T * w_mean[:, idx], axis=0)
+        mean = _shared(loc.interp @ self.mean_curve, "emulator_mean_at_rows") + s * w_rows
+        factor = self._low_rank_factor(B, B_t, loc, trunc, cov_w) if low_rank else None
         if factor is not None:
-            return mean, low_rank_covariance(s**2 * np.diag(trunc), s * factor)
-        if len(loc.settings) == 1:
-            cov = trunc + pt.dot(B * cov_w[:, 0, 0][None, :], B.T)
+            d = _shared(s**2 * np.diag(trunc), "emulator_truncation_at_rows")
+            return mean, low_rank_covariance(d, s * factor)
+        if one:
+            cov = trunc + pt.dot(B_t * cov_w[:, 0, 0][None, :], B_t.T)
         else:
-            outer = B.T[:, :, None] * B.T[:, None, :]  # (K, n, n)
+            outer = B_t.T[:, :, None] * B_t.T[:, None, :]  # (K, n, n)
             cov = trunc + pt.sum(outer * cov_w[:, idx][:, :, idx], axis=0)
         return mean, s**2 * cov
 
@@ -791,59 +830,53 @@ class FunctionalEmulator:
         One setting: the variance is clipped below at the nugget, as in :meth:`_WeightGP.predict`.
         """
         ds = len(self.scalar_inputs)
-        u = self._theta_unit_tensor(pt.as_tensor_variable(theta))  # (p,)
+        t = self._training_tensors()
+        theta = pt.as_tensor_variable(theta)
         settings = self._unit_settings(loc.settings)  # (m, d_s) numbers
         m = len(settings)
-        LS = np.array([h_.lengthscales for h_ in self.hypers])  # (K, q)
-        amp = np.array([h_.amplitude for h_ in self.hypers])
-        nug = np.array([h_.nugget for h_ in self.hypers])
-        alpha = np.array([gp.alpha for gp in self._gps])  # (K, N)
-        chol_inv = np.array([gp.chol_inv for gp in self._gps])  # (K, N, N)
-        U = self.U
-        # squared distances (K, m, N): the scalar part is a constant, θ's part is shared
-        r2_s = np.sum(
-            ((settings[None, :, None, :] - U[None, None, :, :ds]) / LS[:, None, None, :ds]) ** 2,
-            axis=-1,
-        )
-        r2_t = pt.sum(((U[None, :, ds:] - u[None, None, :]) / LS[:, None, ds:]) ** 2, axis=-1)
-        Kc = self._batched_kernel(r2_s + r2_t[:, None, :], amp[:, None, None])  # (K, m, N)
-        w_mean = pt.sum(Kc * alpha[:, None, :], axis=-1)  # (K, m)
-        V = pt.matmul(chol_inv, Kc.transpose(0, 2, 1))  # (K, N, m)
+        LS, amp, nug, U = t["lengthscales"], t["amplitude"], t["nugget"], t["U"]
+        # squared distances (K, m, N): the settings' part, then θ's (shared by the settings)
+        base = pt.zeros((len(self.hypers), m, self.n_runs))
+        if ds:
+            diff = (settings[None, :, None, :] - U[None, None, :, :ds]) / LS[:, None, None, :ds]
+            base = pt.sum(diff**2, axis=-1)
+        u = self._theta_unit_tensor(theta)
+        if self.triangular_op:
+            Kc, quad, _, _ = kernel_quadratic(
+                self.kernel, t["chol_inv"], U[:, ds:], LS[:, ds:], amp, base, u
+            )
+        else:
+            r2 = pt.sum(((U[None, :, ds:] - u[None, None, :]) / LS[:, None, ds:]) ** 2, axis=-1)
+            Kc = kernel_values(self.kernel, base + r2[:, None, :], amp[:, None, None], pt)
+            V = pt.matmul(t["chol_inv"], Kc.transpose(0, 2, 1))  # (K, N, m)
+            quad = pt.matmul(V.transpose(0, 2, 1), V)
+        w_mean = pt.sum(Kc * t["alpha"][:, None, :], axis=-1)  # (K, m)
         if m == 1:
-            var = pt.maximum(amp + nug - pt.sum(V[:, :, 0] ** 2, axis=1), nug)  # (K,)
+            var = pt.maximum(amp + nug - quad[:, 0, 0], nug)  # (K,)
             return w_mean, var[:, None, None]
-        prior_r2 = np.sum(
-            ((settings[None, :, None, :] - settings[None, None, :, :]) / LS[:, None, None, :ds])
-            ** 2,
-            axis=-1,
-        )
-        prior = self._batched_kernel(prior_r2, amp[:, None, None], lib=np)
-        return w_mean, prior - pt.matmul(V.transpose(0, 2, 1), V) + nug[:, None, None] * np.eye(m)
+        gap = (settings[None, :, None, :] - settings[None, None, :, :]) / LS[:, None, None, :ds]
+        prior = kernel_values(self.kernel, pt.sum(gap**2, axis=-1), amp[:, None, None], pt)
+        return w_mean, prior - quad + nug[:, None, None] * np.eye(m)
 
     def _low_rank_factor(
-        self, B: np.ndarray, loc: _Rows, trunc: np.ndarray, cov_w: Any
+        self, B: np.ndarray, B_t: Any, loc: _Rows, trunc: np.ndarray, cov_w: Any
     ) -> Any | None:
         """``F`` ``(n, K m)`` with ``Σ_k (B_k B_kᵀ) ∘ c_k[idx, idx] = F Fᵀ``, or ``None``.
 
         ``F_k = diag(B_k) E L_k`` with ``E`` the rows' setting indicator and
-        ``c_k = L_k L_kᵀ``.  ``None`` (dense) when the output is log-normal, when the
-        truncation term is not diagonal (rows sharing a grid point at one setting) or
-        when the rank ``K m`` is not below the number of rows.
+        ``c_k = L_k L_kᵀ``; ``B`` the basis at the rows and ``B_t`` the same as a
+        tensor.  ``None`` (dense) when the output is log-normal, when the truncation
+        term is not diagonal (rows sharing a grid point at one setting) or when the
+        rank ``K m`` is not below the number of rows.
         """
         n, K, m = B.shape[0], B.shape[1], len(loc.settings)
         if self.log_output or K * m >= n or np.any(trunc[~np.eye(n, dtype=bool)] != 0.0):
             return None
         if m == 1:
-            return B * pt.sqrt(cov_w[:, 0, 0])[None, :]
+            return B_t * pt.sqrt(cov_w[:, 0, 0])[None, :]
         chol = pt.linalg.cholesky(cov_w, lower=True)  # (K, m, m)
-        blocks = B.T[:, :, None] * chol[:, loc.setting_index, :]  # (K, n, m)
+        blocks = B_t.T[:, :, None] * chol[:, loc.setting_index, :]  # (K, n, m)
         return blocks.transpose(1, 0, 2).reshape((n, K * m))
-
-    def _batched_kernel(self, r2: Any, amp: Any, lib: Any = pt) -> Any:
-        if self.kernel == "se":
-            return amp * lib.exp(-0.5 * r2)
-        r = lib.sqrt(r2 + 1e-12)
-        return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * lib.exp(-_SQRT5 * r)
 
     def mean_tensor(self, theta: Any, X: Any) -> Any:
         """Symbolic predictive mean at rows ``X`` (numbers, input order) as a function of θ.
@@ -924,12 +957,12 @@ class FunctionalEmulator:
     def _theta_unit_tensor(self, theta: Any) -> Any:
         """θ's GP coordinates scaled to the unit box, as a tensor ``(p,)``."""
         ds = len(self.scalar_inputs)
+        t = self._training_tensors()
         logged = self.log_columns[ds:]
         h = pt.where(logged, pt.log(pt.where(logged, theta, 1.0)), theta) if logged.any() else theta
         if self.rotation is not None:
-            center, matrix = self.rotation
-            h = pt.dot(matrix, h - center)
-        return (h - self.lower[ds:]) / self.width[ds:]
+            h = pt.dot(t["matrix"], h - t["center"])
+        return (h - t["lower"][ds:]) / t["width"][ds:]
 
     def physics_model(
         self,
@@ -984,6 +1017,11 @@ class FunctionalEmulator:
             f"({100 * self.explained:.3g} %), kernel={self.kernel!r}"
             + (", log_output=True)" if self.log_output else ")")
         )
+
+
+def _shared(value: Any, name: str) -> Any:
+    """``value`` as a float64 shared variable (a run-time input of compiled graphs)."""
+    return pytensor.shared(np.array(value, dtype=float), name=name)
 
 
 def _numbers(X: Any) -> np.ndarray:

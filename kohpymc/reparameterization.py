@@ -25,7 +25,11 @@ Before sampling, :func:`plan` therefore
    partner from that regression, which straightens the ridge (dielectric M0: score 27
    → 0.74, 58 → 10–12 leapfrog steps per draw);
 5. keeps the best-scoring system and samples ``z`` with ``w = μ + L z``
-   (``L Lᵀ = H⁻¹``), so the sampler sees a posterior close to a standard normal.
+   (``L Lᵀ = H⁻¹``), so the sampler sees a posterior close to a standard normal;
+6. where every Laplace map fits badly (score > 1), also tries a straight ridge cut by
+   the prior box (:class:`BoxRidgePlan`) and a curved one followed from face to face
+   (:class:`kohpymc.ridge_curve.RidgeCurvePlan`); either is kept when it scores better,
+   a plan whose density has zero-density holes near the mode ranking last.
 
 Draws map back through ``z → w → v → parameters``; the InferenceData holds the user's
 parameters only.  The density in ``z`` is exact (the log-Jacobian of the elementwise

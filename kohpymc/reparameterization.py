@@ -25,7 +25,11 @@ Before sampling, :func:`plan` therefore
    partner from that regression, which straightens the ridge (dielectric M0: score 27
    → 0.74, 58 → 10–12 leapfrog steps per draw);
 5. keeps the best-scoring system and samples ``z`` with ``w = μ + L z``
-   (``L Lᵀ = H⁻¹``), so the sampler sees a posterior close to a standard normal.
+   (``L Lᵀ = H⁻¹``), so the sampler sees a posterior close to a standard normal;
+6. where every Laplace map fits badly (score > 1), also tries a straight ridge cut by
+   the prior box (:class:`BoxRidgePlan`) and a curved one followed from face to face
+   (:class:`kohpymc.ridge_curve.RidgeCurvePlan`); either is kept when it scores better,
+   a plan whose density has zero-density holes near the mode ranking last.
 
 Draws map back through ``z → w → v → parameters``; the InferenceData holds the user's
 parameters only.  The density in ``z`` is exact (the log-Jacobian of the elementwise
@@ -896,8 +900,18 @@ def plan(
     # log-uniform over 1e-8..1e-6 and 1e8..1e10: score 0.19 against the segment's 0.27),
     # NUTS diverges at the ridge's ends (3 seeds, 4 × 1000: 11-18 divergences, ESS 95-264;
     # along the segment 0 and 4186-4346)
+    along = []
     if box is not None and box.gaussian_score < max(best.gaussian_score, _BOX_RIDGE_SCORE):
-        return _box_ridge_reason(space, box, best)
+        along.append(_box_ridge_reason(space, box, best))
+    curve = _ridge_curve(space, plans, mode) if best.gaussian_score > _BOX_RIDGE_SCORE else None
+    if curve is not None and curve.gaussian_score < best.gaussian_score:
+        along.append(_ridge_curve_reason(space, curve, best))
+    if along:
+        # a plan with zero-density holes where the sampler goes (a straight segment that
+        # misses the box when a parameter near its own bound crosses its wall: dielectric
+        # M2, 129 divergences in 2 × 300 draws) ranks after every plan without
+        holes = len(along) > 1
+        return min(along, key=lambda p: (holes and _has_holes(space, p, seed), p.gaussian_score))
     if not _needs_whitening(best):
         return _unwhitened_plan(space, pymc_coords, mode, best, shares, shared, seed)
     return _whitened_plan(space, mode, best, shared, seed)
@@ -1256,6 +1270,44 @@ def box_ridge_plan(space: ValueSpace, mode: Mode, flat: float = 1e-6) -> BoxRidg
     if not np.isfinite(plan.logp_dlogp(space, plan.from_value(mode.value), safe=True)[0]):
         return None
     return replace(plan, gaussian_score=_gaussian_score(space, plan))
+
+
+def _ridge_curve(
+    space: ValueSpace, plans: Sequence[Reparameterization], mode: Mode
+) -> Reparameterization | None:
+    """The ridge-curve plan from the log-logit Laplace plan (None without a long ridge)."""
+    from kohpymc.ridge_curve import ridge_curve_plan
+
+    log_logit = [p for p in plans if p.coordinates.name == "log-logit"]
+    return ridge_curve_plan(space, log_logit[0], mode) if log_logit else None
+
+
+def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization):
+    """``curve`` with its reason: which parameters lead the ridge, and the scores."""
+    labels, index, _ = interval_elements(space)
+    by_index = dict(zip(index.tolist(), labels, strict=True))
+    soft = ", ".join(by_index[int(i)] for i in np.flatnonzero(curve.coordinates.soft))
+    return replace(
+        curve,
+        reason=(
+            f"the posterior is a curved ridge led by {by_index[int(curve.pivot)]} from one "
+            f"face of its prior box to the other (Gaussian score of the best Laplace map "
+            f"{best.gaussian_score:.3g}, of this map {curve.gaussian_score:.3g}): sampled "
+            f"along it by the logit of {by_index[int(curve.pivot)]}'s position in its box "
+            f"and across it whitened around the conditional modes at {curve.nodes.size} "
+            "nodes" + (f"; {soft} in their own units in a soft box" if soft else "")
+        ),
+    )
+
+
+def _has_holes(space: ValueSpace, plan: Reparameterization, seed: int, n: int = 64) -> bool:
+    """Whether the density is zero (or not finite) at any of ``n`` standard-normal ``z``."""
+    rng = np.random.default_rng(seed)
+    for z in rng.normal(size=(n, plan.ndim)):
+        with np.errstate(all="ignore"):
+            if not np.isfinite(plan.logp_dlogp(space, z, safe=True)[0]):
+                return True
+    return False
 
 
 def _box_ridge_reason(space: ValueSpace, box: BoxRidgePlan, best: Reparameterization):

@@ -112,16 +112,17 @@ def _direct_numba_call(function: Any) -> Callable[..., Any]:
     """``function`` (NUMBA mode) as one numba function around the graph's, cached on disk.
 
     PyTensor calls its graph's numba function through two wrappers, and numba generates
-    the machine code of everything a function calls once per wrapper (~2–3 s per beam
-    formulation from an empty cache); here the graph is inlined into the one function
-    Python calls.  The function's shared inputs (e.g. data) are read at each call.
-    ``function`` itself when its numba function is not structured as PyTensor's.
+    the machine code of everything a function calls once per function, so each wrapper
+    level is one more code generation of the whole graph from an empty cache; here the
+    graph is inlined into the one function Python calls.  The function's shared inputs
+    (e.g. data) are read at each call.  ``function`` itself when its numba function is
+    not structured as PyTensor's.
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
     from pytensor.link.numba.dispatch.basic import numba_njit
 
     jit_fn = getattr(getattr(function, "vm", None), "jit_fn", None)
-    wrapper = getattr(jit_fn, "py_func", None)
+    wrapper: Any = getattr(jit_fn, "py_func", None)
     graph = getattr(wrapper, "__globals__", {}).get("jitable_func")
     if graph is None or getattr(graph, "py_func", None) is None:
         return function

@@ -296,14 +296,14 @@ def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
 
     graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
-    key = None if graph_key is None else f"kohpymc-native-logp-v2-{graph_key}-{n_dim}-{n_theta}"
+    key = None if graph_key is None else f"kohpymc-native-logp-v3-{graph_key}-{n_dim}-{n_theta}"
     env = {
         "N_DIM": n_dim,
         "N_THETA": n_theta,
         "carray": numba.carray,
         "float64": numba.float64,
         "np": np,
-        "jit_fn": jit_fn,
+        "jit_fn": _inlined(jit_fn),
         # numba rebuilds a cached function's environment from an importable module
         "__name__": __name__,
     }
@@ -316,6 +316,24 @@ def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
         numba.types.voidptr,
     )
     return numba.cfunc(signature, cache=key is not None)(raw)
+
+
+def _inlined(jit_fn: Any) -> Any:
+    """PyTensor's graph function behind ``jit_fn``, inlined into its caller by numba.
+
+    ``jit_fn`` calls the graph's function through a wrapper, and numba generates the
+    machine code of everything a function calls once per level (~1 s per level and beam
+    formulation from an empty cache: 45 → 33 s CPU for M0–M4); inlined, the graph is
+    generated once, with the C function nutpie calls.  ``jit_fn`` itself when its
+    structure is not PyTensor's (the wrapper's global ``jitable_func``).
+    """
+    from pytensor.link.numba.dispatch.basic import numba_njit
+
+    graph_fn = getattr(jit_fn, "py_func", None)
+    inner = getattr(graph_fn, "__globals__", {}).get("jitable_func")
+    if inner is None or getattr(inner, "py_func", None) is None:
+        return jit_fn
+    return numba_njit(inner.py_func, inline="always")
 
 
 @functools.cache

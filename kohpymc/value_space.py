@@ -108,6 +108,40 @@ class ValueSpace:
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])
 
 
+def _direct_numba_call(function: Any) -> Callable[..., Any]:
+    """``function`` (NUMBA mode) as one numba function around the graph's, cached on disk.
+
+    PyTensor calls its graph's numba function through two wrappers, and numba generates
+    the machine code of everything a function calls once per function, so each wrapper
+    level is one more code generation of the whole graph from an empty cache; here the
+    graph is inlined into the one function Python calls.  The function's shared inputs
+    (e.g. data) are read at each call.  ``function`` itself when its numba function is
+    not structured as PyTensor's.
+    """
+    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
+    from pytensor.link.numba.dispatch.basic import numba_njit
+
+    jit_fn = getattr(getattr(function, "vm", None), "jit_fn", None)
+    wrapper: Any = getattr(jit_fn, "py_func", None)
+    graph = getattr(wrapper, "__globals__", {}).get("jitable_func")
+    if graph is None or getattr(graph, "py_func", None) is None:
+        return function
+    shared = [spec.variable for spec in function.maker.inputs[1:]]
+    graph_key = CACHED_SRC_FUNCTIONS.get(wrapper)
+    names = ", ".join(f"x{i}" for i in range(1 + len(shared)))
+    key = None if graph_key is None else f"kohpymc-value-logp-v1-{graph_key}-{len(shared)}"
+    env = {"graph": numba_njit(graph.py_func, inline="always"), "__name__": __name__}
+    source = f"def value_logp({names}):\n    return graph({names})\n"
+    raw = compile_numba_function_src(source, "value_logp", env, cache_key=key)
+    call = numba_njit(raw, final_function=True, cache=key is not None)
+
+    def logp_dlogp(x: np.ndarray) -> Any:
+        values = [var.get_value(borrow=True) for var in shared]
+        return call(np.ascontiguousarray(x), *values)
+
+    return logp_dlogp
+
+
 def _constant_value(bound: Any) -> np.ndarray:
     """A prior bound's numeric value, by constant folding (no compiled function).
 
@@ -208,6 +242,8 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         # numba runs a numpy-function physics Op in object mode: correct, only slower
         warnings.filterwarnings("ignore", message="Numba will use object mode")
         logp_dlogp = pm.pytensorf.compile([flat], joined_outputs, **compile_kwargs)
+    if mode == "NUMBA":
+        logp_dlogp = _direct_numba_call(logp_dlogp)
     expanded = list(model.free_RVs) + list(model.deterministics)
     expanded_graphs = model.replace_rvs_by_values(expanded)
     expand_outputs, flat_e = join_nonshared_inputs(

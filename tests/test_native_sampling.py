@@ -92,6 +92,34 @@ def test_symbolic_map_and_density_equal_the_numpy_ones(space, kind):
         np.testing.assert_allclose(got_grad, expected_grad, rtol=1e-10, atol=1e-10 * scale)
 
 
+def test_native_c_function_equals_the_numpy_density(space):
+    """The C function nutpie calls (the graph's numba function inlined into it), called
+    through ctypes with θ as user data: the numpy map's log density and gradient."""
+    import ctypes
+
+    plan = _plan(space, _coordinates(space, "shares"), "shares")
+    z_var, theta, logp, grad, shared = density_in_z(space, plan)
+    function = pm.pytensorf.compile([z_var, theta], [logp, grad], mode="NUMBA")
+    n = space.ndim
+    logp_c = native._logp_cfunc(function.vm.jit_fn, n, int(theta.type.shape[0]))
+    user_data = parameters(plan, shared)
+    rng = np.random.default_rng(SEED)
+    for z in rng.normal(0.0, 0.7, (3, n)):
+        z = np.ascontiguousarray(z)
+        out, value = np.zeros(n), np.zeros(())
+        code = logp_c.ctypes(
+            n, z.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+            out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+            value.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+            user_data.ctypes.data_as(ctypes.c_void_p),
+        )  # fmt: skip
+        assert code == 0
+        expected_logp, expected_grad = plan.logp_dlogp(space, z)
+        assert float(value) == pytest.approx(expected_logp, rel=1e-10, abs=1e-10)
+        scale = np.max(np.abs(expected_grad))
+        np.testing.assert_allclose(out, expected_grad, rtol=1e-10, atol=1e-10 * scale)
+
+
 def test_symbolic_map_outside_the_walls_has_zero_density(space):
     """Log-scale coordinates with walls: a point beyond ln b has log density -inf, as in numpy."""
     plan = _plan(space, _coordinates(space, "walls"), "walls")

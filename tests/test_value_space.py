@@ -30,3 +30,21 @@ def test_expand_of_a_numba_space_matches_the_c_backend():
 def test_expand_mode_is_c_for_numba_only_with_a_compiler():
     assert _expand_mode("NUMBA") == ("FAST_RUN" if pytensor.config.cxx else "NUMBA")
     assert _expand_mode(None) is None
+
+
+def test_numba_space_reads_shared_data_at_each_call():
+    """The NUMBA log density is called through kohpymc's own numba function (the graph
+    inlined): it reads the model's shared data at every call, as the C backend does."""
+    data = pytensor.shared(np.array([1.0, 1.5, 2.0]), name="y_obs")
+    with pm.Model() as model:
+        a = pm.Normal("a", 0.0, 10.0)
+        s = pm.HalfNormal("s", 1.0)
+        pm.Normal("y", a, s, observed=data)
+    numba, c = value_space(model, mode="NUMBA"), value_space(model, mode="FAST_RUN")
+    x = np.array([0.7, -0.4])
+    for values in ([1.0, 1.5, 2.0], [-3.0, 0.2, 5.0]):
+        data.set_value(np.array(values))
+        expected_logp, expected_grad = c.logp_dlogp(x)
+        logp, grad = numba.logp_dlogp(x)
+        np.testing.assert_allclose(logp, expected_logp, rtol=1e-12)
+        np.testing.assert_allclose(grad, expected_grad, rtol=1e-12)

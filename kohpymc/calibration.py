@@ -378,6 +378,7 @@ def calibrate(
         for text in sampling.reparameterization.get("warnings", [])
     ]
     _record_provenance(idata, physics, data, discrepancy, sampling, presampling)
+    idata.attrs["sampler_problems"] = json.dumps(problems)  # as the docs say, in memory too
     if problems and warn:
         warn_user(
             f"{discrepancy.label} calibration of {physics.name!r}: " + "; ".join(problems),

@@ -158,6 +158,7 @@ def test_sampler_trouble_is_reported_not_swallowed(beam_physics, beam_data):
         cal = calibrate(beam_physics, beam_data, draws=15, tune=10, chains=2, random_seed=SEED)
     assert cal.problems
     assert json.loads(cal.provenance()["sampler_problems"]) == cal.problems
+    assert json.loads(cal.idata.attrs["sampler_problems"]) == cal.problems  # in Jupyter too
 
 
 def test_bad_physics_fails_before_sampling_with_parameter_values(beam_data):

@@ -60,6 +60,13 @@ IMPORT_NOISE: tuple[NoiseFilter, ...] = (
         DeprecationWarning,
         r"arviz(\.|$)",
     ),
+    # az.compare (kp.loo_weights, every study's LOO column) sorts in place, which pandas 3.1
+    # deprecates
+    NoiseFilter(
+        r"The inplace keyword in DataFrame\.sort_values is deprecated",
+        DeprecationWarning,
+        r"arviz(\.|$)",
+    ),
     NoiseFilter(r"Setuptools is replacing distutils", UserWarning),
     NoiseFilter(r"pkg_resources is deprecated as an API", UserWarning),
     NoiseFilter(r"pkg_resources is deprecated as an API", DeprecationWarning),

@@ -144,6 +144,35 @@ def test_the_matplotlib_deprecation_of_arviz_plots_is_hidden():
     assert not any("alias_mapping" in m for m in messages(quiet_command_line))
 
 
+def test_the_pandas_deprecation_of_arviz_compare_is_hidden():
+    """kp.loo_weights calls az.compare, which sorts a DataFrame in place (deprecated in
+    pandas 3.1): the DeprecationWarning fires without the import filters and not with them."""
+    import arviz as az
+    import numpy as np
+
+    from kohpymc.warning_filters import ignore_noise
+
+    rng = np.random.default_rng(3)
+
+    def idata(shift):
+        return az.from_dict(
+            posterior={"a": rng.normal(size=(2, 100))},
+            log_likelihood={"y": rng.normal(-1.0 - shift, 0.1, size=(2, 100, 20))},
+        )
+
+    def messages(*setup):
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("default")
+            for step in setup:
+                step()
+            az.compare({"m1": idata(0.0), "m2": idata(0.5)}, ic="loo")
+        return [str(w.message) for w in seen]
+
+    if not any("inplace keyword" in m for m in messages()):
+        pytest.skip("this pandas does not deprecate sort_values(inplace=True)")
+    assert not any("inplace keyword" in m for m in messages(ignore_noise))
+
+
 def test_pymc_info_hidden_only_inside_and_keeps_warnings(caplog):
     import logging
 

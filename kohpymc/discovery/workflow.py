@@ -206,41 +206,14 @@ def discover(
     if not 0 < gp_level < 1:
         raise ValueError(f"gp_level must be in (0, 1), got {gp_level!r}")
 
-    def run(model, label, formulation=None, scored_out=None):
-        if joint is not None:
-            scored = joint.fit_and_score(model, label, formulation)
-        else:
-            scored = fit_and_score(
-                model, calibration, validation, formulation, tolerance=tolerance,
-                random_seed=random_seed, label=label, warn=False, **sampler,
-            )  # fmt: skip
-        if scored_out is not None:
-            scored_out.append(scored)
-        return scored.combined_idata(), scored.scores, scored.constant
-
+    run = _calibrator(calibration, validation, tolerance, random_seed, sampler, joint)
     say("calibrating the model as given ...")
     fit = _locate_residuals(physics, calibration, run)
-    if joint is not None:
-        lenders = joint.lenders()
-        say(f"θ from the {joint.describe()['source']}; information borrowed from "
-            f"{_and(lenders) if lenders else 'no other output'}")  # fmt: skip
-    if generated:
-        pool += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
-    say(f"comparing {len(pool)} candidate terms ...")
-    jacobian = physics.jacobian_matrix(calibration.inputs, fit.theta)
     seed = 0 if random_seed is None else int(random_seed)
-    selection = select_terms(
-        fit.resid,
-        jacobian,
-        pool,
-        inputs=calibration.inputs,
-        noise_sd=calibration.noise_sd,
-        max_terms=max_terms,
-        false_alarm=threshold,
-        null_draws=null_draws,
-        random_seed=seed,
-        borrowed=None if joint is None else joint.borrowed_rows(fit.theta),
-    )
+    jacobian, selection = _search_terms(
+        physics, calibration, fit, pool, say, generated=generated, exponents=exponents,
+        max_terms=max_terms, threshold=threshold, null_draws=null_draws, seed=seed, joint=joint,
+    )  # fmt: skip
     common = {
         "selection": selection,
         "input_probability": _input_probability(selection, calibration.inputs),
@@ -253,6 +226,52 @@ def discover(
         physics, calibration, validation, fit, selection, jacobian, common, run, say,
         threshold=threshold, gp_level=gp_level, region_level=region_level, seed=seed,
     )  # fmt: skip
+
+
+def _calibrator(calibration, validation, tolerance, random_seed, sampler, joint):
+    """The calibrate-and-score step both calibrations go through (θ own or borrowed)."""
+
+    def run(model, label, formulation=None, scored_out=None):
+        if joint is not None:
+            scored = joint.fit_and_score(model, label, formulation)
+        else:
+            scored = fit_and_score(
+                model, calibration, validation, formulation, tolerance=tolerance,
+                random_seed=random_seed, label=label, warn=False, **sampler,
+            )  # fmt: skip
+        if scored_out is not None:
+            scored_out.append(scored)
+        return scored.combined_idata(), scored.scores, scored.constant
+
+    return run
+
+
+def _search_terms(
+    physics, calibration, fit, pool: list, say, *, generated, exponents, max_terms, threshold,
+    null_draws, seed, joint,
+):  # fmt: skip
+    """Step 2: the Jacobian at θ̄ and :func:`select_terms` over the candidate pool."""
+    if joint is not None:
+        lenders = joint.lenders()
+        say(f"θ from the {joint.describe()['source']}; information borrowed from "
+            f"{_and(lenders) if lenders else 'no other output'}")  # fmt: skip
+    if generated:
+        pool += physics_terms(physics, fit.theta, calibration.inputs, exponents=exponents)
+    say(f"comparing {len(pool)} candidate terms ...")
+    jacobian = physics.jacobian_matrix(calibration.inputs, fit.theta)
+    selection = select_terms(
+        fit.resid,
+        jacobian,
+        pool,
+        inputs=calibration.inputs,
+        noise_sd=calibration.noise_sd,
+        max_terms=max_terms,
+        false_alarm=threshold,
+        null_draws=null_draws,
+        random_seed=seed,
+        borrowed=None if joint is None else joint.borrowed_rows(fit.theta),
+    )
+    return jacobian, selection
 
 
 def _dimensionless_candidates(units, calibration, exponents, pool: list, generated: bool):

@@ -142,14 +142,27 @@ class GaussianLogDensity(Op):
 _gaussian_log_density = GaussianLogDensity()
 
 
-def _register_numba() -> None:
-    """Compile :class:`GaussianLogDensity` natively in PyTensor's NUMBA mode (and nutpie)."""
+def _numba_dispatch():
+    """PyTensor's numba dispatch module, its Op registration decorator and its Cholesky.
+
+    None without numba; the ``_register_*`` functions below then leave their Op to the
+    other backends.
+    """
     try:
         from pytensor.link.numba.dispatch import basic as numba_basic
         from pytensor.link.numba.dispatch.basic import register_funcify_default_op_cache_key
         from pytensor.link.numba.dispatch.linalg.decomposition.cholesky import _cholesky
     except ImportError:  # pragma: no cover - numba is a PyTensor dependency here
+        return None
+    return numba_basic, register_funcify_default_op_cache_key, _cholesky
+
+
+def _register_numba() -> None:
+    """Compile :class:`GaussianLogDensity` natively in PyTensor's NUMBA mode (and nutpie)."""
+    parts = _numba_dispatch()
+    if parts is None:  # pragma: no cover - numba is a PyTensor dependency here
         return
+    numba_basic, register_funcify_default_op_cache_key, _cholesky = parts
 
     @register_funcify_default_op_cache_key(GaussianLogDensity)
     def _numba_gaussian_log_density(op, node, **kwargs):
@@ -216,11 +229,10 @@ _low_rank_covariance = LowRankCovariance()
 
 def _register_low_rank_numba() -> None:
     """Compile :class:`LowRankCovariance` natively in PyTensor's NUMBA mode (and nutpie)."""
-    try:
-        from pytensor.link.numba.dispatch import basic as numba_basic
-        from pytensor.link.numba.dispatch.basic import register_funcify_default_op_cache_key
-    except ImportError:  # pragma: no cover - numba is a PyTensor dependency here
+    parts = _numba_dispatch()
+    if parts is None:  # pragma: no cover - numba is a PyTensor dependency here
         return
+    numba_basic, register_funcify_default_op_cache_key, _ = parts
 
     @register_funcify_default_op_cache_key(LowRankCovariance)
     def _numba_low_rank_covariance(op, node, **kwargs):
@@ -411,12 +423,10 @@ _woodbury_log_density = WoodburyLogDensity()
 
 def _register_woodbury_numba() -> None:
     """Compile :class:`WoodburyLogDensity` natively in PyTensor's NUMBA mode (and nutpie)."""
-    try:
-        from pytensor.link.numba.dispatch import basic as numba_basic
-        from pytensor.link.numba.dispatch.basic import register_funcify_default_op_cache_key
-        from pytensor.link.numba.dispatch.linalg.decomposition.cholesky import _cholesky
-    except ImportError:  # pragma: no cover - numba is a PyTensor dependency here
+    parts = _numba_dispatch()
+    if parts is None:  # pragma: no cover - numba is a PyTensor dependency here
         return
+    numba_basic, register_funcify_default_op_cache_key, _cholesky = parts
 
     @register_funcify_default_op_cache_key(WoodburyLogDensity)
     def _numba_woodbury_log_density(op, node, **kwargs):

@@ -30,20 +30,25 @@ def _finite_difference_gradient(f, x, h=1e-6):
     return grad
 
 
+def _check_elementwise_map(coords, w, *, h, rtol, atol=0.0):
+    """Inverse (1e-10), dv/dw and d log|dv/dw|/dw of elementwise coordinates at ``w``
+    against central differences of step ``h``; returns ``v``, ``dv`` and ``log|dv/dw|``."""
+    v, dv, dlogjac, logjac = coords.to_value(w)
+    np.testing.assert_allclose(coords.from_value(v), w, rtol=1e-10)
+    for i, step in enumerate(h * np.eye(w.size)):
+        fd = (coords.to_value(w + step)[0][i] - coords.to_value(w - step)[0][i]) / (2 * h)
+        np.testing.assert_allclose(dv[i], fd, rtol=rtol)
+    fd_logjac = _finite_difference_gradient(lambda u: coords.to_value(u)[3], w, h=h)
+    np.testing.assert_allclose(dlogjac, fd_logjac, rtol=rtol, atol=atol)
+    return v, dv, logjac
+
+
 def test_log_coordinates_map_and_jacobian_against_finite_differences():
     """w -> v for Uniform(a, b), a > 0, on the log scale: inverse, dv/dw and d log|dv/dw|/dw."""
     lower, upper = np.array([0.01, 0.8]), np.array([1.0, 1.4])
     coords = Coordinates(np.array([True, True]), lower, upper)
     w = np.array([-1.3, 0.7])
-    v, dv, dlogjac, logjac = coords.to_value(w)
-    np.testing.assert_allclose(coords.from_value(v), w, rtol=1e-10)
-    for i in range(2):
-        step = np.zeros(2)
-        step[i] = 1e-6
-        fd = (coords.to_value(w + step)[0][i] - coords.to_value(w - step)[0][i]) / 2e-6
-        np.testing.assert_allclose(dv[i], fd, rtol=1e-6)
-    fd_logjac = _finite_difference_gradient(lambda u: coords.to_value(u)[3], w)
-    np.testing.assert_allclose(dlogjac, fd_logjac, rtol=1e-6)
+    v, dv, logjac = _check_elementwise_map(coords, w, h=1e-6, rtol=1e-6)
     # x = a (b/a)^p with p = expit(w): the value-space point is logit((x - a)/(b - a))
     p = 1 / (1 + np.exp(-w))
     x = lower * (upper / lower) ** p
@@ -484,16 +489,8 @@ def test_soft_box_coordinates_map_and_jacobian_against_finite_differences():
         np.zeros(2, bool), lower, upper, soft=np.ones(2, bool), width=np.array([0.1, 0.005])
     )
     for w in (np.array([16.47, 0.963]), np.array([15.9, 1.02]), np.array([16.12, 0.995])):
-        v, dv, dlogjac, logjac = coords.to_value(w)
+        v, _, logjac = _check_elementwise_map(coords, w, h=1e-7, rtol=1e-5, atol=1e-6)
         assert np.all(np.isfinite(v)) and np.isfinite(logjac)
-        np.testing.assert_allclose(coords.from_value(v), w, rtol=1e-10)
-        for i in range(2):
-            step = np.zeros(2)
-            step[i] = 1e-7
-            fd_i = (coords.to_value(w + step)[0][i] - coords.to_value(w - step)[0][i]) / 2e-7
-            np.testing.assert_allclose(dv[i], fd_i, rtol=1e-5)
-        fd = _finite_difference_gradient(lambda u: coords.to_value(u)[3], w, h=1e-7)
-        np.testing.assert_allclose(dlogjac, fd, rtol=1e-5, atol=1e-6)
     # far from the upper bound, x = ξ + h·log(1 + e^{-(ξ - a)/h}): 3.7 widths inside the
     # lower one x is 0.024 widths off ξ, 100 widths inside it equals ξ
     x = lower + (upper - lower) / (1 + np.exp(-coords.to_value(np.array([16.47, 0.5]))[0]))

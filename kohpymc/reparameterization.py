@@ -460,7 +460,7 @@ def _far_from_walls(space: ValueSpace, plan: Reparameterization, n_sd: float = 6
     if np.any(centre - n_sd * sd <= lower) or np.any(centre + n_sd * sd >= upper):
         return False
     walls = zip(np.flatnonzero(m), lower, upper, strict=True)
-    drops = (_wall_drop(space, plan, i, w) for i, a, b in walls for w in (a, b))
+    drops = (_wall_drop(space, plan, int(i), w) for i, a, b in walls for w in (a, b))
     return all(drop >= 0.5 * n_sd**2 for drop in drops)
 
 

@@ -16,7 +16,7 @@ log scale for positive bounded parameters.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +27,7 @@ import pytensor.tensor as pt
 from pymc.logprob.transforms import IntervalTransform, LogTransform
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
-__all__ = ["ValueSpace", "value_space"]
+__all__ = ["ValueSpace", "transformed_value", "value_space"]
 
 
 @dataclass(frozen=True)
@@ -151,6 +151,28 @@ def _constant_value(bound: Any) -> np.ndarray:
     return np.asarray(getattr(folded, "data", folded), dtype=float)
 
 
+def transformed_value(model: pm.Model, rv: Any, values: Any) -> np.ndarray:
+    """``values`` of the free variable ``rv`` in its value space (PyMC's transform applied).
+
+    Evaluated in PyTensor's Python mode: a few numbers, and the default C backend's first
+    compile in a process reads its whole module cache (3–5 s on a well-used machine).
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> with pm.Model() as model:
+    ...     s = pm.HalfNormal("s", 1.0)
+    >>> transformed_value(model, s, [1.0, np.e])
+    array([0., 1.])
+    """
+    values = np.asarray(values, dtype=float)
+    transform = model.rvs_to_transforms.get(rv)
+    if transform is None:
+        return values
+    forward = transform.forward(values, *rv.owner.inputs)
+    return np.asarray(forward.eval(mode="FAST_COMPILE"), dtype=float)
+
+
 def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarray, np.ndarray]:
     """Transform kind and (for intervals) numeric bounds of one free variable."""
     transform = model.rvs_to_transforms.get(rv)
@@ -170,22 +192,33 @@ def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarra
     return "other", nan, nan
 
 
-def _expand_mode(mode: str | None) -> str | None:
-    """Compile mode of the expand map: the C backend when the log density is NUMBA's.
+def _expand_mode(mode: str | None, graphs: Sequence[Any] = ()) -> str | None:
+    """Compile mode of the expand map ``graphs`` when the log density's is ``mode``.
 
     The expand map runs once per kept draw (~50 µs either way on the beam), so its compile
-    time is what counts: numba compiles it at its first call and cannot cache a graph
-    with a Python Op (the physics) across processes (1–3 s per beam formulation), while
-    the C backend finds its modules in PyTensor's on-disk cache.  Without a C compiler
-    the map stays with NUMBA (PyTensor's Python fallback would cost milliseconds per draw).
+    time is what counts.  With a Python Op in it (a numpy physics function) numba compiles
+    it at its first call and cannot cache it across processes (1–3 s per beam
+    formulation), while the C backend finds its modules in PyTensor's on-disk cache: the
+    C backend then, when a C compiler is available.  A pure PyTensor map stays with
+    NUMBA, which caches it on disk: the C backend's first compile in a process reads its
+    whole module cache (3–5 s with the ~1,200 modules of a well-used cache), which the
+    emulated dielectric calibration paid for a map of 14 nodes.  Without a C compiler the
+    map stays with NUMBA (PyTensor's Python fallback would cost milliseconds per draw).
 
     Examples
     --------
     >>> _expand_mode("FAST_RUN")
     'FAST_RUN'
+    >>> import pytensor.tensor as pt
+    >>> _expand_mode("NUMBA", [pt.exp(pt.vector("x"))])
+    'NUMBA'
     """
+    from kohpymc.native import python_only_ops
+
     if mode != "NUMBA" or not pytensor.config.cxx:
         return mode
+    if graphs and not python_only_ops(graphs):
+        return "NUMBA"
     return "FAST_RUN"
 
 
@@ -198,8 +231,8 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         A model whose free variables are all continuous.
     mode : str, optional
         PyTensor compile mode of the log density and gradient (default: PyTensor's
-        default, the C backend).  With ``"NUMBA"`` the expand map is compiled by the C
-        backend when a C compiler is available (:func:`_expand_mode`).
+        default, the C backend).  With ``"NUMBA"`` an expand map holding a Python Op
+        is compiled by the C backend when a C compiler is available (:func:`_expand_mode`).
 
     Returns
     -------
@@ -249,7 +282,7 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     expand_outputs, flat_e = join_nonshared_inputs(
         point=point, outputs=expanded_graphs, inputs=value_vars, make_inputs_shared=False
     )
-    expand_mode = _expand_mode(mode)
+    expand_mode = _expand_mode(mode, expand_outputs)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Numba will use object mode")
         expand = pm.pytensorf.compile(

@@ -353,6 +353,14 @@ class _WeightGP:
             cov = np.maximum(cov, h.nugget)
         return Ks @ self.alpha, cov
 
+    def predict_each(self, Us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and variance ``(m,)`` at every row of ``Us`` alone (``predict`` row by row)."""
+        h = self.hyper
+        Ks, _ = _kernel_numpy(self.kernel, Us, self.U, h.lengthscales, h.amplitude)
+        V = self.chol_inv @ Ks.T
+        var = h.amplitude + h.nugget - np.sum(V**2, axis=0)
+        return Ks @ self.alpha, np.maximum(var, h.nugget)
+
 
 def _check_emulator_arguments(
     runs: FunctionalRuns, physics: PhysicsModel, kernel: str, variance: float
@@ -715,18 +723,34 @@ class FunctionalEmulator:
         """Latent mean and sd ``(n, P)`` of the curves at every design row, on the grid.
 
         Latent: ln output with ``log_output=True`` (a Gaussian band there is the
-        log-normal band in output units).
+        log-normal band in output units).  On the grid only the diagonal of
+        :meth:`predict_covariance` is needed, ``s² (Σ_k Φ_pk² v_k + τ_p)`` with ``v_k``
+        the weight GPs' variances at the row, so all rows are predicted at once.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> box, grid = {"a": (1, 2), "k": (0.5, 1)}, {"t": np.linspace(0, 3, 16)}
+        >>> em = FunctionalEmulator(run_curves(decay, space_filling_design(box, 20), grid),
+        ...                         decay)
+        >>> mean, sd = em.predict_curves(pd.DataFrame({"a": [1.5], "k": [0.7]}))
+        >>> bool(np.allclose(mean[0], 1.5 * np.exp(-0.7 * grid["t"]), atol=1e-2))
+        True
         """
-        means, sds = [], []
-        grid = {k: self.grid[:, j] for j, k in enumerate(self.functional)}
-        P = len(self.grid)
-        for _, row in design.iterrows():
-            inputs = {**grid, **{k: np.full(P, row[k]) for k in self.scalar_inputs}}
-            theta = np.array([row[k] for k in self.physics.parameters], dtype=float)
-            m, c = self._latent_numpy(self._rows(inputs), theta)
-            means.append(m)
-            sds.append(np.sqrt(np.maximum(np.diag(c), 0.0)))
-        return np.array(means), np.array(sds)
+        X = design[list(self.columns)].to_numpy(float)
+        Us = (self._coordinates(X) - self.lower) / self.width
+        means = np.empty((len(X), self.n_components))
+        variances = np.empty((len(X), self.n_components))
+        for k, gp in enumerate(self._gps):
+            means[:, k], variances[:, k] = gp.predict_each(Us)
+        s = self.curve_scale
+        mean = self.mean_curve + s * means @ self.basis.T
+        var = s**2 * (variances @ (self.basis**2).T + self.truncation_variance)
+        return mean, np.sqrt(np.maximum(var, 0.0))
 
     def held_out(self, runs: FunctionalRuns, level: float = 0.9) -> dict[str, float]:
         """Scores on held-out curves: band coverage, RMSE over sd, mean squared z.

@@ -27,7 +27,7 @@ import pytensor.tensor as pt
 from pymc.logprob.transforms import IntervalTransform, LogTransform
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
-__all__ = ["ValueSpace", "transformed_value", "value_space"]
+__all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_space"]
 
 
 @dataclass(frozen=True)
@@ -108,15 +108,47 @@ class ValueSpace:
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])
 
 
+@dataclass(frozen=True)
+class NumbaDensity:
+    """The log density and gradient of a NUMBA :class:`ValueSpace`: one numba function.
+
+    Calling it evaluates at a flat value vector, reading the graph's shared inputs at
+    each call.  :mod:`kohpymc.native` builds nutpie's density in the sampling
+    coordinates around :attr:`graph` instead of compiling the model's graph a second
+    time.
+
+    Attributes
+    ----------
+    call : numba dispatcher
+        ``call(x, *shared values)`` -> ``(logp, grad)``.
+    graph : numba dispatcher
+        PyTensor's function of the graph (the same arguments), inlined into its callers.
+    shared : tuple
+        The graph's shared variables, in argument order.
+    key : str or None
+        PyTensor's cache key of the graph (``None``: not cached on disk).
+    """
+
+    call: Any
+    graph: Any
+    shared: tuple[Any, ...]
+    key: str | None
+
+    def __call__(self, x: np.ndarray) -> Any:
+        """``(logp, grad)`` at the flat value vector ``x``."""
+        values = [var.get_value(borrow=True) for var in self.shared]
+        return self.call(np.ascontiguousarray(x), *values)
+
+
 def _direct_numba_call(function: Any) -> Callable[..., Any]:
     """``function`` (NUMBA mode) as one numba function around the graph's, cached on disk.
 
     PyTensor calls its graph's numba function through two wrappers, and numba generates
     the machine code of everything a function calls once per function, so each wrapper
     level is one more code generation of the whole graph from an empty cache; here the
-    graph is inlined into the one function Python calls.  The function's shared inputs
-    (e.g. data) are read at each call.  ``function`` itself when its numba function is
-    not structured as PyTensor's.
+    graph is inlined into the one function Python calls (a :class:`NumbaDensity`).  The
+    function's shared inputs (e.g. data) are read at each call.  ``function`` itself
+    when its numba function is not structured as PyTensor's.
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
     from pytensor.link.numba.dispatch.basic import numba_njit
@@ -126,20 +158,16 @@ def _direct_numba_call(function: Any) -> Callable[..., Any]:
     graph = getattr(wrapper, "__globals__", {}).get("jitable_func")
     if graph is None or getattr(graph, "py_func", None) is None:
         return function
-    shared = [spec.variable for spec in function.maker.inputs[1:]]
+    shared = tuple(spec.variable for spec in function.maker.inputs[1:])
     graph_key = CACHED_SRC_FUNCTIONS.get(wrapper)
     names = ", ".join(f"x{i}" for i in range(1 + len(shared)))
     key = None if graph_key is None else f"kohpymc-value-logp-v1-{graph_key}-{len(shared)}"
-    env = {"graph": numba_njit(graph.py_func, inline="always"), "__name__": __name__}
+    inlined = numba_njit(graph.py_func, inline="always")
+    env = {"graph": inlined, "__name__": __name__}
     source = f"def value_logp({names}):\n    return graph({names})\n"
     raw = compile_numba_function_src(source, "value_logp", env, cache_key=key)
     call = numba_njit(raw, final_function=True, cache=key is not None)
-
-    def logp_dlogp(x: np.ndarray) -> Any:
-        values = [var.get_value(borrow=True) for var in shared]
-        return call(np.ascontiguousarray(x), *values)
-
-    return logp_dlogp
+    return NumbaDensity(call, inlined, shared, graph_key)
 
 
 def _constant_value(bound: Any) -> np.ndarray:

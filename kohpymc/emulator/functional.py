@@ -70,6 +70,7 @@ from kohpymc.emulator.gp import (
     GPHyperparameters,
     _fit_hyperparameters,
     _kernel_numpy,
+    shared_array,
 )
 from kohpymc.emulator.quadratic import kernel_quadratic, kernel_values
 from kohpymc.emulator.runs import (
@@ -812,7 +813,7 @@ class FunctionalEmulator:
             }
             if self.rotation is not None:
                 values["center"], values["matrix"] = self.rotation
-            tensors = {k: _shared(v, f"emulator_{k}") for k, v in values.items()}
+            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
             self.__dict__["_tensors"] = tensors
         return tensors
 
@@ -830,16 +831,16 @@ class FunctionalEmulator:
         loc = self._locate(X)
         w_mean, cov_w = self._weight_moments(theta, loc)
         B = loc.interp @ self.basis  # (n, K)
-        B_t = _shared(B, "emulator_basis_at_rows")
+        B_t = shared_array(B, "emulator_basis_at_rows")
         idx = loc.setting_index
         trunc = self._truncation(loc)
         s = self.curve_scale
         one = len(loc.settings) == 1
         w_rows = pt.dot(B_t, w_mean[:, 0]) if one else pt.sum(B_t.T * w_mean[:, idx], axis=0)
-        mean = _shared(loc.interp @ self.mean_curve, "emulator_mean_at_rows") + s * w_rows
+        mean = shared_array(loc.interp @ self.mean_curve, "emulator_mean_at_rows") + s * w_rows
         factor = self._low_rank_factor(B, B_t, loc, trunc, cov_w) if low_rank else None
         if factor is not None:
-            d = _shared(s**2 * np.diag(trunc), "emulator_truncation_at_rows")
+            d = shared_array(s**2 * np.diag(trunc), "emulator_truncation_at_rows")
             return mean, low_rank_covariance(d, s * factor)
         if one:
             cov = trunc + pt.dot(B_t * cov_w[:, 0, 0][None, :], B_t.T)
@@ -1041,11 +1042,6 @@ class FunctionalEmulator:
             f"({100 * self.explained:.3g} %), kernel={self.kernel!r}"
             + (", log_output=True)" if self.log_output else ")")
         )
-
-
-def _shared(value: Any, name: str) -> Any:
-    """``value`` as a float64 shared variable (a run-time input of compiled graphs)."""
-    return pytensor.shared(np.array(value, dtype=float), name=name)
 
 
 def _numbers(X: Any) -> np.ndarray:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+import pytensor
 import pytensor.tensor as pt
 from scipy import linalg, optimize
 
@@ -321,6 +322,25 @@ class Emulator:
         self._alpha = linalg.cho_solve((self._chol, True), self.z)
         self._chol_inv = linalg.solve_triangular(self._chol, np.eye(self.n_runs), lower=True)
 
+    def _training_tensors(self) -> dict[str, Any]:
+        """The runs' coordinates, ``α = K⁻¹z`` and ``L⁻¹`` as shared variables, made once.
+
+        Run-time inputs of a compiled graph, not constants: numba would inline the
+        ``N × N`` matrix into its code (compiled again for every emulator, never cached),
+        as :class:`~kohpymc.emulator.functional.FunctionalEmulator` measured.
+        """
+        tensors = self.__dict__.get("_tensors")
+        if tensors is None:
+            values = {"U": self.U, "alpha": self._alpha, "chol_inv": self._chol_inv}
+            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
+            self.__dict__["_tensors"] = tensors
+        return tensors
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_tensors", None)  # shared variables: made again on demand
+        return state
+
     # ------------------------------------------------------------------- numpy
     def _transform(self, values: np.ndarray) -> np.ndarray:
         """Columns in the scale of the unit box: ln for :attr:`log_columns`."""
@@ -420,9 +440,10 @@ class Emulator:
     def _cross_kernel(self, theta: Any, X: Any) -> Any:
         """``K(rows, runs)`` as a tensor, shape ``(n, N)``."""
         h = self.hyper
+        U = self._training_tensors()["U"]
         r2 = 0.0
         for j, col in enumerate(self._scaled_rows(theta, X)):
-            r2 = r2 + ((col[:, None] - self.U[None, :, j]) / h.lengthscales[j]) ** 2
+            r2 = r2 + ((col[:, None] - U[None, :, j]) / h.lengthscales[j]) ** 2
         if self.kernel == "se":
             return h.amplitude * pt.exp(-0.5 * r2)
         r = pt.sqrt(r2 + 1e-12)
@@ -435,15 +456,19 @@ class Emulator:
         --------
         See :meth:`variance_tensor`.
         """
-        mean = pt.dot(self._cross_kernel(theta, X), self._alpha)
+        mean = self._latent_mean(theta, X)
         if not self.log_output:
             return self.y_mean + self.y_sd * mean
         return self._output_moments(mean, self._latent_variance(theta, X), pt)[0]
 
+    def _latent_mean(self, theta: Any, X: Any) -> Any:
+        """Standardised predictive mean ``k α`` as a tensor."""
+        return pt.dot(self._cross_kernel(theta, X), self._training_tensors()["alpha"])
+
     def _latent_variance(self, theta: Any, X: Any) -> Any:
         """Standardised predictive variance (latent plus nugget) as a tensor."""
         h = self.hyper
-        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        V = pt.dot(self._training_tensors()["chol_inv"], self._cross_kernel(theta, X).T)
         return pt.maximum(h.amplitude + h.nugget - pt.sum(V**2, axis=0), h.nugget)
 
     def variance_tensor(self, theta: Any, X: Any) -> Any:
@@ -464,7 +489,7 @@ class Emulator:
         var = self._latent_variance(theta, X)
         if not self.log_output:
             return self.y_sd**2 * var
-        mean = pt.dot(self._cross_kernel(theta, X), self._alpha)
+        mean = self._latent_mean(theta, X)
         return self._output_moments(mean, var, pt)[1]
 
     def covariance_tensor(self, theta: Any, X: Any) -> Any:
@@ -495,14 +520,14 @@ class Emulator:
         else:
             r = pt.sqrt(r2 + 1e-12)
             prior = h.amplitude * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * pt.exp(-_SQRT5 * r)
-        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        V = pt.dot(self._training_tensors()["chol_inv"], self._cross_kernel(theta, X).T)
         n = pt.as_tensor_variable(X).shape[0]
         cov = prior - pt.dot(V.T, V) + h.nugget * pt.eye(n)
         if not self.log_output:
             return self.y_sd**2 * cov
         # log-normal: Cov(e^a, e^b) = e^{μa + μb + (σa² + σb²)/2} (e^{σab} − 1)
         latent = self.y_sd**2 * cov
-        m = self.y_mean + self.y_sd * pt.dot(self._cross_kernel(theta, X), self._alpha)
+        m = self.y_mean + self.y_sd * self._latent_mean(theta, X)
         half = m + pt.diagonal(latent) / 2.0
         return pt.exp(half[:, None] + half[None, :]) * pt.expm1(latent)
 
@@ -548,6 +573,17 @@ class Emulator:
             f"lengthscales=({ls}), amplitude={h.amplitude:.3g}, nugget={h.nugget:.3g}"
             + (", log_output=True)" if self.log_output else ")")
         )
+
+
+def shared_array(value: Any, name: str) -> Any:
+    """``value`` as a float64 shared variable (a run-time input of compiled graphs).
+
+    Examples
+    --------
+    >>> shared_array([1, 2], "x").get_value()
+    array([1., 2.])
+    """
+    return pytensor.shared(np.array(value, dtype=float), name=name)
 
 
 def _is_numeric(value: Any) -> bool:

@@ -143,9 +143,14 @@ class CalibrationModel:
         """Compile ``outputs`` as a function of the free variables they depend on.
 
         Returns ``(fn, names)``: ``fn(*values)`` takes the natural-scale values of the
-        free variables ``names`` (in that order), as a posterior holds them.
+        free variables ``names`` (in that order), as a posterior holds them.  Compiled
+        by numba when the outputs hold no Python-only Op (numba caches it on disk, and
+        the C backend's first compile in a process reads its whole module cache: 3–5 s
+        on a well-used machine), else by PyTensor's default (C) backend.
         """
         from pytensor.graph.traversal import ancestors
+
+        from kohpymc.native import python_only_ops
 
         upstream = set(ancestors(outputs))
         free = [rv for rv in self.model.free_RVs if rv in upstream]
@@ -153,7 +158,8 @@ class CalibrationModel:
         replaced = pytensor.clone_replace(
             list(outputs), replace=dict(zip(free, inputs, strict=True))
         )
-        fn = pytensor.function(inputs, replaced, on_unused_input="ignore")
+        mode = None if python_only_ops(replaced) else "NUMBA"
+        fn = pytensor.function(inputs, replaced, on_unused_input="ignore", mode=mode)
         return fn, [rv.name for rv in free]
 
 

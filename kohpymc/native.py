@@ -22,6 +22,7 @@ why).
 from __future__ import annotations
 
 import functools
+import hashlib
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -36,12 +37,13 @@ from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
 
 from kohpymc.reparameterization import ArrayMath, Reparameterization
-from kohpymc.value_space import ValueSpace
+from kohpymc.value_space import NumbaDensity, ValueSpace
 
 __all__ = [
     "PYTENSOR",
     "density_in_z",
     "expand_draws",
+    "map_in_z",
     "native_model",
     "parameters",
     "python_only_ops",
@@ -238,31 +240,155 @@ def native_model(
 
     if type(mapping) is not Reparameterization:
         raise NotImplementedError(f"no symbolic form of a {type(mapping).__name__}'s map")
-    z, theta, logp, grad, shared = density_in_z(space, mapping)
-    python_ops = python_only_ops([logp, grad])
-    if python_ops:
-        raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
-    with warnings.catch_warnings():
-        warnings.filterwarnings("error", message="Numba will use object mode")
-        function = pm.pytensorf.compile([z, theta], [logp, grad], mode="NUMBA")
-        logp_c = _logp_cfunc(function.vm.jit_fn, space.ndim, int(theta.type.shape[0]))
+    composed = _composed_logp(space, mapping)
+    if composed is not None:
+        logp_c, function, user_data = composed
+    else:
+        z, theta, logp, grad, shared = density_in_z(space, mapping)
+        python_ops = python_only_ops([logp, grad])
+        if python_ops:
+            raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message="Numba will use object mode")
+            function = pm.pytensorf.compile([z, theta], [logp, grad], mode="NUMBA")
+            logp_c = _logp_cfunc(function.vm.jit_fn, space.ndim, int(theta.type.shape[0]))
+        user_data = parameters(mapping, shared)
     n = space.ndim
+    z_name = f"{_PREFIX}z"
     return ncp.CompiledPyMCModel(
         _n_dim=n,
         dims={},
         _coords={},
-        _shapes={z.name: (n,)},
+        _shapes={z_name: (n,)},
         compiled_logp_func=logp_c,
         compiled_expand_func=_copy_draw(),
         initial_point_func=initial_point,
         shared_data={},
-        user_data=parameters(mapping, shared),
+        user_data=user_data,
         n_expanded=n,
-        shape_info=([z.name], [slice(0, n)], [(n,)]),
+        shape_info=([z_name], [slice(0, n)], [(n,)]),
         logp_func=function,
         expand_func=None,
     )
 
+
+def map_in_z(mapping: Reparameterization, n: int) -> tuple[Any, Any, Any, list[Any]]:
+    """The map ``z -> v`` with ``log|dv/dz|`` and the gradient of a density through it.
+
+    Inputs ``z``, ``m`` (the plan's ``μ`` and ``vec L``, :func:`parameters` without
+    shared values) and ``g``; outputs ``v(z)``, ``log|dv/dz|`` and
+    ``(∂v/∂z)ᵀ g + ∂ log|dv/dz| / ∂z``: with ``g = ∇ log p(v)`` the gradient of
+    ``log p(v(z)) + log|dv/dz|`` in ``z``.  A graph of a few dozen nodes, which lets
+    :func:`native_model` reuse the model's compiled density (:class:`NumbaDensity`)
+    instead of compiling the model's graph again inside ``log p(v(z))``.
+
+    Returns ``(z, m, g, outputs)``.
+
+    Examples
+    --------
+    >>> from kohpymc.reparameterization import Coordinates
+    >>> plan = Reparameterization("affine", np.zeros(1), 2 * np.eye(1),
+    ...                           Coordinates.identity(1), "")
+    >>> z, m, g, outputs = map_in_z(plan, 1)
+    >>> f = pytensor.function([z, m, g], outputs)
+    >>> [np.asarray(a).tolist() for a in f([0.5], [0.0, 2.0], [3.0])]
+    [[1.0], 0.0, [6.0]]
+    """
+    z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
+    m = pt.TensorType("float64", shape=(n + n * n,))(f"{_PREFIX}map")
+    g = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}gradient")
+    v, logjac = symbolic_value(mapping, z, mean=m[:n], chol=m[n:].reshape((n, n)))
+    logjac = pt.as_tensor_variable(logjac).astype("float64")
+    grad = pytensor.grad(pt.dot(v, g) + logjac, z)
+    return z, m, g, [v, logjac, grad]
+
+
+_COMPOSED_SOURCE = """
+def logp_c(dim, x_, out_, logp_, user_data_):
+    if dim != N_DIM:
+        return -1
+    try:
+        x = carray(x_, (N_DIM,))
+        out = carray(out_, (N_DIM,))
+        logp = carray(logp_, ())
+        theta = carray(user_data_, (N_THETA,), float64)
+        m = theta[:N_MAP]
+        v, logjac, _ = map_fn(x, m, np.zeros(N_DIM))
+        value, grad_v = graph(v, SHARED)
+        _, _, grad = map_fn(x, m, grad_v)
+        logp[()] = value + logjac
+        out[...] = grad
+        if not np.all(np.isfinite(out)):
+            return 3
+        if not np.isfinite(logp[()]):
+            return 4
+    except Exception:
+        return 1
+    return 0
+"""
+
+
+def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any, Any, Any] | None:
+    """Nutpie's C function as ``map_in_z`` around the space's compiled density, or None.
+
+    Returns ``(C function, the map's compiled function, user data)``: the user data are
+    the plan's ``μ``, ``vec L`` and the density's shared values, which the C function
+    reads as arrays of their shapes (no copy).  ``None`` when the space's density is not
+    a :class:`NumbaDensity` or has a shared input that is not float64 (the caller then
+    compiles the whole density in ``z``, :func:`density_in_z`).
+    """
+    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
+
+    density = space._logp_dlogp
+    if not isinstance(density, NumbaDensity):
+        return None
+    values = [np.asarray(var.get_value()) for var in density.shared]
+    if any(value.dtype != np.float64 for value in values):
+        return None
+    n = space.ndim
+    z, m, g, outputs = map_in_z(mapping, n)
+    function = pm.pytensorf.compile([z, m, g], outputs, mode="NUMBA")
+    map_jit = function.vm.jit_fn
+    slices, start = [], n + n * n
+    for value in values:
+        slices.append(f"theta[{start}:{start + value.size}].reshape({value.shape!r})")
+        start += value.size
+    source = _COMPOSED_SOURCE.replace("SHARED", ", ".join(slices) or "")
+    map_key = CACHED_SRC_FUNCTIONS.get(map_jit.py_func)
+    key = None
+    if density.key is not None and map_key is not None:
+        shapes = [value.shape for value in values]
+        parts = f"{density.key}-{map_key}-{n}-{start}-{shapes}".encode()
+        key = f"kohpymc-native-composed-v1-{hashlib.sha256(parts).hexdigest()}"  # a file name
+    env = {
+        "N_DIM": n,
+        "N_MAP": n + n * n,
+        "N_THETA": start,
+        "carray": numba.carray,
+        "float64": numba.float64,
+        "np": np,
+        "map_fn": _inlined(map_jit),
+        "graph": density.graph,
+        "__name__": __name__,
+    }
+    raw = compile_numba_function_src(source, "logp_c", env, cache_key=key)
+    user_data = np.ascontiguousarray(
+        np.concatenate(
+            [np.ravel(mapping.mean), np.ravel(mapping.chol)] + [v.ravel() for v in values]
+        ),
+        dtype=float,
+    )
+    return numba.cfunc(_LOGP_SIGNATURE, cache=key is not None)(raw), function, user_data
+
+
+#: nutpie's log-density C signature: (dim, x, gradient out, logp out, user data) -> code
+_LOGP_SIGNATURE = numba.types.int64(
+    numba.types.uint64,
+    numba.types.CPointer(numba.types.double),
+    numba.types.CPointer(numba.types.double),
+    numba.types.CPointer(numba.types.double),
+    numba.types.voidptr,
+)
 
 _LOGP_SOURCE = """
 def logp_c(dim, x_, out_, logp_, user_data_):
@@ -308,14 +434,7 @@ def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
         "__name__": __name__,
     }
     raw = compile_numba_function_src(_LOGP_SOURCE, "logp_c", env, cache_key=key)
-    signature = numba.types.int64(
-        numba.types.uint64,
-        numba.types.CPointer(numba.types.double),
-        numba.types.CPointer(numba.types.double),
-        numba.types.CPointer(numba.types.double),
-        numba.types.voidptr,
-    )
-    return numba.cfunc(signature, cache=key is not None)(raw)
+    return numba.cfunc(_LOGP_SIGNATURE, cache=key is not None)(raw)
 
 
 def _inlined(jit_fn: Any) -> Any:

@@ -50,7 +50,7 @@ from scipy import optimize, stats
 from scipy.special import expit
 
 from kohpymc.prior_bounds import hits_at_mode, interval_elements
-from kohpymc.value_space import ValueSpace
+from kohpymc.value_space import ValueSpace, transformed_value
 
 __all__ = [
     "NUMPY",
@@ -640,11 +640,7 @@ def prior_scales(space: ValueSpace, seed: int, n: int = 256) -> tuple[np.ndarray
         draws = [draws]
     columns = []
     for rv, values in zip(model.free_RVs, draws, strict=True):
-        transform = model.rvs_to_transforms.get(rv)
-        values = np.asarray(values, dtype=float)
-        if transform is not None:
-            values = np.asarray(transform.forward(values, *rv.owner.inputs).eval(), float)
-        columns.append(values.reshape(n, -1))
+        columns.append(transformed_value(model, rv, values).reshape(n, -1))
     sample = np.concatenate(columns, axis=1)
     q05, q50, q95 = np.nanquantile(sample, [0.05, 0.5, 0.95], axis=0)
     scale = (q95 - q05) / 3.29

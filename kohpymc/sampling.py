@@ -43,7 +43,7 @@ from kohpymc.checks import SAMPLERS, check_sampler
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
-from kohpymc.value_space import ValueSpace, value_space
+from kohpymc.value_space import ValueSpace, transformed_value, value_space
 
 __all__ = [
     "SAMPLERS",
@@ -300,10 +300,7 @@ def _user_starts(space: ValueSpace, starts: Sequence[Mapping[str, Any]]) -> list
         for rv, value_name in zip(model.free_RVs, space.names, strict=True):
             if rv.name not in start:
                 continue
-            value = np.asarray(start[rv.name], dtype=float)
-            transform = model.rvs_to_transforms.get(rv)
-            if transform is not None:
-                value = np.asarray(transform.forward(value, *rv.owner.inputs).eval(), float)
+            value = transformed_value(model, rv, start[rv.name])
             point[value_name] = np.broadcast_to(value, point[value_name].shape)
         out.append(space.join(point))
     return out

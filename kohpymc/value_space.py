@@ -16,7 +16,7 @@ log scale for positive bounded parameters.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +27,7 @@ import pytensor.tensor as pt
 from pymc.logprob.transforms import IntervalTransform, LogTransform
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
-__all__ = ["ValueSpace", "value_space"]
+__all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_space"]
 
 
 @dataclass(frozen=True)
@@ -108,15 +108,47 @@ class ValueSpace:
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])
 
 
+@dataclass(frozen=True)
+class NumbaDensity:
+    """The log density and gradient of a NUMBA :class:`ValueSpace`: one numba function.
+
+    Calling it evaluates at a flat value vector, reading the graph's shared inputs at
+    each call.  :mod:`kohpymc.native` builds nutpie's density in the sampling
+    coordinates around :attr:`graph` instead of compiling the model's graph a second
+    time.
+
+    Attributes
+    ----------
+    call : numba dispatcher
+        ``call(x, *shared values)`` -> ``(logp, grad)``.
+    graph : numba dispatcher
+        PyTensor's function of the graph (the same arguments), inlined into its callers.
+    shared : tuple
+        The graph's shared variables, in argument order.
+    key : str or None
+        PyTensor's cache key of the graph (``None``: not cached on disk).
+    """
+
+    call: Any
+    graph: Any
+    shared: tuple[Any, ...]
+    key: str | None
+
+    def __call__(self, x: np.ndarray) -> Any:
+        """``(logp, grad)`` at the flat value vector ``x``."""
+        values = [var.get_value(borrow=True) for var in self.shared]
+        return self.call(np.ascontiguousarray(x), *values)
+
+
 def _direct_numba_call(function: Any) -> Callable[..., Any]:
     """``function`` (NUMBA mode) as one numba function around the graph's, cached on disk.
 
     PyTensor calls its graph's numba function through two wrappers, and numba generates
     the machine code of everything a function calls once per function, so each wrapper
     level is one more code generation of the whole graph from an empty cache; here the
-    graph is inlined into the one function Python calls.  The function's shared inputs
-    (e.g. data) are read at each call.  ``function`` itself when its numba function is
-    not structured as PyTensor's.
+    graph is inlined into the one function Python calls (a :class:`NumbaDensity`).  The
+    function's shared inputs (e.g. data) are read at each call.  ``function`` itself
+    when its numba function is not structured as PyTensor's.
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
     from pytensor.link.numba.dispatch.basic import numba_njit
@@ -126,20 +158,16 @@ def _direct_numba_call(function: Any) -> Callable[..., Any]:
     graph = getattr(wrapper, "__globals__", {}).get("jitable_func")
     if graph is None or getattr(graph, "py_func", None) is None:
         return function
-    shared = [spec.variable for spec in function.maker.inputs[1:]]
+    shared = tuple(spec.variable for spec in function.maker.inputs[1:])
     graph_key = CACHED_SRC_FUNCTIONS.get(wrapper)
     names = ", ".join(f"x{i}" for i in range(1 + len(shared)))
     key = None if graph_key is None else f"kohpymc-value-logp-v1-{graph_key}-{len(shared)}"
-    env = {"graph": numba_njit(graph.py_func, inline="always"), "__name__": __name__}
+    inlined = numba_njit(graph.py_func, inline="always")
+    env = {"graph": inlined, "__name__": __name__}
     source = f"def value_logp({names}):\n    return graph({names})\n"
     raw = compile_numba_function_src(source, "value_logp", env, cache_key=key)
     call = numba_njit(raw, final_function=True, cache=key is not None)
-
-    def logp_dlogp(x: np.ndarray) -> Any:
-        values = [var.get_value(borrow=True) for var in shared]
-        return call(np.ascontiguousarray(x), *values)
-
-    return logp_dlogp
+    return NumbaDensity(call, inlined, shared, graph_key)
 
 
 def _constant_value(bound: Any) -> np.ndarray:
@@ -149,6 +177,28 @@ def _constant_value(bound: Any) -> np.ndarray:
     """
     folded = constant_fold([pt.as_tensor(bound)], raise_not_constant=True)[0]
     return np.asarray(getattr(folded, "data", folded), dtype=float)
+
+
+def transformed_value(model: pm.Model, rv: Any, values: Any) -> np.ndarray:
+    """``values`` of the free variable ``rv`` in its value space (PyMC's transform applied).
+
+    Evaluated in PyTensor's Python mode: a few numbers, and the default C backend's first
+    compile in a process reads its whole module cache (3–5 s on a well-used machine).
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> with pm.Model() as model:
+    ...     s = pm.HalfNormal("s", 1.0)
+    >>> transformed_value(model, s, [1.0, np.e])
+    array([0., 1.])
+    """
+    values = np.asarray(values, dtype=float)
+    transform = model.rvs_to_transforms.get(rv)
+    if transform is None:
+        return values
+    forward = transform.forward(values, *rv.owner.inputs)
+    return np.asarray(forward.eval(mode="FAST_COMPILE"), dtype=float)
 
 
 def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarray, np.ndarray]:
@@ -170,22 +220,33 @@ def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarra
     return "other", nan, nan
 
 
-def _expand_mode(mode: str | None) -> str | None:
-    """Compile mode of the expand map: the C backend when the log density is NUMBA's.
+def _expand_mode(mode: str | None, graphs: Sequence[Any] = ()) -> str | None:
+    """Compile mode of the expand map ``graphs`` when the log density's is ``mode``.
 
     The expand map runs once per kept draw (~50 µs either way on the beam), so its compile
-    time is what counts: numba compiles it at its first call and cannot cache a graph
-    with a Python Op (the physics) across processes (1–3 s per beam formulation), while
-    the C backend finds its modules in PyTensor's on-disk cache.  Without a C compiler
-    the map stays with NUMBA (PyTensor's Python fallback would cost milliseconds per draw).
+    time is what counts.  With a Python Op in it (a numpy physics function) numba compiles
+    it at its first call and cannot cache it across processes (1–3 s per beam
+    formulation), while the C backend finds its modules in PyTensor's on-disk cache: the
+    C backend then, when a C compiler is available.  A pure PyTensor map stays with
+    NUMBA, which caches it on disk: the C backend's first compile in a process reads its
+    whole module cache (3–5 s with the ~1,200 modules of a well-used cache), which the
+    emulated dielectric calibration paid for a map of 14 nodes.  Without a C compiler the
+    map stays with NUMBA (PyTensor's Python fallback would cost milliseconds per draw).
 
     Examples
     --------
     >>> _expand_mode("FAST_RUN")
     'FAST_RUN'
+    >>> import pytensor.tensor as pt
+    >>> _expand_mode("NUMBA", [pt.exp(pt.vector("x"))])
+    'NUMBA'
     """
+    from kohpymc.native import python_only_ops
+
     if mode != "NUMBA" or not pytensor.config.cxx:
         return mode
+    if graphs and not python_only_ops(graphs):
+        return "NUMBA"
     return "FAST_RUN"
 
 
@@ -198,8 +259,8 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         A model whose free variables are all continuous.
     mode : str, optional
         PyTensor compile mode of the log density and gradient (default: PyTensor's
-        default, the C backend).  With ``"NUMBA"`` the expand map is compiled by the C
-        backend when a C compiler is available (:func:`_expand_mode`).
+        default, the C backend).  With ``"NUMBA"`` an expand map holding a Python Op
+        is compiled by the C backend when a C compiler is available (:func:`_expand_mode`).
 
     Returns
     -------
@@ -249,7 +310,7 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     expand_outputs, flat_e = join_nonshared_inputs(
         point=point, outputs=expanded_graphs, inputs=value_vars, make_inputs_shared=False
     )
-    expand_mode = _expand_mode(mode)
+    expand_mode = _expand_mode(mode, expand_outputs)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Numba will use object mode")
         expand = pm.pytensorf.compile(

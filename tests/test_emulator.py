@@ -238,6 +238,17 @@ def test_gp_prediction_matches_a_dense_numpy_computation(kernel):
     np.testing.assert_allclose(em.mean_tensor(th, x[:, None]).eval(), mean, rtol=1e-8)
     np.testing.assert_allclose(em.variance_tensor(th, x[:, None]).eval(), np.diag(cov), rtol=1e-5)
     np.testing.assert_allclose(em.covariance_tensor(th, x[:, None]).eval(), cov, atol=1e-10)
+    # the training matrices are run-time inputs (shared), not constants numba would inline
+    from pytensor.compile.sharedvalue import SharedVariable
+    from pytensor.graph.basic import Constant
+    from pytensor.graph.traversal import graph_inputs
+
+    graphs = [em.mean_tensor(th, x[:, None]), em.covariance_tensor(th, x[:, None])]
+    inputs = list(graph_inputs(graphs))
+    assert max(np.size(v.data) for v in inputs if isinstance(v, Constant)) < 25
+    assert {v.name for v in inputs if isinstance(v, SharedVariable)} >= {
+        "emulator_U", "emulator_alpha", "emulator_chol_inv"
+    }  # fmt: skip
 
 
 @pytest.mark.parametrize("kernel", ["se", "matern52"])

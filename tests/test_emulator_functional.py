@@ -103,6 +103,18 @@ def test_held_out_bands_cover_about_90_percent():
     assert score["rmse_sd"] < 0.1
 
 
+def test_curves_at_once_are_the_covariance_diagonal_row_by_row():
+    em, physics = _emulator(20)
+    design = space_filling_design(_BOX, 6, method="sobol", seed=3)
+    mean, sd = em.predict_curves(design)
+    t = _GRID["t"]
+    for r, row in design.iterrows():
+        inputs = {"x": np.full(len(t), row["x"]), "t": t}
+        m, cov = em.predict_covariance(inputs, [row[k] for k in "akc"])
+        np.testing.assert_allclose(mean[r], m, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(sd[r], np.sqrt(np.diag(cov)), rtol=1e-10)
+
+
 def test_tensors_match_numpy_and_interpolate_off_the_grid():
     em, _ = _emulator(25)
     theta = [1.5, 0.7, 0.3]

@@ -120,6 +120,46 @@ def test_native_c_function_equals_the_numpy_density(space):
         np.testing.assert_allclose(out, expected_grad, rtol=1e-10, atol=1e-10 * scale)
 
 
+def _call_c(logp_c, z, user_data):
+    """Nutpie's call of a log-density C function: (code, logp, gradient)."""
+    import ctypes
+
+    z = np.ascontiguousarray(z)
+    out, value = np.zeros(z.size), np.zeros(())
+    code = logp_c.ctypes(
+        z.size, z.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+        out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+        value.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+        user_data.ctypes.data_as(ctypes.c_void_p),
+    )  # fmt: skip
+    return code, float(value), out
+
+
+@pytest.mark.parametrize("kind", ["affine", "walls", "bound-ridge"])
+def test_native_model_reuses_the_compiled_density_and_equals_the_numpy_one(kind):
+    """A NUMBA space: nutpie's C function is the map z -> v around the space's compiled
+    density (the model's graph is not compiled again), with shared data read from the
+    user data; its log density and gradient are the numpy map's (1e-10 relative)."""
+    rng = np.random.default_rng(SEED)
+    y_obs = pytensor.shared(rng.normal(1.0, 0.5, 12), name="y_obs")
+    model = _model()
+    with model:  # a second likelihood term on shared data, as an emulator's matrices
+        pm.Normal("y2", model["c"], model["a"] + 1.0, observed=y_obs)
+    space = value_space(model, mode="NUMBA")
+    plan = _plan(space, _coordinates(space, kind), kind)
+    composed = native._composed_logp(space, plan)
+    assert composed is not None
+    logp_c, _, user_data = composed
+    for z in rng.normal(0.0, 0.7, (3, space.ndim)):
+        code, value, grad = _call_c(logp_c, z, user_data)
+        expected_logp, expected_grad = plan.logp_dlogp(space, z)
+        assert code == 0 and value == pytest.approx(expected_logp, rel=1e-10, abs=1e-10)
+        scale = np.max(np.abs(expected_grad))
+        np.testing.assert_allclose(grad, expected_grad, rtol=1e-10, atol=1e-10 * scale)
+    # the C space has no compiled numba density to reuse: the whole density is compiled
+    assert native._composed_logp(value_space(model), plan) is None
+
+
 def test_symbolic_map_outside_the_walls_has_zero_density(space):
     """Log-scale coordinates with walls: a point beyond ln b has log density -inf, as in numpy."""
     plan = _plan(space, _coordinates(space, "walls"), "walls")

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pymc as pm
 import pytensor
+import pytensor.tensor as pt
 
+from kohpymc import PhysicsModel, Uniform
 from kohpymc.value_space import _expand_mode, value_space
 
 
@@ -27,8 +29,17 @@ def test_expand_of_a_numba_space_matches_the_c_backend():
     np.testing.assert_allclose(numba.logp_dlogp(x)[0], c.logp_dlogp(x)[0], rtol=1e-12)
 
 
-def test_expand_mode_is_c_for_numba_only_with_a_compiler():
-    assert _expand_mode("NUMBA") == ("FAST_RUN" if pytensor.config.cxx else "NUMBA")
+def test_expand_mode_is_c_for_numba_only_with_a_compiler_and_a_python_op():
+    """A Python Op (a numpy physics function) in the map: C; a pure PyTensor map: NUMBA."""
+    decay = PhysicsModel(
+        lambda x, p: p["a"] * np.exp(-x["t"]), {"a": Uniform(1.0, 2.0)}, inputs=["t"]
+    )
+    theta = pt.vector("theta")
+    python_op = decay.tensor(theta, pt.as_tensor(np.array([[0.0], [1.0]])))
+    with_compiler = "FAST_RUN" if pytensor.config.cxx else "NUMBA"
+    assert _expand_mode("NUMBA", [python_op]) == with_compiler
+    assert _expand_mode("NUMBA") == with_compiler
+    assert _expand_mode("NUMBA", [pt.exp(theta)]) == "NUMBA"
     assert _expand_mode(None) is None
 
 

@@ -70,6 +70,7 @@ from kohpymc.emulator.gp import (
     GPHyperparameters,
     _fit_hyperparameters,
     _kernel_numpy,
+    shared_array,
 )
 from kohpymc.emulator.quadratic import kernel_quadratic, kernel_values
 from kohpymc.emulator.runs import (
@@ -352,6 +353,14 @@ class _WeightGP:
         if len(Us) == 1:  # as the tensors: a variance lost to rounding is the nugget
             cov = np.maximum(cov, h.nugget)
         return Ks @ self.alpha, cov
+
+    def predict_each(self, Us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and variance ``(m,)`` at every row of ``Us`` alone (``predict`` row by row)."""
+        h = self.hyper
+        Ks, _ = _kernel_numpy(self.kernel, Us, self.U, h.lengthscales, h.amplitude)
+        V = self.chol_inv @ Ks.T
+        var = h.amplitude + h.nugget - np.sum(V**2, axis=0)
+        return Ks @ self.alpha, np.maximum(var, h.nugget)
 
 
 def _check_emulator_arguments(
@@ -715,18 +724,34 @@ class FunctionalEmulator:
         """Latent mean and sd ``(n, P)`` of the curves at every design row, on the grid.
 
         Latent: ln output with ``log_output=True`` (a Gaussian band there is the
-        log-normal band in output units).
+        log-normal band in output units).  On the grid only the diagonal of
+        :meth:`predict_covariance` is needed, ``s² (Σ_k Φ_pk² v_k + τ_p)`` with ``v_k``
+        the weight GPs' variances at the row, so all rows are predicted at once.
+
+        Examples
+        --------
+        >>> import pytensor.tensor as pt
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> box, grid = {"a": (1, 2), "k": (0.5, 1)}, {"t": np.linspace(0, 3, 16)}
+        >>> em = FunctionalEmulator(run_curves(decay, space_filling_design(box, 20), grid),
+        ...                         decay)
+        >>> mean, sd = em.predict_curves(pd.DataFrame({"a": [1.5], "k": [0.7]}))
+        >>> bool(np.allclose(mean[0], 1.5 * np.exp(-0.7 * grid["t"]), atol=1e-2))
+        True
         """
-        means, sds = [], []
-        grid = {k: self.grid[:, j] for j, k in enumerate(self.functional)}
-        P = len(self.grid)
-        for _, row in design.iterrows():
-            inputs = {**grid, **{k: np.full(P, row[k]) for k in self.scalar_inputs}}
-            theta = np.array([row[k] for k in self.physics.parameters], dtype=float)
-            m, c = self._latent_numpy(self._rows(inputs), theta)
-            means.append(m)
-            sds.append(np.sqrt(np.maximum(np.diag(c), 0.0)))
-        return np.array(means), np.array(sds)
+        X = design[list(self.columns)].to_numpy(float)
+        Us = (self._coordinates(X) - self.lower) / self.width
+        means = np.empty((len(X), self.n_components))
+        variances = np.empty((len(X), self.n_components))
+        for k, gp in enumerate(self._gps):
+            means[:, k], variances[:, k] = gp.predict_each(Us)
+        s = self.curve_scale
+        mean = self.mean_curve + s * means @ self.basis.T
+        var = s**2 * (variances @ (self.basis**2).T + self.truncation_variance)
+        return mean, np.sqrt(np.maximum(var, 0.0))
 
     def held_out(self, runs: FunctionalRuns, level: float = 0.9) -> dict[str, float]:
         """Scores on held-out curves: band coverage, RMSE over sd, mean squared z.
@@ -788,7 +813,7 @@ class FunctionalEmulator:
             }
             if self.rotation is not None:
                 values["center"], values["matrix"] = self.rotation
-            tensors = {k: _shared(v, f"emulator_{k}") for k, v in values.items()}
+            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
             self.__dict__["_tensors"] = tensors
         return tensors
 
@@ -806,16 +831,16 @@ class FunctionalEmulator:
         loc = self._locate(X)
         w_mean, cov_w = self._weight_moments(theta, loc)
         B = loc.interp @ self.basis  # (n, K)
-        B_t = _shared(B, "emulator_basis_at_rows")
+        B_t = shared_array(B, "emulator_basis_at_rows")
         idx = loc.setting_index
         trunc = self._truncation(loc)
         s = self.curve_scale
         one = len(loc.settings) == 1
         w_rows = pt.dot(B_t, w_mean[:, 0]) if one else pt.sum(B_t.T * w_mean[:, idx], axis=0)
-        mean = _shared(loc.interp @ self.mean_curve, "emulator_mean_at_rows") + s * w_rows
+        mean = shared_array(loc.interp @ self.mean_curve, "emulator_mean_at_rows") + s * w_rows
         factor = self._low_rank_factor(B, B_t, loc, trunc, cov_w) if low_rank else None
         if factor is not None:
-            d = _shared(s**2 * np.diag(trunc), "emulator_truncation_at_rows")
+            d = shared_array(s**2 * np.diag(trunc), "emulator_truncation_at_rows")
             return mean, low_rank_covariance(d, s * factor)
         if one:
             cov = trunc + pt.dot(B_t * cov_w[:, 0, 0][None, :], B_t.T)
@@ -1017,11 +1042,6 @@ class FunctionalEmulator:
             f"({100 * self.explained:.3g} %), kernel={self.kernel!r}"
             + (", log_output=True)" if self.log_output else ")")
         )
-
-
-def _shared(value: Any, name: str) -> Any:
-    """``value`` as a float64 shared variable (a run-time input of compiled graphs)."""
-    return pytensor.shared(np.array(value, dtype=float), name=name)
 
 
 def _numbers(X: Any) -> np.ndarray:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+import pytensor
 import pytensor.tensor as pt
 from scipy import linalg, optimize
 
@@ -82,43 +83,63 @@ class GPHyperparameters:
 def _kernel_numpy(kind: str, U: np.ndarray, V: np.ndarray, ls: np.ndarray, amp: float):
     """``K(U, V)`` and the scaled squared differences ``D_k / ℓ_k²`` (n, m, q)."""
     D = ((U[:, None, :] - V[None, :, :]) / ls) ** 2
-    r2 = np.sum(D, axis=-1)
+    return _kernel_of_r2(kind, np.sum(D, axis=-1), amp), D
+
+
+def _kernel_of_r2(kind: str, r2: np.ndarray, amp: float) -> np.ndarray:
+    """The kernel as a function of the scaled squared distance ``r²``."""
     if kind == "se":
-        return amp * np.exp(-0.5 * r2), D
+        return amp * np.exp(-0.5 * r2)
     r = np.sqrt(r2)
-    return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * np.exp(-_SQRT5 * r), D
+    return amp * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * np.exp(-_SQRT5 * r)
+
+
+def _pairwise_squares(U: np.ndarray) -> np.ndarray:
+    """``(q, n, n)`` squared differences of the rows of ``U``, one matrix per column.
+
+    They do not depend on the hyperparameters: computed once per fit, every evaluation
+    of :func:`_neg_log_posterior` then forms ``r²`` by one matrix-vector product.
+    """
+    return (U.T[:, :, None] - U.T[:, None, :]) ** 2
 
 
 def _neg_log_posterior(
-    params: np.ndarray, kind: str, U: np.ndarray, y: np.ndarray
+    params: np.ndarray, kind: str, U: np.ndarray, y: np.ndarray, pairs: np.ndarray | None = None
 ) -> tuple[float, np.ndarray]:
-    """Negative (log marginal likelihood + log prior) and its gradient in log space."""
-    q = U.shape[1]
+    """Negative (log marginal likelihood + log prior) and its gradient in log space.
+
+    ``pairs``: :func:`_pairwise_squares` of ``U`` (computed here when not given).
+    """
+    q, n = U.shape[1], len(y)
+    pairs = _pairwise_squares(U) if pairs is None else pairs
     log_ls, log_amp, log_g = params[:q], params[q], params[q + 1]
     # the nugget is relative to the amplitude, g = s² ρ, which bounds the condition number
     ls, amp = np.exp(log_ls), float(np.exp(log_amp))
     g = amp * float(np.exp(log_g))
-    R, D = _kernel_numpy(kind, U, U, ls, 1.0)
-    n = len(y)
+    inv_ls2 = 1.0 / ls**2
+    flat = pairs.reshape(q, n * n)
+    r2 = (inv_ls2 @ flat).reshape(n, n)
+    R = _kernel_of_r2(kind, r2, 1.0)
     K = amp * R + (g + 1e-10) * np.eye(n)
     try:
         chol = linalg.cholesky(K, lower=True)
     except linalg.LinAlgError:
         return 1e25, np.zeros_like(params)
     alpha = linalg.cho_solve((chol, True), y)
-    Kinv = linalg.cho_solve((chol, True), np.eye(n))
+    Kinv = _inverse_from_cholesky(chol)
     nll = 0.5 * y @ alpha + np.sum(np.log(np.diag(chol))) + 0.5 * n * np.log(2 * np.pi)
     W = np.outer(alpha, alpha) - Kinv  # d nll / dθ = -½ tr(W dK/dθ)
     grad = np.empty_like(params)
     if kind == "se":
         base = amp * R
     else:
-        r = np.sqrt(np.sum(D, axis=-1))
+        r = np.sqrt(r2)
         base = amp * (5.0 / 3.0) * (1.0 + _SQRT5 * r) * np.exp(-_SQRT5 * r)
-    for k in range(q):
-        grad[k] = -0.5 * np.sum(W * base * D[:, :, k])
-    grad[q] = -0.5 * (np.sum(W * amp * R) + np.trace(W) * g)
-    grad[q + 1] = -0.5 * np.trace(W) * g
+    # dK/d ln ℓ_k = base ∘ (pairs_k / ℓ_k²)
+    grad[:q] = -0.5 * (flat @ (W * base).ravel()) * inv_ls2
+    trace_w = float(np.trace(W))
+    grad[q] = -0.5 * (float(np.sum(W * R)) * amp + trace_w * g)
+    grad[q + 1] = -0.5 * trace_w * g
     # weak priors (negative log densities and their gradients)
     m, s = _LS_PRIOR
     nll += np.sum((log_ls - m) ** 2) / (2 * s**2)
@@ -132,6 +153,15 @@ def _neg_log_posterior(
     return float(nll), grad
 
 
+def _inverse_from_cholesky(chol: np.ndarray) -> np.ndarray:
+    """``K⁻¹`` from the lower Cholesky factor of ``K`` (LAPACK ``potri``, symmetrized)."""
+    lower, info = linalg.lapack.dpotri(chol, lower=1)
+    if info != 0:
+        return linalg.cho_solve((chol, True), np.eye(len(chol)))
+    lower = np.tril(lower)
+    return lower + np.tril(lower, -1).T
+
+
 def _fit_hyperparameters(
     kind: str, U: np.ndarray, y: np.ndarray, restarts: int, seed: int
 ) -> GPHyperparameters:
@@ -143,12 +173,13 @@ def _fit_hyperparameters(
         starts.append(
             np.r_[rng.uniform(np.log(0.05), np.log(3.0), q), rng.normal(0, 0.5), np.log(1e-4)]
         )
+    pairs = _pairwise_squares(U)
     best = None
     for x0 in starts:
         res = optimize.minimize(
             _neg_log_posterior,
             x0,
-            args=(kind, U, y),
+            args=(kind, U, y, pairs),
             jac=True,
             method="L-BFGS-B",
             bounds=bounds,
@@ -291,6 +322,25 @@ class Emulator:
         self._alpha = linalg.cho_solve((self._chol, True), self.z)
         self._chol_inv = linalg.solve_triangular(self._chol, np.eye(self.n_runs), lower=True)
 
+    def _training_tensors(self) -> dict[str, Any]:
+        """The runs' coordinates, ``α = K⁻¹z`` and ``L⁻¹`` as shared variables, made once.
+
+        Run-time inputs of a compiled graph, not constants: numba would inline the
+        ``N × N`` matrix into its code (compiled again for every emulator, never cached),
+        as :class:`~kohpymc.emulator.functional.FunctionalEmulator` measured.
+        """
+        tensors = self.__dict__.get("_tensors")
+        if tensors is None:
+            values = {"U": self.U, "alpha": self._alpha, "chol_inv": self._chol_inv}
+            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
+            self.__dict__["_tensors"] = tensors
+        return tensors
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_tensors", None)  # shared variables: made again on demand
+        return state
+
     # ------------------------------------------------------------------- numpy
     def _transform(self, values: np.ndarray) -> np.ndarray:
         """Columns in the scale of the unit box: ln for :attr:`log_columns`."""
@@ -390,9 +440,10 @@ class Emulator:
     def _cross_kernel(self, theta: Any, X: Any) -> Any:
         """``K(rows, runs)`` as a tensor, shape ``(n, N)``."""
         h = self.hyper
+        U = self._training_tensors()["U"]
         r2 = 0.0
         for j, col in enumerate(self._scaled_rows(theta, X)):
-            r2 = r2 + ((col[:, None] - self.U[None, :, j]) / h.lengthscales[j]) ** 2
+            r2 = r2 + ((col[:, None] - U[None, :, j]) / h.lengthscales[j]) ** 2
         if self.kernel == "se":
             return h.amplitude * pt.exp(-0.5 * r2)
         r = pt.sqrt(r2 + 1e-12)
@@ -405,15 +456,19 @@ class Emulator:
         --------
         See :meth:`variance_tensor`.
         """
-        mean = pt.dot(self._cross_kernel(theta, X), self._alpha)
+        mean = self._latent_mean(theta, X)
         if not self.log_output:
             return self.y_mean + self.y_sd * mean
         return self._output_moments(mean, self._latent_variance(theta, X), pt)[0]
 
+    def _latent_mean(self, theta: Any, X: Any) -> Any:
+        """Standardised predictive mean ``k α`` as a tensor."""
+        return pt.dot(self._cross_kernel(theta, X), self._training_tensors()["alpha"])
+
     def _latent_variance(self, theta: Any, X: Any) -> Any:
         """Standardised predictive variance (latent plus nugget) as a tensor."""
         h = self.hyper
-        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        V = pt.dot(self._training_tensors()["chol_inv"], self._cross_kernel(theta, X).T)
         return pt.maximum(h.amplitude + h.nugget - pt.sum(V**2, axis=0), h.nugget)
 
     def variance_tensor(self, theta: Any, X: Any) -> Any:
@@ -434,7 +489,7 @@ class Emulator:
         var = self._latent_variance(theta, X)
         if not self.log_output:
             return self.y_sd**2 * var
-        mean = pt.dot(self._cross_kernel(theta, X), self._alpha)
+        mean = self._latent_mean(theta, X)
         return self._output_moments(mean, var, pt)[1]
 
     def covariance_tensor(self, theta: Any, X: Any) -> Any:
@@ -465,14 +520,14 @@ class Emulator:
         else:
             r = pt.sqrt(r2 + 1e-12)
             prior = h.amplitude * (1.0 + _SQRT5 * r + 5.0 * r2 / 3.0) * pt.exp(-_SQRT5 * r)
-        V = pt.dot(self._chol_inv, self._cross_kernel(theta, X).T)
+        V = pt.dot(self._training_tensors()["chol_inv"], self._cross_kernel(theta, X).T)
         n = pt.as_tensor_variable(X).shape[0]
         cov = prior - pt.dot(V.T, V) + h.nugget * pt.eye(n)
         if not self.log_output:
             return self.y_sd**2 * cov
         # log-normal: Cov(e^a, e^b) = e^{μa + μb + (σa² + σb²)/2} (e^{σab} − 1)
         latent = self.y_sd**2 * cov
-        m = self.y_mean + self.y_sd * pt.dot(self._cross_kernel(theta, X), self._alpha)
+        m = self.y_mean + self.y_sd * self._latent_mean(theta, X)
         half = m + pt.diagonal(latent) / 2.0
         return pt.exp(half[:, None] + half[None, :]) * pt.expm1(latent)
 
@@ -518,6 +573,17 @@ class Emulator:
             f"lengthscales=({ls}), amplitude={h.amplitude:.3g}, nugget={h.nugget:.3g}"
             + (", log_output=True)" if self.log_output else ")")
         )
+
+
+def shared_array(value: Any, name: str) -> Any:
+    """``value`` as a float64 shared variable (a run-time input of compiled graphs).
+
+    Examples
+    --------
+    >>> shared_array([1, 2], "x").get_value()
+    array([1., 2.])
+    """
+    return pytensor.shared(np.array(value, dtype=float), name=name)
 
 
 def _is_numeric(value: Any) -> bool:

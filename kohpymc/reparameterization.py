@@ -28,8 +28,11 @@ Before sampling, :func:`plan` therefore
    (``L Lᵀ = H⁻¹``), so the sampler sees a posterior close to a standard normal;
 6. where every Laplace map fits badly (score > 1), also tries a straight ridge cut by
    the prior box (:class:`BoxRidgePlan`) and a curved one followed from face to face
-   (:class:`kohpymc.ridge_curve.RidgeCurvePlan`); either is kept when it scores better,
-   a plan whose density has zero-density holes near the mode ranking last.
+   (:class:`kohpymc.ridge_curve.RidgeCurvePlan`); and, where the best fits badly on
+   average or along one axis, a long straight ridge that a face cuts off
+   (:class:`kohpymc.ridge_segment.SegmentPlan`, bounded parameters on the scale of their
+   flat prior); each is kept when it scores better, a plan whose density has
+   zero-density holes near the mode ranking last.
 
 Draws map back through ``z → w → v → parameters``; the InferenceData holds the user's
 parameters only.  The density in ``z`` is exact (the log-Jacobian of the elementwise

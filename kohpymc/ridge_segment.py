@@ -112,18 +112,13 @@ class FlatScaleCoordinates(Coordinates):
         return v, logjac
 
     def from_value(self, v: np.ndarray) -> np.ndarray:
-        """``w(v)``; the variance shares are inverted after the elementwise map."""
+        """``w(v)``: the elementwise maps inverted, then the variance shares."""
         v = np.asarray(v, float)
-        w = replace(self, shares=None).elementwise_inverse(v)
-        return w if self.shares is None else self.shares.inverse(w)
-
-    def elementwise_inverse(self, v: np.ndarray) -> np.ndarray:
-        """``w(v)`` of the elementwise maps alone."""
-        w = Coordinates.from_value(replace(self, shares=None, ridge=None), v)
+        w = Coordinates.from_value(replace(self, shares=None), v)
         m = self.own
         if m is not None and m.any():
             w[m] = self.lower[m] + (self.upper[m] - self.lower[m]) * expit(v[m])
-        return w
+        return w if self.shares is None else self.shares.inverse(w)
 
     @property
     def walled(self) -> np.ndarray:

@@ -1315,7 +1315,9 @@ def _ridge_segment(
     segment = segment_plan(space, mode, seed, shares)
     if segment is None or not segment.gaussian_score < best.gaussian_score:
         return None
-    return segment_reason(space, segment, best)
+    # a walled element with a tiny component along the ridge empties the segment wherever
+    # the whitened centre lies beyond its wall (box-ridge-log on dielectric M2): never used
+    return None if _has_holes(space, segment, seed) else segment_reason(space, segment, best)
 
 
 def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization):

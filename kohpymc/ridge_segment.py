@@ -1,0 +1,335 @@
+r"""Sampling along a long straight ridge that a face of the prior box cuts off.
+
+Arrhenius-type models, ``η = A·exp(E/(R T))`` with ``A ~ LogUniform`` and
+``E ~ Uniform``, inform ``ln A + E/(R T̄)`` sharply and ``E`` weakly: the posterior is a
+ridge that is straight in ``(ln A, E)``, the scales on which the two priors are flat,
+and it runs into a face of the box (``A``'s upper bound within two sds of the mode).
+Neither Laplace map of :mod:`kohpymc.reparameterization` fits it: PyMC's coordinates
+(the logit of ``A`` and of ``E``) and the log-logit ones (``ln E``) bend the ridge, and
+the truncation by the face is no Gaussian (scores 3–4; nutpie at defaults: r̂ 1.02–1.04,
+3–15 divergences).  The ridge is not flat either (condition number 6·10³, not 10⁶), so
+:class:`~kohpymc.reparameterization.BoxRidgePlan` does not apply.
+
+:func:`segment_plan` samples such a posterior as
+
+.. math:: ℓ = ℓ_0 + B\,y + s\,d, \qquad
+          s = s_{lo}(y) + (s_{hi}(y) − s_{lo}(y))\,\mathrm{expit}(c + σ τ),
+
+where ``ℓ`` is every bounded parameter on the scale on which its prior is flat (the log
+for a log-uniform prior, the parameter's own units for a uniform one: chosen from the
+prior's median, :func:`flat_scale_coordinates`), ``d`` is the regression of ``ℓ`` on the
+*pivot* (the bounded element whose marginal Laplace sd exceeds its conditional sd the
+most), ``B`` whitens the conditional Laplace covariance of the others given the pivot,
+and ``s`` runs between the faces of the box the line through ``ℓ₀ + B y`` meets, so
+every draw is inside the box and the density has no holes.  ``c`` and ``σ`` centre and
+scale the position along the ridge by quadrature at ``y = 0``.  The Jacobian is
+``(s_hi − s_lo)·expit'·σ`` times a constant (the segment's ends move with ``y`` along
+``d`` only), so the density is exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy.special import expit
+
+from kohpymc.prior_bounds import interval_elements
+from kohpymc.reparameterization import (
+    BoxRidgePlan,
+    Coordinates,
+    Mode,
+    VarianceShare,
+    _gaussian_score,
+    _laplace,
+    prior_scales,
+)
+from kohpymc.value_space import ValueSpace
+
+__all__ = [
+    "FlatScaleCoordinates",
+    "SegmentPlan",
+    "flat_scale_coordinates",
+    "segment_plan",
+    "segment_reason",
+]
+
+#: marginal over conditional Laplace sd of the pivot above which the ridge is followed
+_RIDGE_RATIO = 10.0
+
+#: Laplace sds from the mode within which a face of the box counts as "in play"
+_FACE_SDS = 4.0
+
+
+@dataclass(frozen=True)
+class FlatScaleCoordinates(Coordinates):
+    r"""Bounded parameters on the scale of their flat prior, with walls at the bounds.
+
+    ``log_scale`` elements are sampled as ``w = ln x`` (``walls=True``, see
+    :class:`~kohpymc.reparameterization.Coordinates`); ``own`` elements as ``w = x``
+    with zero density outside ``(a, b)``; every other element as ``w = v``.  A plan that
+    keeps its draws inside the box (:class:`SegmentPlan`) never meets the walls.
+
+    Examples
+    --------
+    >>> coords = FlatScaleCoordinates(np.array([True, False]), np.array([1e-9, 1e4]),
+    ...                               np.array([1e-3, 6e4]), True,
+    ...                               own=np.array([False, True]))
+    >>> w = np.array([np.log(1e-5), 2e4])
+    >>> bool(np.allclose(coords.from_value(coords.to_value(w)[0]), w))
+    True
+    """
+
+    own: np.ndarray | None = None
+
+    @property
+    def name(self) -> str:
+        """``"flat-scale"``."""
+        return "flat-scale"
+
+    def to_value(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``v(w)``, ``dv/dw``, ``d log|dv/dw| / dw`` and ``Σ log|dv/dw|`` (NaN outside)."""
+        v, dv, dlogjac, logjac = super().to_value(np.asarray(w, float))
+        m = self.own
+        if m is None or not m.any():
+            return v, dv, dlogjac, logjac
+        a, b = self.lower[m], self.upper[m]
+        x = np.asarray(w, float)[m]
+        above, below = x - a, b - x
+        with np.errstate(all="ignore"):
+            inside = (above > 0) & (below > 0)
+            g = (b - a) / (above * below)
+            v[m] = np.where(inside, np.log(above) - np.log(below), np.nan)
+            dv[m] = np.where(inside, g, np.nan)
+            dlogjac[m] = np.where(inside, 1.0 / below - 1.0 / above, np.nan)
+            own_logjac = float(np.sum(np.log(g))) if inside.all() else -np.inf
+        return v, dv, dlogjac, logjac + own_logjac
+
+    def value_and_log_jacobian(self, w: Any, xp: Any = None) -> tuple[Any, Any]:
+        """Numpy only: ``v(w)`` and ``Σ log|dv/dw|`` (no symbolic form)."""
+        v, _, _, logjac = self.to_value(np.asarray(w, float))
+        return v, logjac
+
+    def from_value(self, v: np.ndarray) -> np.ndarray:
+        """``w(v)``: the elementwise maps inverted, then the variance shares."""
+        v = np.asarray(v, float)
+        w = Coordinates.from_value(replace(self, shares=None), v)
+        m = self.own
+        if m is not None and m.any():
+            w[m] = self.lower[m] + (self.upper[m] - self.lower[m]) * expit(v[m])
+        return w if self.shares is None else self.shares.inverse(w)
+
+    @property
+    def walled(self) -> np.ndarray:
+        """Mask of the elements with walls (log or own units)."""
+        own = np.zeros_like(self.log_scale) if self.own is None else self.own
+        return self.log_scale | own
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper walls of every element in ``w`` (±inf where none)."""
+        lo = np.full(self.log_scale.size, -np.inf)
+        hi = np.full(self.log_scale.size, np.inf)
+        m, o = self.log_scale, self.walled & ~self.log_scale
+        lo[m], hi[m] = np.log(self.lower[m]), np.log(self.upper[m])
+        lo[o], hi[o] = self.lower[o], self.upper[o]
+        return lo, hi
+
+
+def flat_scale_coordinates(
+    space: ValueSpace, seed: int, shares: VarianceShare | None = None
+) -> FlatScaleCoordinates | None:
+    """Every bounded parameter of ``space`` on the scale on which its prior is flat.
+
+    A positive interval element goes on the log scale when the median of its prior
+    draws lies closer to the middle of ``(ln a, ln b)`` than to the middle of ``(a, b)``
+    (a log-uniform prior: ``√(ab)``; a uniform one: ``(a + b)/2``), otherwise it stays in
+    its own units.  None without two interval elements (no ridge between box faces).
+
+    Examples
+    --------
+    >>> import pymc as pm
+    >>> from kohpymc.priors import LogUniform, Uniform
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:
+    ...     a = LogUniform(1e-9, 1e-3).create("a")
+    ...     e = Uniform(1e4, 6e4).create("e")
+    >>> coords = flat_scale_coordinates(value_space(model), seed=1)
+    >>> coords.log_scale.tolist(), coords.own.tolist()
+    ([True, False], [False, True])
+    """
+    kinds = np.array(space.transforms)
+    interval = (kinds == "interval") & np.isfinite(space.lower) & np.isfinite(space.upper)
+    if interval.sum() < 2:
+        return None
+    median_v, _ = prior_scales(space, seed)
+    a, b = space.lower, space.upper
+    with np.errstate(all="ignore"):
+        median = a + (b - a) * expit(median_v)
+        linear = np.abs((median - a) / (b - a) - 0.5)
+        logarithmic = np.abs(np.log(median / a) / np.log(b / a) - 0.5)
+    log_scale = interval & (a > 0) & (logarithmic < linear)
+    return FlatScaleCoordinates(
+        log_scale, a.copy(), b.copy(), True, shares=shares, own=interval & ~log_scale
+    )
+
+
+@dataclass(frozen=True)
+class SegmentPlan(BoxRidgePlan):
+    """:class:`~kohpymc.reparameterization.BoxRidgePlan` along a ridge that is not flat.
+
+    ``direction`` is the regression of ``ℓ`` on the pivot (entry 1 at ``pivot``), the
+    columns of ``basis`` are zero at the pivot, and the last coordinate is
+    ``τ = (t − centre)/scale``.  See the module docstring.
+    """
+
+    pivot: int = 0
+    centre: float = 0.0
+    scale: float = 1.0
+
+    def _t(self, z: np.ndarray) -> np.ndarray:
+        z = np.array(z, float)
+        z[-1] = self.centre + self.scale * z[-1]
+        return z
+
+    def to_value(self, z: np.ndarray) -> np.ndarray:
+        """PyMC value-space vector of sampling coordinates ``z``."""
+        ell = self._position(self._t(z))[3]
+        return self.coordinates.to_value(self._unshared(ell))[0]
+
+    def from_value(self, v: np.ndarray) -> np.ndarray:
+        """Sampling coordinates of a value-space vector (ends of the segment clipped)."""
+        r = self.coordinates.from_value(np.asarray(v, float)) - self.origin
+        s = r[self.pivot]
+        rest = np.arange(r.size) != self.pivot
+        y = np.linalg.lstsq(self.basis[rest], r[rest] - s * self.direction[rest], rcond=None)[0]
+        _, s_lo, _, s_hi, _ = self._segment(y)
+        frac = np.clip((s - s_lo) / (s_hi - s_lo), 1e-12, 1 - 1e-12)
+        t = np.log(frac) - np.log1p(-frac)
+        return np.append(y, (t - self.centre) / self.scale)
+
+    def logp_dlogp(
+        self, space: ValueSpace, z: np.ndarray, *, safe: bool = False
+    ) -> tuple[float, np.ndarray]:
+        """Log density of ``z`` (exact up to a constant) and its gradient."""
+        y, t, sig, ell, width, d_lo, d_hi = self._position(self._t(z))
+        if not width > 0:
+            return -np.inf, np.zeros(self.ndim)
+        w = self._unshared(ell)
+        v, dv, dlogjac, logjac = self.coordinates.to_value(w)
+        if not np.isfinite(logjac):
+            return -np.inf, np.zeros(self.ndim)
+        logp, grad_v = space.logp_dlogp_or_nan(v) if safe else space.logp_dlogp(v)
+        g = self._pull_back(ell, grad_v * dv + dlogjac)
+        along = float(self.direction @ g)
+        grad_y = self.basis.T @ g + along * ((1 - sig) * d_lo + sig * d_hi) + (d_hi - d_lo) / width
+        grad_t = along * width * sig * (1 - sig) + 1.0 - 2.0 * sig
+        log_sig = -np.logaddexp(0.0, -t) - np.logaddexp(0.0, t)
+        return (
+            logp + logjac + np.log(width) + log_sig,
+            np.append(grad_y, self.scale * grad_t),
+        )
+
+
+def _pivot(cov: np.ndarray, walled: np.ndarray) -> int | None:
+    """The walled element whose marginal sd exceeds its conditional sd the most (> ratio)."""
+    precision = np.linalg.inv(cov)
+    ratio = np.where(walled, np.sqrt(np.diag(cov) * np.diag(precision)), 0.0)
+    pivot = int(np.argmax(ratio))
+    return pivot if ratio[pivot] > _RIDGE_RATIO else None
+
+
+def _face_in_play(mean: np.ndarray, sd: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether a wall lies within ``_FACE_SDS`` Laplace sds of the mode."""
+    with np.errstate(invalid="ignore"):
+        near = (mean - _FACE_SDS * sd < lo) | (mean + _FACE_SDS * sd > hi)
+    return bool(np.any(near))
+
+
+def _centre_and_scale(space: ValueSpace, plan: SegmentPlan) -> tuple[float, float]:
+    """Mean and sd of ``t`` at ``y = 0`` by quadrature on ``t ∈ [−30, 30]``."""
+    t = np.linspace(-30.0, 30.0, 241)
+    logp = np.empty(t.size)
+    zero = np.zeros(plan.ndim)
+    for i, ti in enumerate(t):
+        zero[-1] = ti
+        with np.errstate(all="ignore"):
+            logp[i] = plan.logp_dlogp(space, zero, safe=True)[0]
+    if not np.any(np.isfinite(logp)):
+        return 0.0, 1.0
+    logp = np.where(np.isfinite(logp), logp, -np.inf)
+    weight = np.exp(logp - logp.max())
+    weight /= weight.sum()
+    mean = float(weight @ t)
+    return mean, max(float(np.sqrt(weight @ (t - mean) ** 2)), 1e-3)
+
+
+def segment_plan(
+    space: ValueSpace, mode: Mode, seed: int, shares: VarianceShare | None = None
+) -> SegmentPlan | None:
+    """A :class:`SegmentPlan` when the posterior is a long ridge that a face cuts off.
+
+    None unless, in :func:`flat_scale_coordinates`, the Laplace covariance at the mode is
+    positive definite, a bounded element's marginal sd exceeds its conditional sd more
+    than ten times (a ridge), and a wall lies within four Laplace sds of the mode.
+
+    Examples
+    --------
+    >>> found = segment_plan(space, mode, seed=1)  # doctest: +SKIP
+    >>> found.kind  # doctest: +SKIP
+    'ridge-segment-flat-scale'
+    """
+    coords = flat_scale_coordinates(space, seed, shares)
+    if coords is None:
+        return None
+    start = coords.from_value(mode.value)
+    if not np.all(np.isfinite(start)):
+        return None
+    ell0, chol = _laplace(space, coords, start)
+    if chol is None:
+        return None
+    cov = chol @ chol.T
+    walled = coords.walled
+    pivot = _pivot(cov, walled)
+    lo, hi = coords.bounds()
+    if pivot is None or not _face_in_play(ell0, np.sqrt(np.diag(cov)), lo, hi):
+        return None
+    direction = cov[:, pivot] / cov[pivot, pivot]
+    rest = np.flatnonzero(np.arange(ell0.size) != pivot)
+    conditional = cov[np.ix_(rest, rest)] - np.outer(direction[rest], cov[pivot, rest])
+    try:
+        factor = np.linalg.cholesky(0.5 * (conditional + conditional.T))
+    except np.linalg.LinAlgError:
+        return None
+    basis = np.zeros((ell0.size, rest.size))
+    basis[rest] = factor
+    index = np.flatnonzero(walled & (direction != 0))
+    plan = SegmentPlan(
+        "ridge-segment-flat-scale", np.zeros(ell0.size), np.eye(ell0.size), coords, "", mode,
+        origin=ell0 - ell0[pivot] * direction, basis=basis,
+        precision_sqrt=np.zeros(rest.size), direction=direction,
+        box=(index, lo[index], hi[index]), pivot=pivot,
+    )  # fmt: skip
+    centre, scale = _centre_and_scale(space, plan)
+    plan = replace(plan, centre=centre, scale=scale)
+    if not np.isfinite(plan.logp_dlogp(space, np.zeros(plan.ndim), safe=True)[0]):
+        return None
+    return replace(plan, gaussian_score=_gaussian_score(space, plan))
+
+
+def segment_reason(space: ValueSpace, plan: SegmentPlan, best: Any) -> SegmentPlan:
+    """``plan`` with its reason: the pivot, the scales, and the scores."""
+    labels, index, _ = interval_elements(space)
+    by_index = dict(zip(index.tolist(), labels, strict=True))
+    logs = ", ".join(by_index[int(i)] for i in np.flatnonzero(plan.coordinates.log_scale))
+    return replace(
+        plan,
+        reason=(
+            f"the posterior is a long ridge led by {by_index[int(plan.pivot)]} that a face of "
+            f"the prior box cuts off (Gaussian score of the best Laplace map "
+            f"{best.gaussian_score:.3g}, of this map {plan.gaussian_score:.3g}): sampled "
+            "along it between the faces its line meets and across it whitened, with the "
+            "bounded parameters on the scale of their flat prior"
+            + (f" ({logs} on the log scale)" if logs else "")
+        ),
+    )

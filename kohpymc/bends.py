@@ -256,10 +256,9 @@ def bend_plan(
     ...     x = pm.Normal("x", 0.0, 1.0)
     ...     y = pm.Normal("y", 0.0, 10.0)
     ...     _ = pm.Normal("obs", y - 2.0 * x**2, 0.1, observed=[0.0])
-    >>> space = value_space(model)
-    >>> bent = bend_plan(space, make_plan(space, seed=1))
-    >>> bent.kind
-    'bent-affine'
+    >>> bent = make_plan(value_space(model), seed=1)  # plan() calls bend_plan
+    >>> bent.kind, bent.bend.rows.shape  # x's whitened axis bent
+    ('bent-affine', (1, 2))
     """
     if type(plan) is not Reparameterization or plan.ndim < 2:
         return None

@@ -77,6 +77,11 @@ _GAUSSIAN_DROP = 0.5 * 1.5**2
 _BOX_RIDGE_SCORE = 1.0
 
 
+#: Gaussian score above which a whitened plan is tried with a quadratic bend (a parabolic
+#: ridge: dielectric M0's ε_∞–E_A axis drops 4.9 at ±1.5 sd, 1.125 for a Gaussian)
+_BEND_SCORE = 0.25
+
+
 def _np_put(out: np.ndarray, index: Any, value: Any) -> np.ndarray:
     out[index] = value
     return out
@@ -875,6 +880,7 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
     kind = kinds[coords.name.removeprefix("bound-ridge-")]
     kind = kind if coords.ridge is None else f"bound-ridge-{kind}"
     kind = kind if coords.shares is None else f"variance-share-{kind}"
+    kind = getattr(coords, "kind_prefix", "") + kind
     plan = Reparameterization(
         kind,
         mode_w,
@@ -936,6 +942,7 @@ def plan(
     pymc_coords, candidates = _candidate_coordinates(space, shares)
     plans = [p for p in (_whitened(space, c, mode.value, mode) for c in candidates) if p]
     plans = [p for p in plans if not p.coordinates.walls or _far_from_walls(space, p)]
+    plans += _near_bound_plans(space, plans, mode)
     plans += [p for p in (_bound_ridge_plan(space, p, mode) for p in plans) if p]
     shared = _shares_text(shares)
     if not plans:
@@ -956,15 +963,39 @@ def plan(
     segment = _ridge_segment(space, mode, seed, shares, best)
     if segment is not None:
         along.append(segment)
-    if along:
-        # a plan with zero-density holes where the sampler goes (a straight segment that
-        # misses the box when a parameter near its own bound crosses its wall: dielectric
-        # M2, 129 divergences in 2 × 300 draws) ranks after every plan without
-        holes = len(along) > 1
-        return min(along, key=lambda p: (holes and _has_holes(space, p, seed), p.gaussian_score))
-    if not _needs_whitening(best):
-        return _unwhitened_plan(space, pymc_coords, mode, best, shares, shared, seed)
-    return _whitened_plan(space, mode, best, shared, seed)
+    bent = _bent(space, best)
+    if not along:
+        if bent is None and not _needs_whitening(best):
+            return _unwhitened_plan(space, pymc_coords, mode, best, shares, shared, seed)
+        white = _whitened_plan(space, mode, best, shared, seed)
+        return white if bent is None else bent.explained(white)
+    # the maps along a ridge compete with the bent Laplace map on the same score; a plan
+    # with zero-density holes where the sampler goes (a straight segment that misses the box
+    # when a parameter near its own bound crosses its wall: dielectric M2, 129 divergences in
+    # 2 × 300 draws) ranks after every plan without
+    candidates = list(along)
+    if bent is not None:
+        candidates.append(bent.explained(_whitened_plan(space, mode, best, shared, seed)))
+    holes = len(candidates) > 1
+    return min(candidates, key=lambda p: (holes and _has_holes(space, p, seed), p.gaussian_score))
+
+
+def _near_bound_plans(
+    space: ValueSpace, plans: list[Reparameterization], mode: Mode
+) -> list[Reparameterization]:
+    """Candidates sampling near-bound parameters by their distance to the bound."""
+    from kohpymc.bound_distance import bound_distance_plans
+
+    return bound_distance_plans(space, plans, mode)
+
+
+def _bent(space: ValueSpace, best: Reparameterization) -> Any:
+    """``best`` bent along a parabolic ridge (:mod:`kohpymc.bends`), or None."""
+    if not best.gaussian_score > _BEND_SCORE:
+        return None
+    from kohpymc.bends import bend_plan
+
+    return bend_plan(space, best)
 
 
 def _bound_ridge_plan(

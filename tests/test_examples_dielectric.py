@@ -615,9 +615,9 @@ INFORMED = ["ln_NT", "ln_sigma", "ln_gamma", "eps_inf", "E_A"]
 
 @pytest.mark.slow
 @pytest.mark.xfail(
-    reason="issue 15 not reached (2026-11-25): with the bound-ridge coordinates M0 takes 94 s "
-    "at 10.5 leapfrog steps per draw but keeps 14 divergences (r_hat 1.012); M1 456 s, "
-    "67 divergences, ESS 277; M2-M5 longer; see docs/paper-reproduction.md",
+    reason="issue 15 not reached (2026-11-26): with the bend, squeeze and bound-distance maps "
+    "M0 keeps 1 divergence (7.2 steps per draw, r_hat 1.002, ESS 2006), M1 16 (ESS 774); "
+    "M2 69 divergences in 22 min; M3-M5 not run; see docs/paper-reproduction.md",
     strict=False,
 )
 def test_six_formulations_converge_at_default_settings():

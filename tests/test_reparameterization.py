@@ -102,7 +102,7 @@ def test_ridge_against_a_bound_is_measured_from_its_regression():
     interval coordinates alone), exactly: gradient and round trip hold."""
     space = value_space(_bounded_model(phi_true=1.6))
     reparam = plan(space, seed=SEED)
-    assert reparam.kind.startswith("bound-ridge-"), reparam.reason
+    assert "bound-ridge-" in reparam.kind, reparam.reason
     assert "phi" in reparam.reason and "prior bound" in reparam.reason
     ridge = reparam.coordinates.ridge
     assert ridge.bounded.tolist() == [1]
@@ -181,7 +181,7 @@ def test_draws_against_a_bound_match_a_dense_reference():
     model = _bounded_model(phi_true=1.6)
     with pytest.warns(UserWarning, match="upper prior bound 1.4"):
         idata, report = sample_posterior(model, draws=1000, tune=1000, chains=2, random_seed=SEED)
-    assert report.reparameterization["kind"].startswith("bound-ridge-"), report
+    assert "bound-ridge-" in report.reparameterization["kind"], report
     assert int(idata.sample_stats.diverging.sum()) < 40
     mean, cov = _piled_moments()
     sd = np.sqrt(np.diag(cov))

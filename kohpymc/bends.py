@@ -1,0 +1,331 @@
+r"""A ridge that bends away from its tangent at the mode, followed by a quadratic map.
+
+Two parameters related nonlinearly (a barrier ``E_A − c/√ε_∞`` informed by the data, with
+``E_A`` and ``ε_∞`` sampled in their own units) leave a thin ridge that is a parabola in
+the coordinates whitened at the mode: along the ridge's tangent ``z_k`` its centre moves
+``c_k z_k²`` across it, so the log density along that axis is ``−z²/2 − ½|c_k|² z⁴``, a
+wall that grows with the fourth power (dielectric M0: drop 65 at 3 Laplace sd, 4.5 for a
+Gaussian; its divergent transitions sit there).  :class:`Bend` measures the other
+whitened coordinates from the parabola,
+
+.. math:: z' = z + \sum_{k \in K} c_k z_k^2,\qquad (c_k)_j = 0 \text{ for } j \in K,
+
+which is unit-triangular (``log|∂z'/∂z| = 0``) and the identity to first order at the
+mode, so the whitening fitted there stays valid.  :func:`bend_plan` fits ``c_k`` from the
+conditional modes of the other coordinates at ``z_k = ±reach`` and keeps the bent plan
+when it scores closer to a Gaussian (:func:`kohpymc.reparameterization._gaussian_score`).
+An axis whose own marginal has light tails (drop above 9 at ±3 sd after the bend; dielectric
+M1's ln γ axis: 24–32, and 115–162 at ±4) is then squeezed (:class:`Squeeze`), which makes a
+quartic tail Gaussian.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy import optimize
+from scipy.linalg import solve_triangular
+
+from kohpymc.reparameterization import NUMPY, ArrayMath, Reparameterization, _gaussian_score
+from kohpymc.value_space import ValueSpace
+
+__all__ = ["Bend", "BentPlan", "bend_plan"]
+
+#: a bend is fitted when the ridge's centre moves this many transverse sds at ±reach
+_MIN_SHIFT = 0.5
+
+
+@dataclass(frozen=True)
+class Bend:
+    r"""``u' = u + B (G (u − μ))²``: the quadratic map of the module docstring in ``u = μ + L z``.
+
+    Attributes
+    ----------
+    centre : ndarray
+        ``μ``, the plan's mean.
+    rows : ndarray
+        ``G``, ``(|K|, n)``: the rows of ``L⁻¹`` of the bent axes (``z_K = G (u − μ)``).
+    shifts : ndarray
+        ``B = L C``, ``(n, |K|)``; ``G B = 0`` (the bent axes are not moved), so the
+        map's Jacobian determinant is 1 and its inverse explicit.
+
+    Examples
+    --------
+    >>> bend = Bend(np.zeros(2), np.array([[1.0, 0.0]]), np.array([[0.0], [0.5]]))
+    >>> bend.forward(np.array([2.0, 0.0]))
+    array([2., 2.])
+    >>> bend.inverse(bend.forward(np.array([2.0, 0.3])))
+    array([2. , 0.3])
+    """
+
+    centre: np.ndarray
+    rows: np.ndarray
+    shifts: np.ndarray
+
+    def forward(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        """``u'`` from ``u`` (over ``xp``)."""
+        s = xp.dot(self.rows, u - self.centre)
+        return u + xp.dot(self.shifts, s * s)
+
+    def inverse(self, w: np.ndarray) -> np.ndarray:
+        """``u`` from ``u'`` (``G u' = G u``)."""
+        s = self.rows @ (np.asarray(w, float) - self.centre)
+        return w - self.shifts @ (s * s)
+
+    def pull_back(self, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Gradient with respect to ``u`` from the gradient at :meth:`forward` of ``u``."""
+        s = self.rows @ (u - self.centre)
+        return grad + self.rows.T @ (2.0 * s * (self.shifts.T @ grad))
+
+
+@dataclass(frozen=True)
+class Squeeze:
+    r"""Light-tailed whitened axes squeezed: ``s_k → s_k (1 + β_k s_k²)^{−1/4}``.
+
+    Along an axis whose log density falls like ``−z²/2 − c z⁴`` (a marginal with light
+    tails, which no bend removes) NUTS's step, adapted to the bulk, is unstable in the tails.
+    Sampling ``y`` with ``s = y (1 + β y²)^{−1/4}`` turns a quartic tail in ``s`` into a
+    Gaussian one in ``y``.  In ``u``: ``u' = u + Σ_k a_k (φ_k(s_k) − s_k)`` with
+    ``s_k = g_k·(u − μ)``, ``g_k`` the rows of ``L⁻¹`` and ``a_k = L e_k``
+    (``g_j·a_k = δ_jk``), so ``log|∂u'/∂u| = Σ_k log φ_k'(s_k)``.
+
+    Examples
+    --------
+    >>> squeeze = Squeeze(np.zeros(1), np.eye(1), np.eye(1), np.array([0.5]))
+    >>> bool(np.allclose(squeeze.inverse(squeeze.forward(np.array([2.0]))), 2.0))
+    True
+    """
+
+    centre: np.ndarray
+    rows: np.ndarray
+    columns: np.ndarray
+    beta: np.ndarray
+
+    def _s(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        return xp.dot(self.rows, u - self.centre)
+
+    def forward(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        """``u'`` from ``u`` (over ``xp``)."""
+        s = self._s(u, xp)
+        t = s * xp.exp(-0.25 * xp.log(1.0 + self.beta * s * s))
+        return u + xp.dot(self.columns, t - s)
+
+    def log_jacobian(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        """``Σ_k log φ_k'(s_k)`` (over ``xp``)."""
+        q = self.beta * self._s(u, xp) ** 2
+        return xp.sum(xp.log(1.0 + 0.5 * q) - 1.25 * xp.log(1.0 + q))
+
+    def derivatives(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``φ_k'(s_k)`` and ``d log φ_k'(s_k) / ds_k``."""
+        s = self._s(u)
+        q = self.beta * s * s
+        slope = (1.0 + 0.5 * q) * (1.0 + q) ** -1.25
+        return slope, self.beta * s / (1.0 + 0.5 * q) - 2.5 * self.beta * s / (1.0 + q)
+
+    def inverse(self, w: np.ndarray) -> np.ndarray:
+        """``u`` from ``u'``: ``s⁴ = t⁴ (1 + β s²)`` solved for ``s²``."""
+        t = self._s(np.asarray(w, float))
+        t4 = t**4
+        s = np.sign(t) * np.sqrt(0.5 * (self.beta * t4 + np.sqrt((self.beta * t4) ** 2 + 4 * t4)))
+        return w + self.columns @ (s - t)
+
+    def pull_back(self, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Gradient with respect to ``u`` from the gradient at :meth:`forward` of ``u``."""
+        slope, _ = self.derivatives(u)
+        return grad + self.rows.T @ ((slope - 1.0) * (self.columns.T @ grad))
+
+
+@dataclass(frozen=True)
+class BentPlan(Reparameterization):
+    """A whitened plan with a :class:`Squeeze` and a :class:`Bend` applied to ``u = μ + L z``."""
+
+    bend: Bend | None = None
+    squeeze: Squeeze | None = None
+
+    def _squeezed(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        return u if self.squeeze is None else self.squeeze.forward(u, xp)
+
+    def _unshared(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
+        u = self._squeezed(u, xp)
+        return super()._unshared(u if self.bend is None else self.bend.forward(u, xp), xp)
+
+    def _pull_back(self, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        squeezed = self._squeezed(u)
+        bent = squeezed if self.bend is None else self.bend.forward(squeezed)
+        grad = super()._pull_back(bent, grad)
+        grad = grad if self.bend is None else self.bend.pull_back(squeezed, grad)
+        return grad if self.squeeze is None else self.squeeze.pull_back(u, grad)
+
+    def value_from_affine(self, u: Any, xp: ArrayMath = NUMPY) -> tuple[Any, Any]:
+        """``v`` and the log-Jacobian, the squeeze's included (over ``xp``)."""
+        v, logjac = super().value_from_affine(u, xp)
+        return v, logjac if self.squeeze is None else logjac + self.squeeze.log_jacobian(u, xp)
+
+    def logp_dlogp(
+        self, space: ValueSpace, z: np.ndarray, *, safe: bool = False
+    ) -> tuple[float, np.ndarray]:
+        """Log density of ``z`` (exact up to a constant) and its gradient."""
+        logp, grad = super().logp_dlogp(space, z, safe=safe)
+        if self.squeeze is None or not np.isfinite(logp):
+            return logp, grad
+        u = self.mean + self.chol @ np.asarray(z, float)
+        _, dlog = self.squeeze.derivatives(u)
+        grad = grad + self.chol.T @ (self.squeeze.rows.T @ dlog)
+        return logp + float(self.squeeze.log_jacobian(u)), grad
+
+    def from_value(self, v: np.ndarray) -> np.ndarray:
+        """Sampling coordinates of a value-space vector."""
+        w = self.coordinates.from_value(np.asarray(v, float))
+        u = w if self.bend is None else self.bend.inverse(w)
+        u = u if self.squeeze is None else self.squeeze.inverse(u)
+        return solve_triangular(self.chol, u - self.mean, lower=True)
+
+    def explained(self, white: Reparameterization) -> BentPlan:
+        """The plan with ``white``'s reason (the unbent plan's) extended, and its warnings."""
+        axes = 0 if self.bend is None else self.bend.rows.shape[0]
+        reason = white.reason.removesuffix(")") + (
+            f"; {axes} whitened axis/axes bent along the parabola the ridge follows there, "
+            f"Gaussian score {white.gaussian_score:.3g} -> {self.gaussian_score:.3g})"
+        )
+        return replace(self, reason=reason, warnings=white.warnings)
+
+
+def _conditional_mode(space: ValueSpace, plan: Reparameterization, k: int, at: float):
+    """The other whitened coordinates' conditional mode at ``z_k = at`` (None if not found)."""
+    n = plan.ndim
+    rest = np.array([i for i in range(n) if i != k], dtype=int)
+
+    def objective(y):
+        z = np.zeros(n)
+        z[k], z[rest] = at, y
+        with np.errstate(all="ignore"):
+            logp, grad = plan.logp_dlogp(space, z, safe=True)
+        if not np.isfinite(logp) or not np.all(np.isfinite(grad)):
+            return np.inf, np.zeros(rest.size)
+        return -logp, -grad[rest]
+
+    if not np.isfinite(objective(np.zeros(rest.size))[0]):
+        return None
+    result = optimize.minimize(
+        objective, np.zeros(rest.size), jac=True, method="L-BFGS-B", options={"maxiter": 300}
+    )
+    if not np.isfinite(result.fun):
+        return None
+    out = np.zeros(n)
+    out[rest] = result.x
+    return out
+
+
+def _coefficients(space: ValueSpace, plan: Reparameterization, reach: float) -> np.ndarray:
+    """``C`` (column ``k``: the parabola's coefficients along axis ``k``; NaN if not found)."""
+    n = plan.ndim
+    coefs = np.full((n, n), np.nan)
+    for k in range(n):
+        low = _conditional_mode(space, plan, k, -reach)
+        high = _conditional_mode(space, plan, k, reach)
+        if low is not None and high is not None:
+            coefs[:, k] = (low + high) / (2.0 * reach**2)
+    return coefs
+
+
+def bend_plan(
+    space: ValueSpace, plan: Reparameterization, *, reach: float = 1.5
+) -> BentPlan | None:
+    """``plan`` with a :class:`Bend` along its bent axes (None: none bent, or it scores worse).
+
+    An axis ``k`` is bent when the conditional mode of the others moves more than
+    ``_MIN_SHIFT`` transverse sds symmetrically at ``z_k = ±reach``; the axes are taken
+    most bent first, and each one's coefficients on the bent axes are set to zero.
+
+    Parameters
+    ----------
+    space : ValueSpace
+    plan : Reparameterization
+        A whitened plan (``v = coordinates(μ + L z)``, not a ridge or box plan).
+    reach : float
+        Where the parabola is fitted, in Laplace sds (also where the Gaussian score looks).
+
+    Examples
+    --------
+    >>> import numpy as np, pymc as pm
+    >>> from kohpymc.reparameterization import plan as make_plan
+    >>> from kohpymc.value_space import value_space
+    >>> with pm.Model() as model:  # a banana: y − x² informed, x from its prior
+    ...     x = pm.Normal("x", 0.0, 1.0)
+    ...     y = pm.Normal("y", 0.0, 10.0)
+    ...     _ = pm.Normal("obs", y - 2.0 * x**2, 0.1, observed=[0.0])
+    >>> bent = make_plan(value_space(model), seed=1)  # plan() calls bend_plan
+    >>> bent.kind, bent.bend.rows.shape  # x's whitened axis bent
+    ('bent-affine', (1, 2))
+    """
+    if type(plan) is not Reparameterization or plan.ndim < 2:
+        return None
+    coefs = _coefficients(space, plan, reach)
+    size = np.linalg.norm(np.nan_to_num(coefs, nan=0.0), axis=0) * reach**2
+    bent = [int(k) for k in np.argsort(-size) if size[k] > _MIN_SHIFT]
+    if not bent:
+        return None
+    chosen = coefs[:, bent].copy()
+    chosen[bent, :] = 0.0
+    inverse = solve_triangular(plan.chol, np.eye(plan.ndim), lower=True)
+    bend = Bend(plan.mean.copy(), inverse[bent], plan.chol @ chosen)
+    base = {k: v for k, v in plan.__dict__.items() if k != "kind"}
+    candidate = BentPlan(kind=f"bent-{plan.kind}", bend=bend, **base)
+    score = _gaussian_score(space, candidate)
+    if not score < plan.gaussian_score:
+        return None
+    return _squeezed_plan(space, replace(candidate, gaussian_score=score), inverse)
+
+
+#: an axis is light-tailed when its log density drops more than this at ±3 sd (mean of the
+#: two sides; 4.5 for a Gaussian)
+_LIGHT_DROP = 9.0
+
+
+def _drops(space: ValueSpace, plan: Reparameterization, k: int, at: float = 3.0) -> float:
+    """Mean drop of the log density at ``z_k = ±at`` (the others at 0)."""
+    base, _ = plan.logp_dlogp(space, np.zeros(plan.ndim), safe=True)
+    drops = []
+    for sign in (-at, at):
+        z = np.zeros(plan.ndim)
+        z[k] = sign
+        with np.errstate(all="ignore"):
+            logp, _ = plan.logp_dlogp(space, z, safe=True)
+        drops.append(base - logp if np.isfinite(logp) else np.inf)
+    return float(np.mean(drops))
+
+
+def _squeezed_plan(space: ValueSpace, plan: BentPlan, inverse: np.ndarray) -> BentPlan:
+    """``plan`` with its light-tailed axes squeezed (β fitted to a drop of 4.5 at ±3)."""
+    light = [k for k in range(plan.ndim) if _LIGHT_DROP < _drops(space, plan, k) < np.inf]
+    if not light:
+        return plan
+    beta = np.zeros(len(light))
+
+    def with_beta(values):
+        squeeze = Squeeze(plan.mean.copy(), inverse[light], plan.chol[:, light], values)
+        return replace(plan, squeeze=squeeze)
+
+    for j, k in enumerate(light):
+
+        def excess(log_beta, j=j, k=k):
+            trial = beta.copy()
+            trial[j] = np.exp(log_beta)
+            return _drops(space, with_beta(trial), k) - 4.5
+
+        if excess(np.log(1e-4)) > 0 > excess(np.log(1e2)):
+            beta[j] = np.exp(optimize.brentq(excess, np.log(1e-4), np.log(1e2), xtol=1e-3))
+    keep = beta > 0
+    if not keep.any():
+        return plan
+    light = [k for k, kept in zip(light, keep, strict=True) if kept]
+    squeezed = replace(
+        plan,
+        squeeze=Squeeze(plan.mean.copy(), inverse[light], plan.chol[:, light], beta[keep]),
+    )
+    score = _gaussian_score(space, squeezed)
+    if score > plan.gaussian_score + 0.1:
+        return plan
+    return replace(squeezed, gaussian_score=score, kind=f"squeezed-{plan.kind}")

@@ -477,6 +477,9 @@ class FunctionalEmulator:
     >>> mean, var = em.predict({"t": [0.5, 1.1]}, {"a": 1.5, "k": 0.7})
     >>> bool(np.allclose(mean, 1.5 * np.exp(-0.7 * np.array([0.5, 1.1])), atol=1e-2))
     True
+    >>> mean, sd = em.predict_curves(pd.DataFrame({"a": [1.5], "k": [0.7]}))
+    >>> bool(np.allclose(mean[0], 1.5 * np.exp(-0.7 * np.linspace(0, 3, 16)), atol=1e-2))
+    True
     """
 
     def __init__(
@@ -730,17 +733,7 @@ class FunctionalEmulator:
 
         Examples
         --------
-        >>> import pytensor.tensor as pt
-        >>> from kohpymc import PhysicsModel, Uniform
-        >>> from kohpymc.emulator import space_filling_design
-        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
-        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
-        >>> box, grid = {"a": (1, 2), "k": (0.5, 1)}, {"t": np.linspace(0, 3, 16)}
-        >>> em = FunctionalEmulator(run_curves(decay, space_filling_design(box, 20), grid),
-        ...                         decay)
-        >>> mean, sd = em.predict_curves(pd.DataFrame({"a": [1.5], "k": [0.7]}))
-        >>> bool(np.allclose(mean[0], 1.5 * np.exp(-0.7 * grid["t"]), atol=1e-2))
-        True
+        See :class:`FunctionalEmulator`.
         """
         X = design[list(self.columns)].to_numpy(float)
         Us = (self._coordinates(X) - self.lower) / self.width

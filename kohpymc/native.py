@@ -303,28 +303,15 @@ def map_in_z(mapping: Reparameterization, n: int) -> tuple[Any, Any, Any, list[A
     return z, m, g, [v, logjac, grad]
 
 
-_COMPOSED_SOURCE = """
-def logp_c(dim, x_, out_, logp_, user_data_):
-    if dim != N_DIM:
-        return -1
-    try:
-        x = carray(x_, (N_DIM,))
-        out = carray(out_, (N_DIM,))
-        logp = carray(logp_, ())
-        theta = carray(user_data_, (N_THETA,), float64)
-        m = theta[:N_MAP]
-        v, logjac, _ = map_fn(x, m, np.zeros(N_DIM))
-        value, grad_v = graph(v, SHARED)
-        _, _, grad = map_fn(x, m, grad_v)
-        logp[()] = value + logjac
-        out[...] = grad
-        if not np.all(np.isfinite(out)):
-            return 3
-        if not np.isfinite(logp[()]):
-            return 4
-    except Exception:
-        return 1
-    return 0
+#: the body of :func:`_composed_logp`'s C function: ``v(z)``, the density at ``v`` (its
+#: shared values after the map in the user data, SHARED), the gradient back in ``z``
+_COMPOSED_BODY = """
+m = theta[:N_MAP]
+v, logjac, _ = map_fn(x, m, np.zeros(N_DIM))
+value, grad_v = graph(v, SHARED)
+_, _, grad = map_fn(x, m, grad_v)
+logp[()] = value + logjac
+out[...] = grad
 """
 
 
@@ -337,7 +324,7 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     a :class:`NumbaDensity` or has a shared input that is not float64 (the caller then
     compiles the whole density in ``z``, :func:`density_in_z`).
     """
-    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
+    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
 
     density = space._logp_dlogp
     if not isinstance(density, NumbaDensity):
@@ -353,32 +340,22 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     for value in values:
         slices.append(f"theta[{start}:{start + value.size}].reshape({value.shape!r})")
         start += value.size
-    source = _COMPOSED_SOURCE.replace("SHARED", ", ".join(slices) or "")
+    body = _COMPOSED_BODY.replace("SHARED", ", ".join(slices) or "")
     map_key = CACHED_SRC_FUNCTIONS.get(map_jit.py_func)
     key = None
     if density.key is not None and map_key is not None:
         shapes = [value.shape for value in values]
         parts = f"{density.key}-{map_key}-{n}-{start}-{shapes}".encode()
         key = f"kohpymc-native-composed-v1-{hashlib.sha256(parts).hexdigest()}"  # a file name
-    env = {
-        "N_DIM": n,
-        "N_MAP": n + n * n,
-        "N_THETA": start,
-        "carray": numba.carray,
-        "float64": numba.float64,
-        "np": np,
-        "map_fn": _inlined(map_jit),
-        "graph": density.graph,
-        "__name__": __name__,
-    }
-    raw = compile_numba_function_src(source, "logp_c", env, cache_key=key)
+    names = {"N_MAP": n + n * n, "map_fn": _inlined(map_jit), "graph": density.graph}
+    logp_c = _logp_c(body, n, start, names, key)
     user_data = np.ascontiguousarray(
         np.concatenate(
             [np.ravel(mapping.mean), np.ravel(mapping.chol)] + [v.ravel() for v in values]
         ),
         dtype=float,
     )
-    return numba.cfunc(_LOGP_SIGNATURE, cache=key is not None)(raw), function, user_data
+    return logp_c, function, user_data
 
 
 #: nutpie's log-density C signature: (dim, x, gradient out, logp out, user data) -> code
@@ -390,7 +367,10 @@ _LOGP_SIGNATURE = numba.types.int64(
     numba.types.voidptr,
 )
 
-_LOGP_SOURCE = """
+#: nutpie's log-density C function; BODY (from ``x`` and ``theta``, the user data) sets
+#: ``logp[()]`` and ``out``, the gradient.  Return codes are those of nutpie's own
+#: wrapper (1: the body raised, 3: non-finite gradient, 4: non-finite density).
+_LOGP_TEMPLATE = """
 def logp_c(dim, x_, out_, logp_, user_data_):
     if dim != N_DIM:
         return -1
@@ -399,12 +379,10 @@ def logp_c(dim, x_, out_, logp_, user_data_):
         out = carray(out_, (N_DIM,))
         logp = carray(logp_, ())
         theta = carray(user_data_, (N_THETA,), float64)
-        value, grad = jit_fn(x, theta)
-        logp[()] = value
-        out[...] = grad
+BODY
         if not np.all(np.isfinite(out)):
             return 3
-        if not np.isfinite(value):
+        if not np.isfinite(logp[()]):
             return 4
     except Exception:
         return 1
@@ -412,29 +390,42 @@ def logp_c(dim, x_, out_, logp_, user_data_):
 """
 
 
-def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
-    """Nutpie's log-density C function around PyTensor's numba function ``jit_fn``.
+def _logp_c(body: str, n_dim: int, n_theta: int, names: dict[str, Any], key: str | None) -> Any:
+    """Nutpie's C function :data:`_LOGP_TEMPLATE` with ``body``, compiled by numba.
 
-    Its return codes are those of nutpie's own wrapper (1: the graph raised, 3:
-    non-finite gradient, 4: non-finite density).
-    Cached on disk, keyed by PyTensor's key of the graph, when that has one.
+    ``names``: what ``body`` calls, besides ``np``, ``N_DIM`` and ``N_THETA``.  Cached on
+    disk under ``key`` (a file name) when it is not ``None``.
     """
-    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
+    from pytensor.link.numba.cache import compile_numba_function_src
 
-    graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
-    key = None if graph_key is None else f"kohpymc-native-logp-v3-{graph_key}-{n_dim}-{n_theta}"
+    lines = body.strip("\n").splitlines()
+    source = _LOGP_TEMPLATE.replace("BODY", "\n".join(" " * 8 + line for line in lines))
     env = {
         "N_DIM": n_dim,
         "N_THETA": n_theta,
         "carray": numba.carray,
         "float64": numba.float64,
         "np": np,
-        "jit_fn": _inlined(jit_fn),
         # numba rebuilds a cached function's environment from an importable module
         "__name__": __name__,
+        **names,
     }
-    raw = compile_numba_function_src(_LOGP_SOURCE, "logp_c", env, cache_key=key)
+    raw = compile_numba_function_src(source, "logp_c", env, cache_key=key)
     return numba.cfunc(_LOGP_SIGNATURE, cache=key is not None)(raw)
+
+
+def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
+    """Nutpie's log-density C function around PyTensor's numba function ``jit_fn``.
+
+    Its return codes are those of nutpie's own wrapper (see :data:`_LOGP_TEMPLATE`).
+    Cached on disk, keyed by PyTensor's key of the graph, when that has one.
+    """
+    from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
+
+    graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
+    key = None if graph_key is None else f"kohpymc-native-logp-v4-{graph_key}-{n_dim}-{n_theta}"
+    body = "value, grad = jit_fn(x, theta)\nlogp[()] = value\nout[...] = grad"
+    return _logp_c(body, n_dim, n_theta, {"jit_fn": _inlined(jit_fn)}, key)
 
 
 def _inlined(jit_fn: Any) -> Any:

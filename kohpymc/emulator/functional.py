@@ -68,6 +68,7 @@ from kohpymc.emulator.gp import (
     KERNELS,
     EmulatedPhysics,
     GPHyperparameters,
+    SharedTrainingData,
     _fit_hyperparameters,
     _kernel_numpy,
     shared_array,
@@ -416,7 +417,7 @@ class _Rows:
     interp: np.ndarray  # (n, P) row -> grid weights
 
 
-class FunctionalEmulator:
+class FunctionalEmulator(SharedTrainingData):
     r"""A principal-component emulator of a simulator's curves (GPMSA / SEPIA style).
 
     Parameters
@@ -785,35 +786,21 @@ class FunctionalEmulator:
     #: products with ``L⁻¹``, the reference it is tested against)
     triangular_op: bool = True
 
-    def _training_tensors(self) -> dict[str, Any]:
-        """The weight GPs' training data as shared variables, made once per emulator.
-
-        Shared, not constants: a compiled log density reads them at run time, so numba
-        does not inline megabytes of arrays into its code (a minute of compiling the
-        dielectric emulator, never cached) and its disk cache can serve the next run.
-        """
-        tensors = self.__dict__.get("_tensors")
-        if tensors is None:
-            values = {
-                "U": self.U,
-                "alpha": np.array([gp.alpha for gp in self._gps]),  # (K, N)
-                "chol_inv": np.array([gp.chol_inv for gp in self._gps]),  # (K, N, N)
-                "lengthscales": np.array([h.lengthscales for h in self.hypers]),  # (K, q)
-                "amplitude": np.array([h.amplitude for h in self.hypers]),
-                "nugget": np.array([h.nugget for h in self.hypers]),
-                "lower": self.lower,
-                "width": self.width,
-            }
-            if self.rotation is not None:
-                values["center"], values["matrix"] = self.rotation
-            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
-            self.__dict__["_tensors"] = tensors
-        return tensors
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state.pop("_tensors", None)  # shared variables: made again on demand
-        return state
+    def _training_values(self) -> dict[str, np.ndarray]:
+        """The weight GPs' training data, stacked over the ``K`` GPs."""
+        values = {
+            "U": self.U,
+            "alpha": np.array([gp.alpha for gp in self._gps]),  # (K, N)
+            "chol_inv": np.array([gp.chol_inv for gp in self._gps]),  # (K, N, N)
+            "lengthscales": np.array([h.lengthscales for h in self.hypers]),  # (K, q)
+            "amplitude": np.array([h.amplitude for h in self.hypers]),
+            "nugget": np.array([h.nugget for h in self.hypers]),
+            "lower": self.lower,
+            "width": self.width,
+        }
+        if self.rotation is not None:
+            values["center"], values["matrix"] = self.rotation
+        return values
 
     def _latent_tensor(self, theta: Any, X: np.ndarray, low_rank: bool = False) -> tuple[Any, Any]:
         """Latent mean and covariance at the rows: all K weight GPs as batched tensors.

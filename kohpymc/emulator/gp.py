@@ -196,7 +196,42 @@ def _fit_hyperparameters(
     )
 
 
-class Emulator:
+class SharedTrainingData:
+    """An emulator's training data as shared variables, made once and never pickled.
+
+    Run-time inputs of a compiled graph, not constants: numba would inline the
+    ``N × N`` matrices into its code (a minute of compiling the dielectric emulator,
+    again for every emulator, never cached), and its disk cache can serve the next run.
+    A subclass names the arrays in :meth:`_training_values`.
+
+    Examples
+    --------
+    >>> class Data(SharedTrainingData):
+    ...     def _training_values(self):
+    ...         return {"U": np.eye(2)}
+    >>> Data()._training_tensors()["U"].name
+    'emulator_U'
+    """
+
+    def _training_values(self) -> dict[str, np.ndarray]:
+        raise NotImplementedError
+
+    def _training_tensors(self) -> dict[str, Any]:
+        """:meth:`_training_values` as shared variables ``emulator_<name>``, made once."""
+        tensors = self.__dict__.get("_tensors")
+        if tensors is None:
+            values = self._training_values()
+            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
+            self.__dict__["_tensors"] = tensors
+        return tensors
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_tensors", None)  # shared variables: made again on demand
+        return state
+
+
+class Emulator(SharedTrainingData):
     r"""A GP emulator ``η̂(x, θ)`` of a simulator, fitted to its runs.
 
     Parameters
@@ -322,24 +357,9 @@ class Emulator:
         self._alpha = linalg.cho_solve((self._chol, True), self.z)
         self._chol_inv = linalg.solve_triangular(self._chol, np.eye(self.n_runs), lower=True)
 
-    def _training_tensors(self) -> dict[str, Any]:
-        """The runs' coordinates, ``α = K⁻¹z`` and ``L⁻¹`` as shared variables, made once.
-
-        Run-time inputs of a compiled graph, not constants: numba would inline the
-        ``N × N`` matrix into its code (compiled again for every emulator, never cached),
-        as :class:`~kohpymc.emulator.functional.FunctionalEmulator` measured.
-        """
-        tensors = self.__dict__.get("_tensors")
-        if tensors is None:
-            values = {"U": self.U, "alpha": self._alpha, "chol_inv": self._chol_inv}
-            tensors = {k: shared_array(v, f"emulator_{k}") for k, v in values.items()}
-            self.__dict__["_tensors"] = tensors
-        return tensors
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state.pop("_tensors", None)  # shared variables: made again on demand
-        return state
+    def _training_values(self) -> dict[str, np.ndarray]:
+        """The runs' coordinates, ``α = K⁻¹z`` and ``L⁻¹``."""
+        return {"U": self.U, "alpha": self._alpha, "chol_inv": self._chol_inv}
 
     # ------------------------------------------------------------------- numpy
     def _transform(self, values: np.ndarray) -> np.ndarray:

@@ -55,6 +55,7 @@ __all__ = [
     "against_bounds",
     "hits_at_mode",
     "interval_elements",
+    "interval_labels",
     "hits_in_draws",
     "warn_hits",
 ]
@@ -261,6 +262,8 @@ def interval_elements(
     >>> labels, index, _ = interval_elements(value_space(model))
     >>> labels, index.tolist()
     (['a[0]', 'a[1]'], [1, 2])
+    >>> interval_labels(value_space(model))
+    {1: 'a[0]', 2: 'a[1]'}
     """
     labels, index, blocks = [], [], []
     start = 0
@@ -273,6 +276,17 @@ def interval_elements(
                 index.append(start + k)
         start += size
     return labels, np.asarray(index, dtype=int), blocks
+
+
+def interval_labels(space: ValueSpace) -> dict[int, str]:
+    """The label of each interval element (:func:`interval_elements`) by its flat index.
+
+    Examples
+    --------
+    See :func:`interval_elements`.
+    """
+    labels, index, _ = interval_elements(space)
+    return dict(zip(index.tolist(), labels, strict=True))
 
 
 def hits_at_mode(space: ValueSpace, mode: np.ndarray, value_sd: np.ndarray) -> list[BoundHit]:

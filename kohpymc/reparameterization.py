@@ -52,7 +52,7 @@ import numpy as np
 from scipy import optimize, stats
 from scipy.special import expit
 
-from kohpymc.prior_bounds import hits_at_mode, interval_elements
+from kohpymc.prior_bounds import hits_at_mode, interval_labels
 from kohpymc.value_space import ValueSpace, transformed_value
 
 __all__ = [
@@ -1108,8 +1108,7 @@ def _ridge_text(space: ValueSpace, plan: Reparameterization) -> str:
     ridge = plan.coordinates.ridge
     if ridge is None:
         return ""
-    labels, index, _ = interval_elements(space)
-    by_index = dict(zip(index.tolist(), labels, strict=True))
+    by_index = interval_labels(space)
     named = ", ".join(by_index[int(i)] for i in ridge.bounded)
     return (
         f"; {named} against a prior bound: the other coordinates measured from "
@@ -1392,8 +1391,7 @@ def _ridge_segment(
 
 def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization):
     """``curve`` with its reason: which parameters lead the ridge, and the scores."""
-    labels, index, _ = interval_elements(space)
-    by_index = dict(zip(index.tolist(), labels, strict=True))
+    by_index = interval_labels(space)
     soft = ", ".join(by_index[int(i)] for i in np.flatnonzero(curve.coordinates.soft))
     return replace(
         curve,
@@ -1420,8 +1418,7 @@ def _has_holes(space: ValueSpace, plan: Reparameterization, seed: int, n: int = 
 
 def _box_ridge_reason(space: ValueSpace, box: BoxRidgePlan, best: Reparameterization):
     """``box`` with its reason: what ridge, and what the best Laplace map scored."""
-    labels, index, _ = interval_elements(space)
-    by_index = dict(zip(index.tolist(), labels, strict=True))
+    by_index = interval_labels(space)
     named = ", ".join(by_index[int(i)] for i in box.box[0])
     return replace(
         box,

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.special import expit
 
-from kohpymc.prior_bounds import interval_elements
+from kohpymc.prior_bounds import interval_labels
 from kohpymc.reparameterization import (
     BoxRidgePlan,
     Coordinates,
@@ -319,8 +319,7 @@ def segment_plan(
 
 def segment_reason(space: ValueSpace, plan: SegmentPlan, best: Any) -> SegmentPlan:
     """``plan`` with its reason: the pivot, the scales, and the scores."""
-    labels, index, _ = interval_elements(space)
-    by_index = dict(zip(index.tolist(), labels, strict=True))
+    by_index = interval_labels(space)
     logs = ", ".join(by_index[int(i)] for i in np.flatnonzero(plan.coordinates.log_scale))
     return replace(
         plan,

@@ -170,13 +170,13 @@ def _piled_moments():
     return mean, (centred * p.ravel()) @ centred.T
 
 
-def _assert_piled_moments(idata):
-    """The draws' mean, sd and correlation of (m, phi) match :func:`_piled_moments` within
-    4 Monte Carlo errors (Fisher z for the correlation), with an ESS above 400."""
-    mean, cov = _piled_moments()
+def _assert_moments(idata, names, mean, cov):
+    """The draws' mean, sd and correlation of the two scalars ``names`` match a reference
+    ``mean`` and ``cov`` within 4 Monte Carlo errors (Fisher z for the correlation), with an
+    ESS above 400."""
     sd = np.sqrt(np.diag(cov))
-    draws = np.column_stack([idata.posterior[k].values.ravel() for k in ("m", "phi")])
-    ess = float(az.ess(idata, var_names=["m", "phi"]).to_array().min())
+    draws = np.column_stack([idata.posterior[k].values.ravel() for k in names])
+    ess = float(az.ess(idata, var_names=list(names)).to_array().min())
     assert ess > 400
     assert np.all(np.abs(draws.mean(axis=0) - mean) < 4 * sd / np.sqrt(ess))
     assert np.all(np.abs(draws.std(axis=0, ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess))
@@ -198,7 +198,7 @@ def test_draws_against_a_bound_match_a_dense_reference():
         idata, report = sample_posterior(model, draws=1000, tune=1000, chains=2, random_seed=SEED)
     assert "bound-ridge-" in report.reparameterization["kind"], report
     assert int(idata.sample_stats.diverging.sum()) < 40
-    _assert_piled_moments(idata)
+    _assert_moments(idata, ("m", "phi"), *_piled_moments())
 
 
 _K_BOX, _C_BOX = (1e-8, 1e-6), (1e8, 1e10)

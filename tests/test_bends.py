@@ -25,21 +25,28 @@ def _random_bend(rng, n=4, bent=(1, 3)):
     return Bend(rng.normal(size=n), inverse[list(bent)], chol @ coefs)
 
 
+def _check_inverse_and_pull_back(m, u, rng):
+    """``m.inverse`` undoes ``m.forward`` at ``u`` to 1e-12, and ``m.pull_back`` of the
+    gradient of ``sin(a·forward(u))`` (``a`` drawn from ``rng``) matches central differences;
+    returns ``∂ forward/∂u`` by central differences."""
+    np.testing.assert_allclose(m.inverse(m.forward(u)), u, atol=1e-12)
+    a = rng.normal(size=u.size)
+    f = lambda x: float(np.sin(a @ m.forward(x)))  # noqa: E731
+    grad_w = np.cos(a @ m.forward(u)) * a
+    fd = _finite_difference_gradient(f, u)
+    np.testing.assert_allclose(m.pull_back(u, grad_w), fd, rtol=1e-6, atol=1e-8)
+    return np.column_stack(
+        [(m.forward(u + e) - m.forward(u - e)) / 2e-6 for e in 1e-6 * np.eye(u.size)]
+    )
+
+
 def test_bend_inverse_gradient_and_unit_jacobian():
     """Inverse to 1e-12; the pulled-back gradient of a test function and det(∂u'/∂u) = 1
     against central differences; the PyTensor form gives the same values."""
     rng = np.random.default_rng(SEED)
     bend = _random_bend(rng)
     u = rng.normal(size=4)
-    np.testing.assert_allclose(bend.inverse(bend.forward(u)), u, atol=1e-12)
-    a = rng.normal(size=4)
-    f = lambda x: float(np.sin(a @ bend.forward(x)))  # noqa: E731
-    grad_w = np.cos(a @ bend.forward(u)) * a
-    fd = _finite_difference_gradient(f, u)
-    np.testing.assert_allclose(bend.pull_back(u, grad_w), fd, rtol=1e-6, atol=1e-8)
-    jac = np.column_stack(
-        [(bend.forward(u + e) - bend.forward(u - e)) / 2e-6 for e in 1e-6 * np.eye(4)]
-    )
+    jac = _check_inverse_and_pull_back(bend, u, rng)
     assert np.linalg.det(jac) == pytest.approx(1.0, abs=1e-6)
     np.testing.assert_allclose(bend.forward(pt.as_tensor(u), PYTENSOR).eval(), bend.forward(u))
 
@@ -106,15 +113,7 @@ def test_squeeze_inverse_gradient_and_log_jacobian():
     inverse = np.linalg.inv(chol)
     squeeze = Squeeze(rng.normal(size=3), inverse[[0, 2]], chol[:, [0, 2]], np.array([0.7, 2.0]))
     u = squeeze.centre + chol @ np.array([2.5, -0.3, -3.1])
-    np.testing.assert_allclose(squeeze.inverse(squeeze.forward(u)), u, atol=1e-12)
-    a = rng.normal(size=3)
-    f = lambda x: float(np.sin(a @ squeeze.forward(x)))  # noqa: E731
-    grad_w = np.cos(a @ squeeze.forward(u)) * a
-    fd = _finite_difference_gradient(f, u)
-    np.testing.assert_allclose(squeeze.pull_back(u, grad_w), fd, rtol=1e-6, atol=1e-8)
-    jac = np.column_stack(
-        [(squeeze.forward(u + e) - squeeze.forward(u - e)) / 2e-6 for e in 1e-6 * np.eye(3)]
-    )
+    jac = _check_inverse_and_pull_back(squeeze, u, rng)
     assert squeeze.log_jacobian(u) == pytest.approx(np.log(np.linalg.det(jac)), abs=1e-6)
     _, dlog = squeeze.derivatives(u)
     fd_log = _finite_difference_gradient(squeeze.log_jacobian, u)

@@ -30,6 +30,16 @@ def _finite_difference_gradient(f, x, h=1e-6):
     return grad
 
 
+def _check_plan_exact(space, reparam, z, *, rtol, atol, inverse_atol):
+    """At ``z`` the plan's density has the gradient central differences give, and z → v → z
+    round trips to ``inverse_atol``; returns the log density."""
+    logp, grad = reparam.logp_dlogp(space, z)
+    fd = _finite_difference_gradient(lambda u: reparam.logp_dlogp(space, u)[0], z)
+    np.testing.assert_allclose(grad, fd, rtol=rtol, atol=atol)
+    np.testing.assert_allclose(reparam.from_value(reparam.to_value(z)), z, atol=inverse_atol)
+    return logp
+
+
 def _check_elementwise_map(coords, w, *, h, rtol, atol=0.0):
     """Inverse (1e-10), dv/dw and d log|dv/dw|/dw of elementwise coordinates at ``w``
     against central differences of step ``h``; returns ``v``, ``dv`` and ``log|dv/dw|``."""
@@ -76,11 +86,7 @@ def test_whitened_density_gradient_and_round_trip():
     space = value_space(_bounded_model())
     reparam = plan(space, seed=SEED)
     z = np.array([0.3, -0.8])
-    logp, grad = reparam.logp_dlogp(space, z)
-    fd = _finite_difference_gradient(lambda u: reparam.logp_dlogp(space, u)[0], z)
-    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
-    v = reparam.to_value(z)
-    np.testing.assert_allclose(reparam.from_value(v), z, atol=1e-8)
+    _check_plan_exact(space, reparam, z, rtol=1e-5, atol=1e-6, inverse_atol=1e-8)
 
 
 def test_multiplicative_ridge_is_sampled_on_the_log_scale():
@@ -110,10 +116,7 @@ def test_ridge_against_a_bound_is_measured_from_its_regression():
     laplace = _whitened(space, plain, reparam.mode.value, reparam.mode)
     assert laplace.gaussian_score > 10.0 and reparam.gaussian_score < 1.0
     z = np.array([0.7, -1.3])
-    logp, grad = reparam.logp_dlogp(space, z)
-    fd = _finite_difference_gradient(lambda u: reparam.logp_dlogp(space, u)[0], z)
-    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(reparam.from_value(reparam.to_value(z)), z, atol=1e-8)
+    _check_plan_exact(space, reparam, z, rtol=1e-5, atol=1e-6, inverse_atol=1e-8)
 
 
 def test_bound_ridge_with_variance_shares_is_exact():
@@ -135,10 +138,7 @@ def test_bound_ridge_with_variance_shares_is_exact():
     assert bent.kind == "variance-share-bound-ridge-affine"
     assert bent.coordinates.ridge.bounded.tolist() == [2]
     z = np.array([0.3, -0.7, 0.9])
-    logp, grad = bent.logp_dlogp(space, z)
-    fd = _finite_difference_gradient(lambda u: bent.logp_dlogp(space, u)[0], z)
-    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(bent.from_value(bent.to_value(z)), z, atol=1e-8)
+    _check_plan_exact(space, bent, z, rtol=1e-5, atol=1e-6, inverse_atol=1e-8)
     np.testing.assert_allclose(bent.value_sd, laplace.value_sd, rtol=1e-3)
 
 
@@ -251,10 +251,7 @@ def test_flat_ridge_in_a_prior_box_is_sampled_along_its_segment():
     laplace = _whitened(space, Coordinates.identity(2), reparam.mode.value, reparam.mode)
     assert laplace is None or laplace.gaussian_score > 10.0
     for z in (np.array([0.4, -1.1]), np.array([-0.7, 2.5])):
-        logp, grad = box.logp_dlogp(space, z)
-        fd = _finite_difference_gradient(lambda u: box.logp_dlogp(space, u)[0], z)
-        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(box.from_value(box.to_value(z)), z, atol=1e-7)
+        _check_plan_exact(space, box, z, rtol=1e-5, atol=1e-6, inverse_atol=1e-7)
         value = box.to_value(z)
         assert np.all(np.isfinite(value))
 
@@ -561,11 +558,8 @@ def test_curved_ridge_between_box_faces_is_followed_exactly():
     laplace = _whitened(space, Coordinates.identity(3), reparam.mode.value, reparam.mode)
     assert laplace is None or laplace.gaussian_score > 10.0
     for z in (np.array([0.4, -1.1, 0.3]), np.array([-2.5, 2.0, -1.7]), np.array([6.0, 3, -3])):
-        logp, grad = reparam.logp_dlogp(space, z)
+        logp = _check_plan_exact(space, reparam, z, rtol=1e-5, atol=1e-5, inverse_atol=1e-7)
         assert np.isfinite(logp)
-        fd = _finite_difference_gradient(lambda u: reparam.logp_dlogp(space, u)[0], z)
-        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(reparam.from_value(reparam.to_value(z)), z, atol=1e-7)
 
 
 def test_draws_along_a_curved_ridge_match_a_dense_reference():

@@ -9,6 +9,7 @@ from kohpymc.reparameterization import find_mode, plan
 from kohpymc.ridge_segment import segment_plan
 from kohpymc.sampling import sample_posterior, variance_shares
 from kohpymc.value_space import value_space
+from tests.test_reparameterization import _check_plan_exact
 
 SEED = 20261126
 GAS = 8.314
@@ -64,13 +65,7 @@ def _reference(n_e: int = 3000, n_a: int = 400) -> tuple[float, float, float, fl
 
 def _gradient_and_round_trip(space, found, points):
     for z in points:
-        _, grad = found.logp_dlogp(space, z)
-        fd = np.empty_like(z)
-        for i, step in enumerate(1e-6 * np.eye(z.size)):
-            up, down = found.logp_dlogp(space, z + step)[0], found.logp_dlogp(space, z - step)[0]
-            fd[i] = (up - down) / 2e-6
-        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(found.from_value(found.to_value(z)), z, atol=1e-7)
+        _check_plan_exact(space, found, z, rtol=1e-5, atol=1e-5, inverse_atol=1e-7)
 
 
 def test_segment_map_is_exact_and_inside_the_box():

@@ -954,7 +954,7 @@ def plan(
     # log-uniform over 1e-8..1e-6 and 1e8..1e10: score 0.19 against the segment's 0.27),
     # NUTS diverges at the ridge's ends (3 seeds, 4 × 1000: 11-18 divergences, ESS 95-264;
     # along the segment 0 and 4186-4346)
-    along = []
+    along: list[Reparameterization] = []
     if box is not None and box.gaussian_score < max(best.gaussian_score, _BOX_RIDGE_SCORE):
         along.append(_box_ridge_reason(space, box, best))
     curve = _ridge_curve(space, plans, mode) if best.gaussian_score > _BOX_RIDGE_SCORE else None
@@ -973,11 +973,11 @@ def plan(
     # with zero-density holes where the sampler goes (a straight segment that misses the box
     # when a parameter near its own bound crosses its wall: dielectric M2, 129 divergences in
     # 2 × 300 draws) ranks after every plan without
-    candidates = list(along)
+    choices = list(along)
     if bent is not None:
-        candidates.append(bent.explained(_whitened_plan(space, mode, best, shared, seed)))
-    holes = len(candidates) > 1
-    return min(candidates, key=lambda p: (holes and _has_holes(space, p, seed), p.gaussian_score))
+        choices.append(bent.explained(_whitened_plan(space, mode, best, shared, seed)))
+    holes = len(choices) > 1
+    return min(choices, key=lambda p: (holes and _has_holes(space, p, seed), p.gaussian_score))
 
 
 def _near_bound_plans(

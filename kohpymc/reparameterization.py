@@ -736,14 +736,39 @@ def find_mode(
 
 def _hessian(logp_grad, x: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Central-difference Hessian of ``−log p`` from its gradient, symmetrised."""
-    d = x.size
-    hess = np.empty((d, d))
-    for i in range(d):
-        e = np.zeros(d)
-        e[i] = steps[i]
-        g_plus = logp_grad(x + e)[1]
-        g_minus = logp_grad(x - e)[1]
-        hess[:, i] = -(g_plus - g_minus) / (2 * steps[i])
+    hess = np.column_stack([_hessian_column(logp_grad, x, i, steps[i]) for i in range(x.size)])
+    return 0.5 * (hess + hess.T)
+
+
+def _hessian_column(logp_grad, x: np.ndarray, i: int, step: float) -> np.ndarray:
+    """Column ``i`` of the Hessian of ``−log p``: central difference of the gradient."""
+    e = np.zeros(x.size)
+    e[i] = step
+    return -(logp_grad(x + e)[1] - logp_grad(x - e)[1]) / (2 * step)
+
+
+def _local_hessian(logp_grad, x: np.ndarray, tries: int = 4) -> np.ndarray:
+    """:func:`_hessian` with each step fitted to the local sd along its axis.
+
+    The first step is :func:`_steps`, which knows only ``|x|``: near ``x = 0`` it is far
+    below the posterior sd (the difference is rounding noise), and at ``|x| ≫ sd`` it
+    spans many sds.  Each axis is differenced again at 10⁻³ of its conditional sd
+    ``1/√H_ii`` until the step lies within 10⁻⁵..10⁻² of it; an axis without positive
+    curvature keeps its step.
+    """
+    columns = []
+    for i, step in enumerate(_steps(x)):
+        for _ in range(tries):
+            column = _hessian_column(logp_grad, x, i, step)
+            curvature = column[i]
+            if not (np.isfinite(curvature) and curvature > 0):
+                break
+            sd = 1.0 / np.sqrt(curvature)
+            if 1e-5 * sd <= step <= 1e-2 * sd:
+                break
+            step = 1e-3 * sd
+        columns.append(column)
+    hess = np.column_stack(columns)
     return 0.5 * (hess + hess.T)
 
 
@@ -779,7 +804,7 @@ def _newton(logp_w, w: np.ndarray, iterations: int = 6):
     rule does not do along a narrow ridge.
     """
     logp, grad = logp_w(w)
-    hess = _hessian(logp_w, w, _steps(w))
+    hess = _local_hessian(logp_w, w)
     for _ in range(iterations):
         if _inverse_cholesky(hess) is None or not np.all(np.isfinite(grad)):
             break
@@ -794,7 +819,7 @@ def _newton(logp_w, w: np.ndarray, iterations: int = 6):
         else:
             break
         w, logp, grad = w + step, trial_logp, trial_grad
-        hess = _hessian(logp_w, w, _steps(w))
+        hess = _local_hessian(logp_w, w)
     return w, hess
 
 
@@ -1318,9 +1343,7 @@ def box_ridge_plan(space: ValueSpace, mode: Mode, flat: float = 1e-6) -> BoxRidg
     ell0 = coords.from_value(mode.value)
     identity = Reparameterization("none", ell0, np.eye(ell0.size), coords, "")
     with np.errstate(all="ignore"):
-        hess = _hessian(
-            lambda w: identity.logp_dlogp(space, w - ell0, safe=True), ell0, _steps(ell0)
-        )
+        hess = _local_hessian(lambda w: identity.logp_dlogp(space, w - ell0, safe=True), ell0)
     if not np.all(np.isfinite(hess)):
         return None
     lam, vec = np.linalg.eigh(hess)

@@ -10,6 +10,7 @@ from kohpymc.reparameterization import (
     Reparameterization,
     VarianceShare,
     _bound_ridge_plan,
+    _local_hessian,
     _whitened,
     box_ridge_plan,
     find_mode,
@@ -317,6 +318,33 @@ def _gaussian_model(mean, sd, rho):
     with pm.Model(coords={"param": ["small", "large"]}) as model:
         pm.MvNormal("theta", mu=mean, cov=cov, dims="param")
     return model, cov
+
+
+def _t_and_data_density(x):
+    """Student-t (ν = 4) coordinates at modes 0 and 1e3 with scales 1e-5..1e5, and a
+    Gaussian coordinate at 0 whose gradient sums 200 large data terms (rounding noise)."""
+    loc = np.array([0.0, 0.0, 0.0, 1e3, 1e3, 1e3])
+    scale = np.array([1e-5, 1.0, 1e5, 1e-5, 1.0, 1e5])
+    z = (x[:6] - loc) / scale
+    logp = float(np.sum(-2.5 * np.log1p(z**2 / 4)))
+    grad_t = -2.5 * (2 * z / 4) / (1 + z**2 / 4) / scale
+    data = np.repeat([-1e6, 1e6], 100)
+    logp += float(np.sum(-0.5 * (data - x[6]) ** 2))
+    grad_data = np.sum(data - x[6])
+    curvature = np.append(2.5 * 0.5 / scale**2, data.size)
+    return logp, np.append(grad_t, grad_data), curvature
+
+
+def test_hessian_at_modes_near_zero_and_far_from_it_matches_the_analytic_one():
+    # a step 1e-5·max(|x|, 1e-3) is 1e3 sds at x = 1e3 with sd 1e-5 (relative error ~1)
+    # and 1e-8 at x = 0, where the summed data gradient leaves 0.2 % rounding noise
+    x = np.array([0.0, 0.0, 0.0, 1e3, 1e3, 1e3, 0.0])
+    curvature = _t_and_data_density(x)[2]
+    hess = _local_hessian(lambda w: _t_and_data_density(w)[:2], x)
+    # x + step rounds at 1e-16·|x|: 1e-5 of a 1e-8 step at x = 1e3
+    np.testing.assert_allclose(np.diag(hess), curvature, rtol=1e-4)
+    scaled = hess / np.sqrt(np.outer(curvature, curvature))
+    np.testing.assert_allclose(scaled - np.diag(np.diag(scaled)), 0.0, atol=1e-6)
 
 
 def test_draws_mapped_back_match_a_dense_gaussian_reference():

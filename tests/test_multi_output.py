@@ -373,6 +373,18 @@ def test_reliability_per_output_and_combined_against_monte_carlo(physics, exact_
     assert by_output.loc["combined", "mu_r"] == pytest.approx(
         by_output.loc[["u", "strain"], "mu_r"].mean()
     )
+    # Eq. 22's weights per output; the combined row weighs every row of every output by
+    # its weight (strain: two rows weighted 0)
+    w = {"u": np.array([1.0, 2.0, 3.0, 4.0, 5.0]), "strain": np.array([0.0, 1.0, 0.0, 1.0, 2.0])}
+    weighted = output_reliability(cal, val, tol, random_seed=5, weights=w).table
+    for k, r_mc in zip(("u", "strain"), mc_rows, strict=True):
+        assert weighted.loc[k, "mu_r"] == pytest.approx(w[k] @ r_mc / w[k].sum(), abs=0.02)
+    all_w = np.concatenate([w["u"], w["strain"]])
+    assert weighted.loc["combined", "mu_r"] == pytest.approx(
+        all_w @ np.concatenate(mc_rows) / all_w.sum(), abs=0.02
+    )
+    with pytest.raises(ValueError, match="output 'strain': weights must be non-negative"):
+        output_reliability(cal, val, tol, predictions=None, weights={"strain": [0.0] * 5})
 
 
 # ------------------------------------------------------- coregionalised GP (ICM)
@@ -523,14 +535,13 @@ def test_study_file_without_formulations_runs_the_single_output_defaults(tmp_pat
     ("extra", "key"),
     [
         ("[emulator]\nruns = 20\n", r"\[emulator\]"),
-        ("[execution]\nworkers = 2\n", r"\[execution\]"),
-        ('[output]\ndir = "elsewhere"\n', r"\[output\]"),
+        ('[check]\nformulation = "M0"\n', r"\[check\]"),
     ],
 )
 def test_study_file_single_output_sections_are_named_not_ignored(tmp_path, extra, key):
-    """[emulator], [execution] and [output] were read and silently ignored (the simulator
-    was then called directly, the formulations ran in one process, the results went
-    elsewhere); now they stop the file with its key named."""
+    """[emulator] and [check] were read and silently ignored (the simulator was then
+    called directly); now they stop the file with its key named ([execution] and
+    [output] now work: tests/test_multi_output_study.py)."""
     from kohpymc import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study
 

@@ -17,8 +17,11 @@ differences::
     noise_sd = { u = 0.316, strain = 3.0 }    # per output (or one number for all);
                                               # outputs left out are calibrated
 
+    # replicates = "inputs"             # or a column, or per output { u = "inputs" }
     [validation]
     tolerance = { u = 0.75, strain = 7.5 }    # per output, in its units
+    # weights = "w"                     # a column of the validation CSV (Eq. 22), read at
+                                        # each output's rows; or per output { u = "w_u" }
 
     [formulations]                      # label -> discrepancy of every output; default
                                         # M0–M4 of a single-output study, each for all outputs
@@ -26,6 +29,11 @@ differences::
     M31 = { u = { type = "input_dependent", mean = ["x", "P", "x*P"] }, strain = "constant" }
     ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
     # kernel = "Matern52" (or "Matern32", "Exponential"; default "ExpQuad") in that table
+
+    [execution]                         # as for one output: formulations as Dask tasks
+    workers = 2                         # (or scheduler = "tcp://HOST:PORT")
+    [output]
+    dir = "beam_multi_output"           # the CLI's --out wins
 
 Every problem names the file and the key (``[data.noise_sd.strian]``), or the file and
 the column of a CSV file.
@@ -37,17 +45,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pandas as pd
+
 from kohpymc.checks import check_positive_number, check_tolerance
 from kohpymc.config import (
     _err,
+    _execution_section,
     _formulation,
     _load_callable,
     _names,
+    _output_dir,
     _priors,
     _read_document,
+    _replicates,
     _require,
     _sampling_section,
+    _weight_column,
 )
+from kohpymc.data import read_csv_table
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
@@ -72,6 +88,12 @@ class MultiOutputStudySpec:
         :class:`~kohpymc.multi_output.Coregionalized`.
     sampling : dict
         Keywords for :func:`~kohpymc.multi_output.calibrate_outputs`.
+    validation_weights : dict of str to array, or None
+        ``w_i`` of Eq. 22 per output (outputs left out: uniform).
+    execution : dict
+        ``workers`` and/or ``scheduler`` (``[execution]``).
+    out_dir : Path
+        ``[output] dir`` relative to the file, default ``<file stem>_results`` beside it.
     """
 
     source: Path
@@ -81,6 +103,9 @@ class MultiOutputStudySpec:
     tolerance: dict[str, float]
     formulations: dict[str, Any]
     sampling: dict[str, Any] = field(default_factory=dict)
+    validation_weights: dict[str, np.ndarray] | None = None
+    execution: dict[str, Any] = field(default_factory=dict)
+    out_dir: Path = Path("study_results")
 
 
 def _outputs(path: Path, value: Any, inputs: list[str]) -> list[str]:
@@ -112,16 +137,52 @@ def _per_output_table(path: Path, key: str, value: Any, outputs: list[str], chec
     return out
 
 
-def _multi_data(path: Path, base: Path, key: str, file: Any, inputs, outputs, noise):
+def _multi_data(path: Path, base: Path, key: str, file: Any, inputs, outputs, noise, groups):
     if not isinstance(file, str):
         raise _err(path, key, f"must be a CSV file name, got {file!r}")
     csv = (base / file).resolve()
     if not csv.is_file():
         raise _err(path, key, f"data file {csv} not found")
     try:
-        return MultiOutputData.from_csv(csv, inputs=inputs, outputs=outputs, noise_sd=noise)
+        return MultiOutputData.from_csv(
+            csv, inputs=inputs, outputs=outputs, noise_sd=noise, replicates=groups
+        )
     except (KeyError, ValueError, TypeError) as err:
         raise _err(path, key, str(err).strip("'\"")) from err
+
+
+def _per_output_replicates(path: Path, value: Any, outputs: list[str]) -> Any:
+    """``[data] replicates``: one value for every output, or a table output -> value."""
+    if not isinstance(value, dict):
+        return _replicates(path, "data.replicates", value)
+    unknown = [k for k in value if k not in outputs]
+    if unknown:
+        raise _err(
+            path, f"data.replicates.{unknown[0]}", f"is not an output; outputs are {outputs}"
+        )
+    return {k: _replicates(path, f"data.replicates.{k}", v) for k, v in value.items()}
+
+
+def _validation_weights(path: Path, value: Any, validation: MultiOutputData) -> dict:
+    """``[validation] weights``: a column for all outputs, or a table output -> column.
+
+    Each output's weights are the column at the rows that output keeps (a row whose
+    output cell is empty belongs to the other outputs only).
+    """
+    columns = value if isinstance(value, dict) else dict.fromkeys(validation.outputs, value)
+    unknown = [k for k in columns if k not in validation.outputs]
+    if unknown:
+        raise _err(
+            path, f"validation.weights.{unknown[0]}",
+            f"is not an output; outputs are {list(validation.outputs)}",
+        )  # fmt: skip
+    weights = {}
+    for name, column in columns.items():
+        source = validation[name].source
+        kept = pd.to_numeric(read_csv_table(source)[name], errors="coerce").notna().to_numpy()
+        key = "validation.weights" + ("" if not isinstance(value, dict) else f".{name}")
+        weights[name] = _weight_column(path, column, source, validation[name].n, kept, key)
+    return weights
 
 
 def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> Any:
@@ -154,12 +215,9 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
 #: read and silently ignored: an [emulator] section left the slow simulator called directly)
 _SINGLE_OUTPUT_ONLY = (
     ("emulator", None, "calibrate through an emulator"),
-    ("execution", None, "run formulations on Dask workers"),
-    ("output", None, "take the output folder from the file: pass --out"),
     ("check", None, "run `kohpymc check`"),
     ("physics", "time", "add M5"),
     ("data", "units", "use units in discovery"),
-    ("sampling", "workers", "run formulations on Dask workers"),
 )
 
 
@@ -218,15 +276,14 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
             path, "data.noise_sd", data["noise_sd"], outputs,
             lambda v: check_positive_number(v, "noise_sd"),
         )  # fmt: skip
-    if data.get("replicates") is not None:
-        raise _err(path, "data.replicates", "is not supported for multi-output studies yet")
+    groups = _per_output_replicates(path, data.get("replicates"), outputs)
     calibration = _multi_data(
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
-        inputs, outputs, noise,
+        inputs, outputs, noise, groups,
     )  # fmt: skip
     validation = _multi_data(
         path, base, "data.validation", _require(path, data, "data", "validation"),
-        inputs, outputs, noise,
+        inputs, outputs, noise, groups,
     )  # fmt: skip
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         for name in outputs:
@@ -242,8 +299,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     missing = [k for k in outputs if k not in tolerance]
     if missing:
         raise _err(path, "validation.tolerance", f"gives no value for output(s) {missing}")
-    if "weights" in val:
-        raise _err(path, "validation.weights", "is not supported for multi-output studies yet")
+    weights = _validation_weights(path, val["weights"], validation) if "weights" in val else None
     table = doc.get("formulations")
     formulations = (
         {
@@ -254,7 +310,8 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
         else dict(default_formulations(inputs))  # as a single-output study: M0–M4
     )
     sampling = _sampling_section(path, doc)
-    sampling.pop("workers", None)
+    execution = _execution_section(path, doc, sampling.pop("workers", None))
     return MultiOutputStudySpec(
-        path, physics, calibration, validation, tolerance, formulations, sampling
-    )
+        path, physics, calibration, validation, tolerance, formulations, sampling,
+        weights, execution, _output_dir(path, base, doc),
+    )  # fmt: skip

@@ -346,7 +346,7 @@ def reliability(
     return Reliability(pointwise=pointwise, mu_r=mu_r, mcse=mcse, tolerance=float(tolerance))
 
 
-def row_weights(weights: Sequence[float] | None, n: int) -> np.ndarray:
+def row_weights(weights: Sequence[float] | np.ndarray | None, n: int) -> np.ndarray:
     """``w_i / Σ w`` of Eq. 22 for ``n`` validation rows (uniform when ``weights`` is None).
 
     Examples

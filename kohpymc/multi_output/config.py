@@ -179,7 +179,8 @@ def _validation_weights(path: Path, value: Any, validation: MultiOutputData) -> 
     weights = {}
     for name, column in columns.items():
         source = validation[name].source
-        kept = pd.to_numeric(read_csv_table(source)[name], errors="coerce").notna().to_numpy()
+        frame = read_csv_table(str(source))  # read by from_csv: source is the file
+        kept = pd.to_numeric(frame[name], errors="coerce").notna().to_numpy()
         key = "validation.weights" + ("" if not isinstance(value, dict) else f".{name}")
         weights[name] = _weight_column(path, column, source, validation[name].n, kept, key)
     return weights

@@ -167,7 +167,7 @@ def run_multi_output_study(
     if todo:
         say(f"calibrating {len(todo)} formulation(s)" + _where(**execution, n=len(todo)))
     for label, cal, predictions, error in _calibrate_all(job, todo, execution, display):
-        if error is None:
+        if cal is not None:  # None when the task failed (error says why)
             error = _keep(job, folder, label, cal, predictions, result)
         if error is not None:
             result.failures[label] = error

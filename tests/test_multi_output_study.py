@@ -77,9 +77,19 @@ def test_workers_give_the_in_process_posterior_and_resume(tmp_path, dask_cluster
             there.calibrations[label].posterior["E"].values,
         )
     pd.testing.assert_frame_equal(here.table, there.table)
+    # LOO per output and combined: the strain's 15 με gauge offset (5 noise sds), which
+    # M1's constant takes and M0 cannot, favours M1 on the strain and on all rows
+    loo, elpd = here.loo["loo_weight"], here.loo["elpd_loo"]
+    for output in ("u", "strain", "combined"):
+        assert loo.xs(output, level="output").sum() == pytest.approx(1.0)
+    for output in ("strain", "combined"):
+        assert elpd.loc[("M1", output)] > elpd.loc[("M0", output)] + 3
+        assert loo.loc[("M1", output)] > 0.5
+    assert here.table.loc[("M1", "strain"), "loo_weight"] == loo.loc[("M1", "strain")]
     manifest = json.loads((out / "study.json").read_text())
     status = {k: v["status"] for k, v in manifest["formulations"].items()}
     assert status == {"M0": "done", "M1": "done", "bad": "failed"}
+    assert manifest["loo_weights"]["strain"]["M1"] == loo.loc[("M1", "strain")]
     assert not (out / "bad.nc").exists() and not list(out.glob(".*.part"))
     again = run_multi_output_study(spec, out_dir=out, figures=False, **SMALL)
     assert again.reused == ["M0", "M1"]
@@ -231,3 +241,40 @@ def test_negative_validation_weight_is_named(tmp_path):
     val.to_csv(tmp_path / "val.csv", index=False)
     with pytest.raises(StudyConfigError, match=r"\[validation\.weights\.u\] .*row 2 is -1\.0"):
         load_multi_output_study(path)
+
+
+# ------------------------------------------------------------------------- LOO
+def test_loo_conditionals_of_a_marginalised_output_are_joint_density_differences():
+    """M1 integrates its constant out, so PyMC scores u's rows jointly (one value per
+    draw); the stored pointwise values are log p(y_i | y_-i) per draw, checked against
+    PyMC's joint log density of all rows minus that of the model built without row i."""
+    import pymc as pm
+
+    from kohpymc import ConstantBias, NoDiscrepancy, Normal
+    from kohpymc.multi_output import MultiOutputData, calibrate_outputs, compose_multi_output_model
+
+    physics, data = bm.physics_model(), bm.generate_data((6.0,), seed=SEED)
+    # a fixed normal prior on the constant (the default scales with the data's sd, which
+    # would differ between the model of all rows and the one without row i)
+    forms = {"u": ConstantBias(prior=Normal(0.0, 20.0)), "strain": NoDiscrepancy()}
+    cal = calibrate_outputs(physics, data, forms, **{**SMALL, "draws": 100})
+    stored = cal.idata.log_likelihood
+    assert stored["u::y"].dims == ("chain", "draw", "obs_u")
+    assert stored["strain::y"].dims == ("chain", "draw", "obs_strain")  # M0: PyMC's own
+    few = az.InferenceData(posterior=cal.idata.posterior.isel(draw=slice(0, 10)))
+
+    def joint_u(built):
+        ll = pm.compute_log_likelihood(
+            few, model=built.model, extend_inferencedata=False, progressbar=False
+        )
+        return ll["u::y"].values
+
+    full = joint_u(cal.built)
+    assert full.shape == (2, 10)  # one joint value per draw
+    for i in range(data["u"].n):
+        keep = np.arange(data["u"].n) != i
+        without = MultiOutputData({"u": data["u"].subset(keep), "strain": data["strain"]})
+        reduced = joint_u(compose_multi_output_model(physics, without, forms))
+        np.testing.assert_allclose(
+            stored["u::y"].values[:, :10, i], full - reduced, rtol=1e-6, atol=1e-8
+        )

@@ -44,6 +44,7 @@ from kohpymc.multi_output.calibration import (
     predict_output,
 )
 from kohpymc.multi_output.config import MultiOutputStudySpec
+from kohpymc.multi_output.loo import output_loo
 from kohpymc.multi_output.model import compose_multi_output_model
 from kohpymc.multi_output.reliability import OutputReliability, output_reliability
 from kohpymc.progress import LineDisplay, TaskDisplay
@@ -74,6 +75,10 @@ class MultiOutputStudyResult:
         Formulations whose posterior was read from an earlier run's file.
     predictions : dict of str to dict of str to InferenceData
         Label -> output -> predictions at that output's validation inputs.
+    loo : pandas.DataFrame or None
+        LOO comparison on the calibration data per output and combined
+        (:func:`~kohpymc.multi_output.loo.output_loo`; with two or more finished
+        formulations), its columns also in :attr:`table`.
     """
 
     calibrations: dict[str, MultiOutputCalibration]
@@ -81,6 +86,7 @@ class MultiOutputStudyResult:
     failures: dict[str, str] = field(default_factory=dict)
     reused: list[str] = field(default_factory=list)
     predictions: dict[str, dict[str, az.InferenceData]] = field(default_factory=dict)
+    loo: pd.DataFrame | None = None
 
     @property
     def table(self) -> pd.DataFrame:
@@ -96,7 +102,8 @@ class MultiOutputStudyResult:
             frames.append(frame.assign(formulation=label).reset_index())
         if not frames:
             raise ValueError(f"no formulation finished; failures: {self.failures}")
-        return pd.concat(frames).set_index(["formulation", "output"])
+        table = pd.concat(frames).set_index(["formulation", "output"])
+        return table if self.loo is None else table.join(self.loo)
 
 
 def run_multi_output_study(
@@ -175,9 +182,24 @@ def run_multi_output_study(
                 folder.record(label, status="failed", error=error)
     display.close()
     result = _in_study_order(result, list(spec.formulations))
+    result.loo = _loo_comparison(result, spec, say)
     if folder is not None:
         _write_study_files(folder, result, spec, figures)
     return result
+
+
+def _loo_comparison(
+    result: MultiOutputStudyResult, spec: MultiOutputStudySpec, say: Callable[[str], None]
+) -> pd.DataFrame | None:
+    """LOO per output and combined over the finished formulations (a side comparison)."""
+    if len(result.calibrations) < 2:
+        return None
+    try:
+        idatas = {label: cal.idata for label, cal in result.calibrations.items()}
+        return output_loo(idatas, spec.calibration.outputs)
+    except Exception as err:  # noqa: BLE001 - LOO is a side comparison, as for one output
+        say(f"LOO comparison skipped: {_describe(err)}")
+        return None
 
 
 def _execution(spec: MultiOutputStudySpec, workers: int | None, scheduler: Any) -> dict[str, Any]:
@@ -406,7 +428,16 @@ def _write_study_files(
         if figures:
             _write_figures(folder, result, spec)
     status = "failed" if not result.reliabilities else "done"
-    folder.update(status=status, failures=result.failures, reused=result.reused)
+    loo = {} if result.loo is None else _loo_weights(result.loo)
+    folder.update(status=status, failures=result.failures, reused=result.reused, loo_weights=loo)
+
+
+def _loo_weights(loo: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """Output (or ``"combined"``) -> formulation -> LOO stacking weight, for the manifest."""
+    weights: dict[str, dict[str, float]] = {}
+    for (label, output), weight in loo["loo_weight"].items():
+        weights.setdefault(str(output), {})[str(label)] = float(weight)
+    return weights
 
 
 def _write_figures(

@@ -267,24 +267,25 @@ def _reuse_finished(
     job: _Job, folder: StudyFolder | None, result: MultiOutputStudyResult, say
 ) -> list[str]:
     """Score the formulations whose earlier files are still valid; the labels left to run."""
+    if folder is None:
+        return list(job.spec.formulations)
     todo = []
     for label, formulation in job.spec.formulations.items():
-        cal = None if folder is None else _reusable(job, folder, label, formulation)
+        cal = _reusable(job, folder, label, formulation)
         if cal is None:
             todo.append(label)
-            if folder is not None:
-                folder.record(label, status="queued")
+            folder.record(label, status="queued")
             continue
         result.reused.append(label)
         try:
             error = _keep(job, folder, label, cal, job.predict(label, cal), result)
         except Exception as err:  # noqa: BLE001 - reported, the study goes on
-            error = f"{type(err).__name__}: {err}"
+            error = _describe(err)
         if error is not None:
             result.failures[label] = error
-            folder.record(label, status="failed", error=error)  # type: ignore[union-attr]
+            folder.record(label, status="failed", error=error)
         else:
-            say(f"  {label}: reused ({folder.formulation_file(label)})")  # type: ignore[union-attr]
+            say(f"  {label}: reused ({folder.formulation_file(label)})")
     return todo
 
 

@@ -509,9 +509,7 @@ def _physics_section(path: Path, base: Path, phys: dict):
         if "jacobian" in phys
         else None
     )
-    time = phys.get("time")
-    if time is not None and (not isinstance(time, str) or time not in inputs):
-        raise _err(path, "physics.time", f"{time!r} is not one of the inputs {inputs}")
+    time = _time_input(path, phys, inputs)
     if not isinstance(phys.get("name", ""), str):
         raise _err(path, "physics.name", f"must be text, got {phys['name']!r}")
     kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
@@ -521,6 +519,14 @@ def _physics_section(path: Path, base: Path, phys: dict):
         where = next((f"physics.{k}" for k in ("backend", "fd_scheme") if k in str(err)), None)
         raise _err(path, where or "physics", str(err)) from err
     return physics, inputs, output, time
+
+
+def _time_input(path: Path, phys: dict, inputs: list[str]) -> str | None:
+    """``[physics] time``: the input M5's variance drifts along, or None."""
+    time = phys.get("time")
+    if time is not None and (not isinstance(time, str) or time not in inputs):
+        raise _err(path, "physics.time", f"{time!r} is not one of the inputs {inputs}")
+    return time
 
 
 def _priors(path: Path, params: Any, inputs: list[str]) -> dict[str, Any]:

@@ -551,15 +551,26 @@ def test_study_file_single_output_sections_are_named_not_ignored(tmp_path, extra
         load_multi_output_study(path)
 
 
-def test_study_file_time_input_is_named_not_ignored(tmp_path):
-    from kohpymc import StudyConfigError
+def test_study_file_time_input_adds_m5_for_every_output(tmp_path):
+    """``physics.time`` (it was refused): as for one output, the default formulations get
+    M5 drifting along that input, it builds for every output, and a time input that is
+    not an input is named."""
+    from kohpymc import NonStationaryGP, StudyConfigError
+    from kohpymc.cli import _checked_multi_output_build
     from kohpymc.multi_output import load_multi_output_study
 
     path = _write_study(tmp_path)
-    path.write_text(
-        path.read_text().replace('output = ["u", "strain"]', 'output = ["u", "strain"]\ntime = "x"')
-    )
-    with pytest.raises(StudyConfigError, match=r"\[physics\.time\].*cannot add M5"):
+    text = path.read_text()
+    timed = text.replace('output = ["u", "strain"]', 'output = ["u", "strain"]\ntime = "P"')
+    path.write_text(timed[: timed.index("[formulations]")])
+    spec = load_multi_output_study(path)
+    assert list(spec.formulations) == ["M0", "M1", "M2", "M3", "M4", "M5"]
+    assert isinstance(spec.formulations["M5"], NonStationaryGP)
+    assert spec.formulations["M5"].time == "P"
+    spec.formulations = {"M5": spec.formulations["M5"]}
+    _checked_multi_output_build(spec)
+    path.write_text(timed.replace('time = "P"', 'time = "t"'))
+    with pytest.raises(StudyConfigError, match=r"\[physics\.time\] 't' is not one of the inputs"):
         load_multi_output_study(path)
 
 

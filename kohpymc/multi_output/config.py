@@ -8,6 +8,7 @@ differences::
     jacobian = "kohpymc.examples.beam_multi_output:beam_outputs_jacobian"  # optional
     inputs = ["x", "P"]
     output = ["u", "strain"]            # a list: the outputs' columns of the CSV files
+    # time = "P"                        # optional: M5 joins the default formulations
     [physics.parameters]
     E = { prior = "uniform", lower = 50, upper = 300 }
 
@@ -61,6 +62,7 @@ from kohpymc.config import (
     _replicates,
     _require,
     _sampling_section,
+    _time_input,
     _weight_column,
 )
 from kohpymc.data import read_csv_table
@@ -186,7 +188,7 @@ def _validation_weights(path: Path, value: Any, validation: MultiOutputData) -> 
     return weights
 
 
-def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> Any:
+def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs, time) -> Any:
     key = f"formulations.{label}"
     if isinstance(value, dict) and value.get("type") == "coregionalized":
         options = {k: v for k, v in value.items() if k != "type"}
@@ -208,8 +210,8 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
         unknown = [k for k in value if k not in outputs]
         if unknown:
             raise _err(path, f"{key}.{unknown[0]}", f"is not an output; outputs are {outputs}")
-        return {k: _formulation(path, f"{label}.{k}", v, inputs, None) for k, v in value.items()}
-    return _formulation(path, label, value, inputs, None)
+        return {k: _formulation(path, f"{label}.{k}", v, inputs, time) for k, v in value.items()}
+    return _formulation(path, label, value, inputs, time)
 
 
 #: keys of a single-output study file that a multi-output study does not run (each was
@@ -217,7 +219,6 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
 _SINGLE_OUTPUT_ONLY = (
     ("emulator", None, "calibrate through an emulator"),
     ("check", None, "run `kohpymc check`"),
-    ("physics", "time", "add M5"),
     ("data", "units", "use units in discovery"),
 )
 
@@ -260,6 +261,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     inputs = _names(path, "physics.inputs", _require(path, phys, "physics", "inputs"))
     outputs = _outputs(path, _require(path, phys, "physics", "output"), inputs)
     priors = _priors(path, _require(path, phys, "physics", "parameters"), inputs)
+    time = _time_input(path, phys, inputs)
     jacobian = (
         _load_callable(phys["jacobian"], base, path, "physics.jacobian")
         if "jacobian" in phys
@@ -304,11 +306,11 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     table = doc.get("formulations")
     formulations = (
         {
-            str(label): _multi_formulation(path, str(label), value, inputs, outputs)
+            str(label): _multi_formulation(path, str(label), value, inputs, outputs, time)
             for label, value in table.items()
         }
         if table
-        else dict(default_formulations(inputs))  # as a single-output study: M0–M4
+        else dict(default_formulations(inputs, time=time))  # as for one output: M0–M4 (M5)
     )
     sampling = _sampling_section(path, doc)
     execution = _execution_section(path, doc, sampling.pop("workers", None))

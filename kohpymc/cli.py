@@ -398,6 +398,7 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
             spec.calibration,
             spec.validation,
             tolerance=spec.tolerance,
+            units=spec.units,
             **options,
         )
     except _discovery_errors() as err:

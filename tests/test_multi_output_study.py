@@ -278,3 +278,36 @@ def test_loo_conditionals_of_a_marginalised_output_are_joint_density_differences
         np.testing.assert_allclose(
             stored["u::y"].values[:, :10, i], full - reduced, rtol=1e-6, atol=1e-8
         )
+
+
+# ----------------------------------------------------------------------- units
+def test_units_per_output_reach_discovery(tmp_path, monkeypatch):
+    """``[data.units]`` (it was refused): the inputs' units are shared, each output's is
+    its own; ``kohpymc discover`` hands discovery one single-output table per output, and
+    a key that is neither an input nor an output, or a unit that does not parse, is named."""
+    import kohpymc.multi_output as mo
+    from kohpymc.cli import main
+
+    units = '[data.units]\nx = "mm"\nP = "kN"\nu = "um"\nstrain = "1"\n'
+    path = _write(tmp_path)
+    text = path.read_text()
+    path.write_text(text.replace("[validation]", units + "[validation]"))
+    spec = load_multi_output_study(path)
+    assert spec.units == {
+        "u": {"x": "mm", "P": "kN", "output": "um"},
+        "strain": {"x": "mm", "P": "kN", "output": "1"},
+    }
+    seen = {}
+
+    def fake(physics, calibration, validation, *, tolerance, units, **options):
+        seen["units"] = units
+        return {}
+
+    monkeypatch.setattr(mo, "discover_outputs", fake)
+    assert main(["discover", str(path), "--quiet"]) == 0
+    assert seen["units"] == spec.units
+    for bad, key in (('zz = "m"', r"\[data\.units\.zz\] is not an input"),
+                     ('u = "furlong"', r"\[data\.units\.u\] unknown unit 'furlong'")):  # fmt: skip
+        path.write_text(text.replace("[validation]", f"[data.units]\n{bad}\n[validation]"))
+        with pytest.raises(StudyConfigError, match=r"study\.toml: " + key):
+            load_multi_output_study(path)

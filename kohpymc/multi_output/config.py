@@ -19,6 +19,9 @@ differences::
                                               # outputs left out are calibrated
 
     # replicates = "inputs"             # or a column, or per output { u = "inputs" }
+    # [data.units]                      # optional (discover): inputs' and outputs' units
+    # x = "mm"
+    # u = "um"
     [validation]
     tolerance = { u = 0.75, strain = 7.5 }    # per output, in its units
     # weights = "w"                     # a column of the validation CSV (Eq. 22), read at
@@ -63,6 +66,7 @@ from kohpymc.config import (
     _require,
     _sampling_section,
     _time_input,
+    _units_table,
     _weight_column,
 )
 from kohpymc.data import read_csv_table
@@ -96,6 +100,9 @@ class MultiOutputStudySpec:
         ``workers`` and/or ``scheduler`` (``[execution]``).
     out_dir : Path
         ``[output] dir`` relative to the file, default ``<file stem>_results`` beside it.
+    units : dict or None
+        ``[data.units]`` per output: output -> {input: unit, "output": unit}, read by
+        ``kohpymc discover`` (:func:`~kohpymc.multi_output.discover_outputs`).
     """
 
     source: Path
@@ -108,6 +115,7 @@ class MultiOutputStudySpec:
     validation_weights: dict[str, np.ndarray] | None = None
     execution: dict[str, Any] = field(default_factory=dict)
     out_dir: Path = Path("study_results")
+    units: dict[str, dict[str, str]] | None = None
 
 
 def _outputs(path: Path, value: Any, inputs: list[str]) -> list[str]:
@@ -165,6 +173,24 @@ def _per_output_replicates(path: Path, value: Any, outputs: list[str]) -> Any:
     return {k: _replicates(path, f"data.replicates.{k}", v) for k, v in value.items()}
 
 
+def _per_output_units(path: Path, table: Any, inputs: list[str], outputs: list[str]) -> Any:
+    """``[data.units]``: inputs' and outputs' units, as one single-output table per output."""
+    if table is None:
+        return None
+    if not isinstance(table, dict):
+        raise _err(path, "data.units", 'must be a table, e.g. [data.units] x = "mm"')
+    unknown = [k for k in table if k not in inputs and k not in outputs]
+    if unknown:
+        raise _err(
+            path, f"data.units.{unknown[0]}", f"is not an input {inputs} nor an output {outputs}"
+        )
+    shared = {k: v for k, v in table.items() if k in inputs}
+    return {
+        k: _units_table(path, {**shared, **({k: table[k]} if k in table else {})}, inputs, k)
+        for k in outputs
+    }
+
+
 def _validation_weights(path: Path, value: Any, validation: MultiOutputData) -> dict:
     """``[validation] weights``: a column for all outputs, or a table output -> column.
 
@@ -219,7 +245,6 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs, time
 _SINGLE_OUTPUT_ONLY = (
     ("emulator", None, "calibrate through an emulator"),
     ("check", None, "run `kohpymc check`"),
-    ("data", "units", "use units in discovery"),
 )
 
 
@@ -317,4 +342,5 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     return MultiOutputStudySpec(
         path, physics, calibration, validation, tolerance, formulations, sampling,
         weights, execution, _output_dir(path, base, doc),
+        _per_output_units(path, data.get("units"), inputs, outputs),
     )  # fmt: skip

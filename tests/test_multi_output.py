@@ -399,6 +399,66 @@ def _icm_logp(built, E, ls, kappa, W):
     return float(logp(point))
 
 
+def _icm_dense(data, E, ls, kappa, W):
+    """The ICM's mean, covariance and data over all rows (u's, then the strain's), written
+    out entry by entry from docs/multi-output.md (squared-exponential kernel on x)."""
+    rows = [
+        (k, x, y) for k in data.outputs for x, y in zip(data[k].inputs["x"], data[k].y, strict=True)
+    ]
+    s = {k: np.std(data[k].y) for k in data.outputs}
+    j = {k: i for i, k in enumerate(data.outputs)}
+    B = np.outer(W, W) + np.diag(kappa)
+    n = len(rows)
+    C = np.empty((n, n))
+    for a, (ka, xa, _) in enumerate(rows):
+        for b, (kb, xb, _) in enumerate(rows):
+            k_ab = np.exp(-0.5 * (xa - xb) ** 2 / ls**2)
+            C[a, b] = s[ka] * s[kb] * (B[j[ka], j[kb]] * k_ab + 4.0 * (ka == kb))
+    for a, (ka, _, _) in enumerate(rows):
+        C[a, a] += data[ka].noise_sd ** 2 + 1e-6 * s[ka] ** 2
+    G = np.concatenate([bm.beam_outputs(data[k].inputs, {"E": E})[k] for k in data.outputs])
+    return G, C, np.array([r[2] for r in rows])
+
+
+def test_coregionalized_loo_conditionals_against_dense_conditioning(physics):
+    """The joint GP's pointwise LOO values per output: log p(y_i | y_-i) per draw from the
+    dense covariance by conditioning (scipy), row by row, for three parameter draws."""
+    from kohpymc.multi_output import Coregionalized
+    from kohpymc.multi_output.loo import add_pointwise_log_likelihood
+
+    data = bm.generate_data((6.0,), seed=MULTI_SEED)
+    built = compose_multi_output_model(physics, data, Coregionalized(["x"], rank=1))
+    draws = [  # (E, length scale, κ, W)
+        (190.0, 150.0, [0.7, 1.3], [0.8, -0.5]),
+        (200.0, 80.0, [0.2, 0.5], [0.1, 0.9]),
+        (205.0, 300.0, [1.5, 0.3], [-0.6, -0.4]),
+    ]
+    posterior = xr.Dataset(
+        {
+            "E": (("chain", "draw"), [[d[0] for d in draws]]),
+            "delta_ls": (("chain", "draw", "gp_input"), [[[d[1]] for d in draws]]),
+            "delta_kappa": (("chain", "draw", "output"), [[d[2] for d in draws]]),
+            "delta_W": (("chain", "draw", "output", "rank"), [[np.c_[d[3]] for d in draws]]),
+        },
+        coords={"chain": [0], "draw": [0, 1, 2]},
+    )
+    joint = xr.Dataset({"y": (("chain", "draw"), np.zeros((1, 3)))}, coords=posterior.coords)
+    idata = az.InferenceData(posterior=posterior, log_likelihood=joint)
+    add_pointwise_log_likelihood(idata, built)
+    n_u = data["u"].n
+    for d, (E, ls, kappa, W) in enumerate(draws):
+        G, C, y = _icm_dense(data, E, ls, np.array(kappa), np.array(W))
+        expected = []
+        for i in range(y.size):
+            rest = np.arange(y.size) != i
+            gain = np.linalg.solve(C[np.ix_(rest, rest)], C[rest, i])
+            mean = G[i] + gain @ (y[rest] - G[rest])
+            expected.append(stats.norm(mean, np.sqrt(C[i, i] - C[i, rest] @ gain)).logpdf(y[i]))
+        got = idata.log_likelihood
+        np.testing.assert_allclose(got["u::y"].values[0, d], expected[:n_u], rtol=1e-7)
+        np.testing.assert_allclose(got["strain::y"].values[0, d], expected[n_u:], rtol=1e-7)
+
+
 def test_coregionalized_likelihood_against_dense_reference(physics):
     """The joint ICM likelihood vs scipy with the covariance written out entry by entry."""
     from kohpymc.multi_output import Coregionalized
@@ -407,24 +467,11 @@ def test_coregionalized_likelihood_against_dense_reference(physics):
     built = compose_multi_output_model(physics, data, Coregionalized(["x"], rank=1))
     assert built.model.named_vars_to_dims["y"] == ("obs",)
     E, ls, kappa = 190.0, 150.0, np.array([0.7, 1.3])
-    rows = [
-        (k, x, y) for k in data.outputs for x, y in zip(data[k].inputs["x"], data[k].y, strict=True)
-    ]
-    s = {k: np.std(data[k].y) for k in data.outputs}
     j = {k: i for i, k in enumerate(data.outputs)}
+    s = {k: np.std(data[k].y) for k in data.outputs}
 
     def reference(W):
-        B = np.outer(W, W) + np.diag(kappa)
-        n = len(rows)
-        C = np.empty((n, n))
-        for a, (ka, xa, _) in enumerate(rows):
-            for b, (kb, xb, _) in enumerate(rows):
-                k_ab = np.exp(-0.5 * (xa - xb) ** 2 / ls**2)
-                C[a, b] = s[ka] * s[kb] * (B[j[ka], j[kb]] * k_ab + 4.0 * (ka == kb))
-        for a, (ka, _, _) in enumerate(rows):
-            C[a, a] += data[ka].noise_sd ** 2 + 1e-6 * s[ka] ** 2
-        G = np.concatenate([bm.beam_outputs(data[k].inputs, {"E": E})[k] for k in data.outputs])
-        y = np.array([r[2] for r in rows])
+        G, C, y = _icm_dense(data, E, ls, kappa, W)
         return stats.multivariate_normal(G, C).logpdf(y)
 
     W = np.array([0.8, -0.5])

@@ -182,17 +182,19 @@ def _multi_output_study(args: argparse.Namespace) -> int:
     the end, each atomically; a rerun into the same folder reuses unchanged formulations
     (``--fresh`` recomputes them) and a failed formulation does not stop the others.
     """
+    from kohpymc.checks import check_execution
     from kohpymc.config import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study, run_multi_output_study
+    from kohpymc.progress import task_display
 
     try:
         spec = load_multi_output_study(args.study)
-        if getattr(args, "workers", None) is not None or getattr(args, "scheduler", None):
-            raise StudyConfigError(
-                f"{spec.source}: --workers/--scheduler: a multi-output study runs its "
-                "formulations in this process"
-            )
-        out = Path(args.out) if args.out else spec.source.parent / f"{spec.source.stem}_results"
+        execution = _execution_overrides(args, spec.execution)
+        try:
+            check_execution(execution.get("workers", 1), execution.get("scheduler"))
+        except ValueError as err:
+            raise StudyConfigError(f"{spec.source}: --workers/--scheduler: {err}") from err
+        out = Path(args.out) if args.out else spec.out_dir
         _checked_options(args, spec, [out])
         _checked_multi_output_build(spec)
     except StudyConfigError as err:
@@ -208,19 +210,27 @@ def _multi_output_study(args: argparse.Namespace) -> int:
         )
         return 0
     print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")
-    say = None if args.quiet else (lambda msg: print(msg, flush=True))
+    display = task_display(sys.stdout, quiet=args.quiet)
     try:
         result = run_multi_output_study(
             spec,
             out_dir=out,
             fresh=args.fresh,
             figures=not args.no_figures,
-            progress=say,
+            progress=None if args.quiet else display.write,
+            display=display,
+            workers=execution.get("workers", 1),
+            scheduler=execution.get("scheduler"),
             **overrides,
         )
     except (ValueError, KeyError) as err:
         print(f"error: {spec.source}: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # e.g. the Dask scheduler is unreachable
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    finally:
+        display.close()
     if result.failures:
         failed = "; ".join(f"{k}: {v}" for k, v in result.failures.items())
         print(f"failed: {failed}", file=sys.stderr)
@@ -388,6 +398,7 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
             spec.calibration,
             spec.validation,
             tolerance=spec.tolerance,
+            units=spec.units,
             **options,
         )
     except _discovery_errors() as err:

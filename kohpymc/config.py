@@ -75,6 +75,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from kohpymc.checks import (
     JacobianError,
     check_compile_mode,
@@ -374,10 +376,7 @@ def load_study(path: str | Path) -> StudySpec:
     sampling_doc = _sampling_section(path, doc)
     execution = _execution_section(path, doc, sampling_doc.pop("workers", None))
     check = _check_section(path, doc.get("check", {}), physics, formulations)
-    out = doc.get("output", {}).get("dir")
-    if out is not None and (not isinstance(out, str) or not out or "\x00" in out):
-        raise _err(path, "output.dir", f"must be a folder name, got {out!r}")
-    out_dir = (base / out) if out else base / f"{path.stem}_results"
+    out_dir = _output_dir(path, base, doc)
     return StudySpec(
         source=path,
         physics=physics,
@@ -393,6 +392,44 @@ def load_study(path: str | Path) -> StudySpec:
         units=_units_table(path, doc["data"].get("units"), inputs, output),
         emulator=_emulator_section(path, doc, formulations),
     )
+
+
+def _output_dir(path: Path, base: Path, doc: dict) -> Path:
+    """``[output] dir`` relative to the file, default ``<file stem>_results`` beside it."""
+    out = doc.get("output", {}).get("dir")
+    if out is not None and (not isinstance(out, str) or not out or "\x00" in out):
+        raise _err(path, "output.dir", f"must be a folder name, got {out!r}")
+    return (base / out) if out else base / f"{path.stem}_results"
+
+
+def _replicates(path: Path, key: str, value: Any) -> str | None:
+    """``[data] replicates``: ``"inputs"``, a column name, or absent."""
+    if value is not None and (not isinstance(value, str) or not value):
+        raise _err(path, key, f'must be "inputs" or a column name, got {value!r}')
+    return value
+
+
+def _weight_column(
+    path: Path, column: Any, source: Any, n: int, kept: Any = None, key: str = "validation.weights"
+) -> Any:
+    """Validation weights (Eq. 22) from a column of a CSV file.
+
+    With ``kept`` (a mask over the file's rows) the weights of those rows only; the
+    others' cells may be empty, and a bad value is named by its row in the file.
+    """
+    try:
+        if not isinstance(column, str):
+            raise ValueError(f"must be a column name, got {column!r}")
+        frame = read_csv_table(source)
+        if column not in frame:
+            raise ValueError(f"column {column!r} not in {source}")
+        values = frame[column].to_numpy()
+        if kept is None:
+            return check_validation_weights(values, n)
+        weights = check_validation_weights(np.where(kept, values, 0.0), len(values))[kept]
+        return check_validation_weights(weights, n)
+    except ValueError as err:
+        raise _err(path, key, f"{err} ({source})") from err
 
 
 def _emulator_section(path: Path, doc: dict, formulations: Mapping[str, Any]) -> Any:
@@ -472,9 +509,7 @@ def _physics_section(path: Path, base: Path, phys: dict):
         if "jacobian" in phys
         else None
     )
-    time = phys.get("time")
-    if time is not None and (not isinstance(time, str) or time not in inputs):
-        raise _err(path, "physics.time", f"{time!r} is not one of the inputs {inputs}")
+    time = _time_input(path, phys, inputs)
     if not isinstance(phys.get("name", ""), str):
         raise _err(path, "physics.name", f"must be text, got {phys['name']!r}")
     kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
@@ -484,6 +519,14 @@ def _physics_section(path: Path, base: Path, phys: dict):
         where = next((f"physics.{k}" for k in ("backend", "fd_scheme") if k in str(err)), None)
         raise _err(path, where or "physics", str(err)) from err
     return physics, inputs, output, time
+
+
+def _time_input(path: Path, phys: dict, inputs: list[str]) -> str | None:
+    """``[physics] time``: the input M5's variance drifts along, or None."""
+    time = phys.get("time")
+    if time is not None and (not isinstance(time, str) or time not in inputs):
+        raise _err(path, "physics.time", f"{time!r} is not one of the inputs {inputs}")
+    return time
 
 
 def _priors(path: Path, params: Any, inputs: list[str]) -> dict[str, Any]:
@@ -512,11 +555,7 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
             noise_sd = check_positive_number(noise_sd, "noise_sd")
         except ValueError as err:
             raise _err(path, "data.noise_sd", str(err).removeprefix("noise_sd ")) from err
-    replicates = data.get("replicates")
-    if replicates is not None and (not isinstance(replicates, str) or not replicates):
-        raise _err(
-            path, "data.replicates", f'must be "inputs" or a column name, got {replicates!r}'
-        )
+    replicates = _replicates(path, "data.replicates", data.get("replicates"))
     calibration = _data(
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
         inputs, output, noise_sd, replicates,
@@ -566,16 +605,7 @@ def _validation_section(path: Path, val: dict, validation):
         raise _err(path, "validation.tolerance", str(err)) from err
     weights = None
     if "weights" in val:
-        column = val["weights"]
-        try:
-            if not isinstance(column, str):
-                raise ValueError(f"must be a column name, got {column!r}")
-            frame = read_csv_table(validation.source)
-            if column not in frame:
-                raise ValueError(f"column {column!r} not in {validation.source}")
-            weights = check_validation_weights(frame[column].to_numpy(), validation.n)
-        except ValueError as err:
-            raise _err(path, "validation.weights", f"{err} ({validation.source})") from err
+        weights = _weight_column(path, val["weights"], validation.source, validation.n)
     return tolerance, weights
 
 

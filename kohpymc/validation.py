@@ -62,6 +62,7 @@ __all__ = [
     "score_calibration",
     "Scored",
     "derived_seed",
+    "row_weights",
 ]
 
 
@@ -332,11 +333,7 @@ def reliability(
     ym = da.transpose("chain", "draw", "pred").values
     mean, sd = _measurement_model(validation, noise_sd, ym.shape)
     prob = ndtr((ym + tolerance - mean) / sd) - ndtr((ym - tolerance - mean) / sd)
-    w = np.ones(validation.n) if weights is None else np.asarray(weights, dtype=float)
-    if w.shape != (validation.n,) or np.any(w < 0) or not np.any(w > 0):
-        raise ValueError("weights must be non-negative, one per validation row, not all zero")
-    w = w / w.sum()
-    per_draw = prob @ w  # (chain, draw)
+    per_draw = prob @ row_weights(weights, validation.n)  # (chain, draw)
     mu_r = float(per_draw.mean())
     with single_chain_notes_hidden():
         mcse = float(np.ravel(az.mcse(per_draw))[0]) if per_draw.shape[1] > 3 else float("nan")
@@ -347,6 +344,20 @@ def reliability(
         name="reliability",
     )
     return Reliability(pointwise=pointwise, mu_r=mu_r, mcse=mcse, tolerance=float(tolerance))
+
+
+def row_weights(weights: Sequence[float] | np.ndarray | None, n: int) -> np.ndarray:
+    """``w_i / Σ w`` of Eq. 22 for ``n`` validation rows (uniform when ``weights`` is None).
+
+    Examples
+    --------
+    >>> row_weights([1.0, 3.0], 2)
+    array([0.25, 0.75])
+    """
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
+    if w.shape != (n,) or np.any(w < 0) or not np.any(w > 0):
+        raise ValueError("weights must be non-negative, one per validation row, not all zero")
+    return w / w.sum()
 
 
 def predictive_scores(pred: az.InferenceData, validation: CalibrationData) -> dict[str, float]:

@@ -107,11 +107,15 @@ def test_discover_on_a_multi_output_file_dry_run_names_the_outputs(tmp_path, cap
     assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]  # nothing written
 
 
-def test_multi_output_study_refuses_workers_instead_of_ignoring_them(tmp_path, capsys):
+def test_multi_output_study_takes_workers_and_checks_them(tmp_path, capsys):
+    """--workers / --scheduler run a multi-output study's formulations on Dask as for one
+    output (they were refused); a bad value is named before anything runs."""
     study = _multi_output_example(tmp_path)
-    assert main(["study", str(study), "--dry-run", "--workers", "2"]) == 2
+    assert main(["study", str(study), "--dry-run", "--workers", "2"]) == 0
+    assert main(["study", str(study), "--dry-run", "--workers", "0"]) == 2
     err = capsys.readouterr().err
-    assert "--workers/--scheduler" in err and "Traceback" not in err
+    assert "--workers/--scheduler: workers must be a positive integer" in err
+    assert "Traceback" not in err
     assert [p.name for p in tmp_path.iterdir()] == ["study.toml"]
 
 

@@ -373,6 +373,18 @@ def test_reliability_per_output_and_combined_against_monte_carlo(physics, exact_
     assert by_output.loc["combined", "mu_r"] == pytest.approx(
         by_output.loc[["u", "strain"], "mu_r"].mean()
     )
+    # Eq. 22's weights per output; the combined row weighs every row of every output by
+    # its weight (strain: two rows weighted 0)
+    w = {"u": np.array([1.0, 2.0, 3.0, 4.0, 5.0]), "strain": np.array([0.0, 1.0, 0.0, 1.0, 2.0])}
+    weighted = output_reliability(cal, val, tol, random_seed=5, weights=w).table
+    for k, r_mc in zip(("u", "strain"), mc_rows, strict=True):
+        assert weighted.loc[k, "mu_r"] == pytest.approx(w[k] @ r_mc / w[k].sum(), abs=0.02)
+    all_w = np.concatenate([w["u"], w["strain"]])
+    assert weighted.loc["combined", "mu_r"] == pytest.approx(
+        all_w @ np.concatenate(mc_rows) / all_w.sum(), abs=0.02
+    )
+    with pytest.raises(ValueError, match="output 'strain': weights must be non-negative"):
+        output_reliability(cal, val, tol, predictions=None, weights={"strain": [0.0] * 5})
 
 
 # ------------------------------------------------------- coregionalised GP (ICM)
@@ -387,6 +399,66 @@ def _icm_logp(built, E, ls, kappa, W):
     return float(logp(point))
 
 
+def _icm_dense(data, E, ls, kappa, W):
+    """The ICM's mean, covariance and data over all rows (u's, then the strain's), written
+    out entry by entry from docs/multi-output.md (squared-exponential kernel on x)."""
+    rows = [
+        (k, x, y) for k in data.outputs for x, y in zip(data[k].inputs["x"], data[k].y, strict=True)
+    ]
+    s = {k: np.std(data[k].y) for k in data.outputs}
+    j = {k: i for i, k in enumerate(data.outputs)}
+    B = np.outer(W, W) + np.diag(kappa)
+    n = len(rows)
+    C = np.empty((n, n))
+    for a, (ka, xa, _) in enumerate(rows):
+        for b, (kb, xb, _) in enumerate(rows):
+            k_ab = np.exp(-0.5 * (xa - xb) ** 2 / ls**2)
+            C[a, b] = s[ka] * s[kb] * (B[j[ka], j[kb]] * k_ab + 4.0 * (ka == kb))
+    for a, (ka, _, _) in enumerate(rows):
+        C[a, a] += data[ka].noise_sd ** 2 + 1e-6 * s[ka] ** 2
+    G = np.concatenate([bm.beam_outputs(data[k].inputs, {"E": E})[k] for k in data.outputs])
+    return G, C, np.array([r[2] for r in rows])
+
+
+def test_coregionalized_loo_conditionals_against_dense_conditioning(physics):
+    """The joint GP's pointwise LOO values per output: log p(y_i | y_-i) per draw from the
+    dense covariance by conditioning (scipy), row by row, for three parameter draws."""
+    from kohpymc.multi_output import Coregionalized
+    from kohpymc.multi_output.loo import add_pointwise_log_likelihood
+
+    data = bm.generate_data((6.0,), seed=MULTI_SEED)
+    built = compose_multi_output_model(physics, data, Coregionalized(["x"], rank=1))
+    draws = [  # (E, length scale, κ, W)
+        (190.0, 150.0, [0.7, 1.3], [0.8, -0.5]),
+        (200.0, 80.0, [0.2, 0.5], [0.1, 0.9]),
+        (205.0, 300.0, [1.5, 0.3], [-0.6, -0.4]),
+    ]
+    posterior = xr.Dataset(
+        {
+            "E": (("chain", "draw"), [[d[0] for d in draws]]),
+            "delta_ls": (("chain", "draw", "gp_input"), [[[d[1]] for d in draws]]),
+            "delta_kappa": (("chain", "draw", "output"), [[d[2] for d in draws]]),
+            "delta_W": (("chain", "draw", "output", "rank"), [[np.c_[d[3]] for d in draws]]),
+        },
+        coords={"chain": [0], "draw": [0, 1, 2]},
+    )
+    joint = xr.Dataset({"y": (("chain", "draw"), np.zeros((1, 3)))}, coords=posterior.coords)
+    idata = az.InferenceData(posterior=posterior, log_likelihood=joint)
+    add_pointwise_log_likelihood(idata, built)
+    n_u = data["u"].n
+    for d, (E, ls, kappa, W) in enumerate(draws):
+        G, C, y = _icm_dense(data, E, ls, np.array(kappa), np.array(W))
+        expected = []
+        for i in range(y.size):
+            rest = np.arange(y.size) != i
+            gain = np.linalg.solve(C[np.ix_(rest, rest)], C[rest, i])
+            mean = G[i] + gain @ (y[rest] - G[rest])
+            expected.append(stats.norm(mean, np.sqrt(C[i, i] - C[i, rest] @ gain)).logpdf(y[i]))
+        got = idata.log_likelihood
+        np.testing.assert_allclose(got["u::y"].values[0, d], expected[:n_u], rtol=1e-7)
+        np.testing.assert_allclose(got["strain::y"].values[0, d], expected[n_u:], rtol=1e-7)
+
+
 def test_coregionalized_likelihood_against_dense_reference(physics):
     """The joint ICM likelihood vs scipy with the covariance written out entry by entry."""
     from kohpymc.multi_output import Coregionalized
@@ -395,24 +467,11 @@ def test_coregionalized_likelihood_against_dense_reference(physics):
     built = compose_multi_output_model(physics, data, Coregionalized(["x"], rank=1))
     assert built.model.named_vars_to_dims["y"] == ("obs",)
     E, ls, kappa = 190.0, 150.0, np.array([0.7, 1.3])
-    rows = [
-        (k, x, y) for k in data.outputs for x, y in zip(data[k].inputs["x"], data[k].y, strict=True)
-    ]
-    s = {k: np.std(data[k].y) for k in data.outputs}
     j = {k: i for i, k in enumerate(data.outputs)}
+    s = {k: np.std(data[k].y) for k in data.outputs}
 
     def reference(W):
-        B = np.outer(W, W) + np.diag(kappa)
-        n = len(rows)
-        C = np.empty((n, n))
-        for a, (ka, xa, _) in enumerate(rows):
-            for b, (kb, xb, _) in enumerate(rows):
-                k_ab = np.exp(-0.5 * (xa - xb) ** 2 / ls**2)
-                C[a, b] = s[ka] * s[kb] * (B[j[ka], j[kb]] * k_ab + 4.0 * (ka == kb))
-        for a, (ka, _, _) in enumerate(rows):
-            C[a, a] += data[ka].noise_sd ** 2 + 1e-6 * s[ka] ** 2
-        G = np.concatenate([bm.beam_outputs(data[k].inputs, {"E": E})[k] for k in data.outputs])
-        y = np.array([r[2] for r in rows])
+        G, C, y = _icm_dense(data, E, ls, kappa, W)
         return stats.multivariate_normal(G, C).logpdf(y)
 
     W = np.array([0.8, -0.5])
@@ -523,14 +582,13 @@ def test_study_file_without_formulations_runs_the_single_output_defaults(tmp_pat
     ("extra", "key"),
     [
         ("[emulator]\nruns = 20\n", r"\[emulator\]"),
-        ("[execution]\nworkers = 2\n", r"\[execution\]"),
-        ('[output]\ndir = "elsewhere"\n', r"\[output\]"),
+        ('[check]\nformulation = "M0"\n', r"\[check\]"),
     ],
 )
 def test_study_file_single_output_sections_are_named_not_ignored(tmp_path, extra, key):
-    """[emulator], [execution] and [output] were read and silently ignored (the simulator
-    was then called directly, the formulations ran in one process, the results went
-    elsewhere); now they stop the file with its key named."""
+    """[emulator] and [check] were read and silently ignored (the simulator was then
+    called directly); now they stop the file with its key named ([execution] and
+    [output] now work: tests/test_multi_output_study.py)."""
     from kohpymc import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study
 
@@ -540,15 +598,26 @@ def test_study_file_single_output_sections_are_named_not_ignored(tmp_path, extra
         load_multi_output_study(path)
 
 
-def test_study_file_time_input_is_named_not_ignored(tmp_path):
-    from kohpymc import StudyConfigError
+def test_study_file_time_input_adds_m5_for_every_output(tmp_path):
+    """``physics.time`` (it was refused): as for one output, the default formulations get
+    M5 drifting along that input, it builds for every output, and a time input that is
+    not an input is named."""
+    from kohpymc import NonStationaryGP, StudyConfigError
+    from kohpymc.cli import _checked_multi_output_build
     from kohpymc.multi_output import load_multi_output_study
 
     path = _write_study(tmp_path)
-    path.write_text(
-        path.read_text().replace('output = ["u", "strain"]', 'output = ["u", "strain"]\ntime = "x"')
-    )
-    with pytest.raises(StudyConfigError, match=r"\[physics\.time\].*cannot add M5"):
+    text = path.read_text()
+    timed = text.replace('output = ["u", "strain"]', 'output = ["u", "strain"]\ntime = "P"')
+    path.write_text(timed[: timed.index("[formulations]")])
+    spec = load_multi_output_study(path)
+    assert list(spec.formulations) == ["M0", "M1", "M2", "M3", "M4", "M5"]
+    assert isinstance(spec.formulations["M5"], NonStationaryGP)
+    assert spec.formulations["M5"].time == "P"
+    spec.formulations = {"M5": spec.formulations["M5"]}
+    _checked_multi_output_build(spec)
+    path.write_text(timed.replace('time = "P"', 'time = "t"'))
+    with pytest.raises(StudyConfigError, match=r"\[physics\.time\] 't' is not one of the inputs"):
         load_multi_output_study(path)
 
 

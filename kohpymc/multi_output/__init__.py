@@ -8,6 +8,8 @@
   (independent by default) or one :class:`Coregionalized` GP over all outputs;
 * :func:`calibrate_outputs`, :func:`predict_output`, :func:`stacked_taylor_check`;
 * :func:`output_reliability` / :func:`reliability_table`: r(x) per output and combined;
+* :func:`output_loo`: LOO comparison per output and combined (pointwise values:
+  :func:`~kohpymc.multi_output.loo.add_pointwise_log_likelihood`);
 * :func:`discover_outputs`: :func:`kohpymc.discover` on each output;
 * :func:`load_multi_output_study` / :func:`run_multi_output_study`: the same from TOML.
 """
@@ -22,6 +24,7 @@ from kohpymc.multi_output.config import MultiOutputStudySpec, load_multi_output_
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
 from kohpymc.multi_output.discovery import discover_outputs
+from kohpymc.multi_output.loo import output_loo
 from kohpymc.multi_output.model import MultiOutputModel, compose_multi_output_model
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.multi_output.reliability import (
@@ -49,4 +52,5 @@ __all__ = [
     "run_multi_output_study",
     "MultiOutputStudyResult",
     "discover_outputs",
+    "output_loo",
 ]

@@ -33,6 +33,7 @@ from kohpymc.identifiability.model_check import (
 from kohpymc.identifiability.rank import RTOL, analyse_matrix
 from kohpymc.model import PRED_DIM, new_input_matrix
 from kohpymc.multi_output.data import MultiOutputData
+from kohpymc.multi_output.loo import add_pointwise_log_likelihood
 from kohpymc.multi_output.model import (
     MultiOutputModel,
     compose_multi_output_model,
@@ -319,6 +320,7 @@ def _annotate(
 ) -> list[str]:
     """Add log-likelihoods, input coordinates and attributes to ``idata``; return problems."""
     pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
+    add_pointwise_log_likelihood(idata, built)  # LOO conditionals where rows are dependent
     for name in data.outputs:  # every output's rows: coordinates <output>::<input>
         coords = {variable(name, k): v for k, v in data[name].inputs.items()}
         _attach_input_coords(idata, obs_dim(name), coords)

@@ -8,6 +8,7 @@ differences::
     jacobian = "kohpymc.examples.beam_multi_output:beam_outputs_jacobian"  # optional
     inputs = ["x", "P"]
     output = ["u", "strain"]            # a list: the outputs' columns of the CSV files
+    # time = "P"                        # optional: M5 joins the default formulations
     [physics.parameters]
     E = { prior = "uniform", lower = 50, upper = 300 }
 
@@ -17,8 +18,14 @@ differences::
     noise_sd = { u = 0.316, strain = 3.0 }    # per output (or one number for all);
                                               # outputs left out are calibrated
 
+    # replicates = "inputs"             # or a column, or per output { u = "inputs" }
+    # [data.units]                      # optional (discover): inputs' and outputs' units
+    # x = "mm"
+    # u = "um"
     [validation]
     tolerance = { u = 0.75, strain = 7.5 }    # per output, in its units
+    # weights = "w"                     # a column of the validation CSV (Eq. 22), read at
+                                        # each output's rows; or per output { u = "w_u" }
 
     [formulations]                      # label -> discrepancy of every output; default
                                         # M0–M4 of a single-output study, each for all outputs
@@ -26,6 +33,11 @@ differences::
     M31 = { u = { type = "input_dependent", mean = ["x", "P", "x*P"] }, strain = "constant" }
     ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
     # kernel = "Matern52" (or "Matern32", "Exponential"; default "ExpQuad") in that table
+
+    [execution]                         # as for one output: formulations as Dask tasks
+    workers = 2                         # (or scheduler = "tcp://HOST:PORT")
+    [output]
+    dir = "beam_multi_output"           # the CLI's --out wins
 
 Every problem names the file and the key (``[data.noise_sd.strian]``), or the file and
 the column of a CSV file.
@@ -37,17 +49,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pandas as pd
+
 from kohpymc.checks import check_positive_number, check_tolerance
 from kohpymc.config import (
     _err,
+    _execution_section,
     _formulation,
     _load_callable,
     _names,
+    _output_dir,
     _priors,
     _read_document,
+    _replicates,
     _require,
     _sampling_section,
+    _time_input,
+    _units_table,
+    _weight_column,
 )
+from kohpymc.data import read_csv_table
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
@@ -72,6 +94,15 @@ class MultiOutputStudySpec:
         :class:`~kohpymc.multi_output.Coregionalized`.
     sampling : dict
         Keywords for :func:`~kohpymc.multi_output.calibrate_outputs`.
+    validation_weights : dict of str to array, or None
+        ``w_i`` of Eq. 22 per output (outputs left out: uniform).
+    execution : dict
+        ``workers`` and/or ``scheduler`` (``[execution]``).
+    out_dir : Path
+        ``[output] dir`` relative to the file, default ``<file stem>_results`` beside it.
+    units : dict or None
+        ``[data.units]`` per output: output -> {input: unit, "output": unit}, read by
+        ``kohpymc discover`` (:func:`~kohpymc.multi_output.discover_outputs`).
     """
 
     source: Path
@@ -81,6 +112,10 @@ class MultiOutputStudySpec:
     tolerance: dict[str, float]
     formulations: dict[str, Any]
     sampling: dict[str, Any] = field(default_factory=dict)
+    validation_weights: dict[str, np.ndarray] | None = None
+    execution: dict[str, Any] = field(default_factory=dict)
+    out_dir: Path = Path("study_results")
+    units: dict[str, dict[str, str]] | None = None
 
 
 def _outputs(path: Path, value: Any, inputs: list[str]) -> list[str]:
@@ -112,19 +147,74 @@ def _per_output_table(path: Path, key: str, value: Any, outputs: list[str], chec
     return out
 
 
-def _multi_data(path: Path, base: Path, key: str, file: Any, inputs, outputs, noise):
+def _multi_data(path: Path, base: Path, key: str, file: Any, inputs, outputs, noise, groups):
     if not isinstance(file, str):
         raise _err(path, key, f"must be a CSV file name, got {file!r}")
     csv = (base / file).resolve()
     if not csv.is_file():
         raise _err(path, key, f"data file {csv} not found")
     try:
-        return MultiOutputData.from_csv(csv, inputs=inputs, outputs=outputs, noise_sd=noise)
+        return MultiOutputData.from_csv(
+            csv, inputs=inputs, outputs=outputs, noise_sd=noise, replicates=groups
+        )
     except (KeyError, ValueError, TypeError) as err:
         raise _err(path, key, str(err).strip("'\"")) from err
 
 
-def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> Any:
+def _per_output_replicates(path: Path, value: Any, outputs: list[str]) -> Any:
+    """``[data] replicates``: one value for every output, or a table output -> value."""
+    if not isinstance(value, dict):
+        return _replicates(path, "data.replicates", value)
+    unknown = [k for k in value if k not in outputs]
+    if unknown:
+        raise _err(
+            path, f"data.replicates.{unknown[0]}", f"is not an output; outputs are {outputs}"
+        )
+    return {k: _replicates(path, f"data.replicates.{k}", v) for k, v in value.items()}
+
+
+def _per_output_units(path: Path, table: Any, inputs: list[str], outputs: list[str]) -> Any:
+    """``[data.units]``: inputs' and outputs' units, as one single-output table per output."""
+    if table is None:
+        return None
+    if not isinstance(table, dict):
+        raise _err(path, "data.units", 'must be a table, e.g. [data.units] x = "mm"')
+    unknown = [k for k in table if k not in inputs and k not in outputs]
+    if unknown:
+        raise _err(
+            path, f"data.units.{unknown[0]}", f"is not an input {inputs} nor an output {outputs}"
+        )
+    shared = {k: v for k, v in table.items() if k in inputs}
+    return {
+        k: _units_table(path, {**shared, **({k: table[k]} if k in table else {})}, inputs, k)
+        for k in outputs
+    }
+
+
+def _validation_weights(path: Path, value: Any, validation: MultiOutputData) -> dict:
+    """``[validation] weights``: a column for all outputs, or a table output -> column.
+
+    Each output's weights are the column at the rows that output keeps (a row whose
+    output cell is empty belongs to the other outputs only).
+    """
+    columns = value if isinstance(value, dict) else dict.fromkeys(validation.outputs, value)
+    unknown = [k for k in columns if k not in validation.outputs]
+    if unknown:
+        raise _err(
+            path, f"validation.weights.{unknown[0]}",
+            f"is not an output; outputs are {list(validation.outputs)}",
+        )  # fmt: skip
+    weights = {}
+    for name, column in columns.items():
+        source = validation[name].source
+        frame = read_csv_table(str(source))  # read by from_csv: source is the file
+        kept = pd.to_numeric(frame[name], errors="coerce").notna().to_numpy()
+        key = "validation.weights" + ("" if not isinstance(value, dict) else f".{name}")
+        weights[name] = _weight_column(path, column, source, validation[name].n, kept, key)
+    return weights
+
+
+def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs, time) -> Any:
     key = f"formulations.{label}"
     if isinstance(value, dict) and value.get("type") == "coregionalized":
         options = {k: v for k, v in value.items() if k != "type"}
@@ -146,20 +236,15 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs) -> A
         unknown = [k for k in value if k not in outputs]
         if unknown:
             raise _err(path, f"{key}.{unknown[0]}", f"is not an output; outputs are {outputs}")
-        return {k: _formulation(path, f"{label}.{k}", v, inputs, None) for k, v in value.items()}
-    return _formulation(path, label, value, inputs, None)
+        return {k: _formulation(path, f"{label}.{k}", v, inputs, time) for k, v in value.items()}
+    return _formulation(path, label, value, inputs, time)
 
 
 #: keys of a single-output study file that a multi-output study does not run (each was
 #: read and silently ignored: an [emulator] section left the slow simulator called directly)
 _SINGLE_OUTPUT_ONLY = (
     ("emulator", None, "calibrate through an emulator"),
-    ("execution", None, "run formulations on Dask workers"),
-    ("output", None, "take the output folder from the file: pass --out"),
     ("check", None, "run `kohpymc check`"),
-    ("physics", "time", "add M5"),
-    ("data", "units", "use units in discovery"),
-    ("sampling", "workers", "run formulations on Dask workers"),
 )
 
 
@@ -201,6 +286,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     inputs = _names(path, "physics.inputs", _require(path, phys, "physics", "inputs"))
     outputs = _outputs(path, _require(path, phys, "physics", "output"), inputs)
     priors = _priors(path, _require(path, phys, "physics", "parameters"), inputs)
+    time = _time_input(path, phys, inputs)
     jacobian = (
         _load_callable(phys["jacobian"], base, path, "physics.jacobian")
         if "jacobian" in phys
@@ -218,15 +304,14 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
             path, "data.noise_sd", data["noise_sd"], outputs,
             lambda v: check_positive_number(v, "noise_sd"),
         )  # fmt: skip
-    if data.get("replicates") is not None:
-        raise _err(path, "data.replicates", "is not supported for multi-output studies yet")
+    groups = _per_output_replicates(path, data.get("replicates"), outputs)
     calibration = _multi_data(
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
-        inputs, outputs, noise,
+        inputs, outputs, noise, groups,
     )  # fmt: skip
     validation = _multi_data(
         path, base, "data.validation", _require(path, data, "data", "validation"),
-        inputs, outputs, noise,
+        inputs, outputs, noise, groups,
     )  # fmt: skip
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         for name in outputs:
@@ -242,19 +327,20 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     missing = [k for k in outputs if k not in tolerance]
     if missing:
         raise _err(path, "validation.tolerance", f"gives no value for output(s) {missing}")
-    if "weights" in val:
-        raise _err(path, "validation.weights", "is not supported for multi-output studies yet")
+    weights = _validation_weights(path, val["weights"], validation) if "weights" in val else None
     table = doc.get("formulations")
     formulations = (
         {
-            str(label): _multi_formulation(path, str(label), value, inputs, outputs)
+            str(label): _multi_formulation(path, str(label), value, inputs, outputs, time)
             for label, value in table.items()
         }
         if table
-        else dict(default_formulations(inputs))  # as a single-output study: M0–M4
+        else dict(default_formulations(inputs, time=time))  # as for one output: M0–M4 (M5)
     )
     sampling = _sampling_section(path, doc)
-    sampling.pop("workers", None)
+    execution = _execution_section(path, doc, sampling.pop("workers", None))
     return MultiOutputStudySpec(
-        path, physics, calibration, validation, tolerance, formulations, sampling
-    )
+        path, physics, calibration, validation, tolerance, formulations, sampling,
+        weights, execution, _output_dir(path, base, doc),
+        _per_output_units(path, data.get("units"), inputs, outputs),
+    )  # fmt: skip

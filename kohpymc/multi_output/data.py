@@ -101,14 +101,18 @@ class MultiOutputData:
         inputs: Sequence[str],
         outputs: Sequence[str],
         noise_sd: float | Mapping[str, float | None] | None = None,
-        replicates: str | None = None,
+        replicates: str | Mapping[str, str | None] | None = None,
         source: str | None = None,
     ) -> MultiOutputData:
         """One table, one column per input and per output.
 
         An output's missing values (empty cells, NaN) drop that row for that output
         only.  ``noise_sd`` is one value for all outputs or a table output -> value
-        (outputs left out are calibrated, or pooled from replicates).
+        (outputs left out are calibrated, or pooled from replicates).  ``replicates``
+        (``"inputs"`` or a column of group labels, for all outputs or per output) marks
+        an output's rows that repeat one setting, as for one output
+        (:class:`~kohpymc.CalibrationData`): without a known noise sd, the output's σ_obs
+        is their pooled sd (paper Eq. 28), from the rows that output keeps.
 
         Raises
         ------
@@ -128,6 +132,7 @@ class MultiOutputData:
                 f"{kind} column(s) {missing} not found{where}; columns: {list(frame.columns)}"
             )
         noise = per_output(noise_sd, outputs, "noise_sd", source)
+        groups = per_output(replicates, outputs, "replicates", source)
         parts = {}
         for name in outputs:
             column = pd.to_numeric(frame[name], errors="coerce")
@@ -146,7 +151,7 @@ class MultiOutputData:
                 inputs=inputs,
                 output=name,
                 noise_sd=noise[name],
-                replicates=replicates,
+                replicates=groups[name],
                 source=source,
             )
         return cls(parts)
@@ -159,7 +164,7 @@ class MultiOutputData:
         inputs: Sequence[str],
         outputs: Sequence[str],
         noise_sd: float | Mapping[str, float | None] | None = None,
-        replicates: str | None = None,
+        replicates: str | Mapping[str, str | None] | None = None,
     ) -> MultiOutputData:
         r"""Read one CSV file with a column per input and per output.
 

@@ -19,6 +19,12 @@ every output counts once, Eq. 22 on the stacked validation set:
     \mu_r^{comb} = \frac{\sum_k \sum_i r_k(x_i)}{\sum_k n_k};
 
 with ``combine="outputs"`` every output counts once, :math:`\frac1K \sum_k \mu_{r,k}`.
+
+**Weights** (Eq. 22, ``weights``: per output, e.g. proportional to the input density):
+output ``k``'s :math:`\mu_{r,k} = \sum_i w_{k,i} r_k(x_i) / \sum_i w_{k,i}`, and the
+combined row over all rows is :math:`\sum_k \sum_i w_{k,i} r_k(x_i) / \sum_k \sum_i
+w_{k,i}` (an output without weights has :math:`w_{k,i} = 1`; with none at all this is
+the formula above).
 Either is a mean of per-row probabilities, so it lies in [0, 1] and between the
 smallest and the largest per-output μ_r.  Its Monte-Carlo standard error comes from the
 per-draw averages :math:`q_s` (whose mean is the combined μ_r), as for one output.
@@ -39,7 +45,7 @@ from scipy.special import ndtr
 from kohpymc.checks import check_tolerance
 from kohpymc.multi_output.calibration import MultiOutputCalibration, predict_output
 from kohpymc.multi_output.data import MultiOutputData, per_output
-from kohpymc.validation import _measurement_model, validation_noise
+from kohpymc.validation import _measurement_model, row_weights, validation_noise
 from kohpymc.warning_filters import single_chain_notes_hidden
 
 __all__ = ["OutputReliability", "output_reliability", "reliability_table", "COMBINED"]
@@ -85,6 +91,7 @@ def output_reliability(
     *,
     predictions: Mapping[str, az.InferenceData] | None = None,
     combine: Literal["rows", "outputs"] = "rows",
+    weights: Mapping[str, Any] | None = None,
     random_seed: int | None = None,
 ) -> OutputReliability:
     """Reliability r(x) per output and combined for a joint calibration.
@@ -101,6 +108,9 @@ def output_reliability(
         inputs; default: predicted here (seeded with ``random_seed``).
     combine : {"rows", "outputs"}
         Weight of the combined row: every validation row once, or every output once.
+    weights : mapping output -> sequence of float, optional
+        ``w_{k,i}`` of Eq. 22 per validation row of an output (outputs left out:
+        uniform, 1 per row); see the module docstring for the combined row.
 
     Returns
     -------
@@ -114,7 +124,8 @@ def output_reliability(
     """
     outputs = _scored_outputs(calibration, validation, combine)
     tolerances = per_output(tolerance, validation.outputs, "tolerance")
-    rows, pointwise, per_draw, weights = [], {}, [], []
+    given = per_output(weights or {}, validation.outputs, "weights")
+    rows, pointwise, per_draw, shares = [], {}, [], []
     for k in outputs:
         if tolerances[k] is None:
             raise KeyError(f"tolerance gives no value for output {k!r}")
@@ -123,12 +134,13 @@ def output_reliability(
         pred = (predictions or {}).get(k)
         if pred is None:
             pred = predict_output(calibration, k, val, random_seed=random_seed)
-        q, pointwise[k], row = _score_output(calibration, k, val, pred, eps)
+        w = np.ones(val.n) if given[k] is None else np.asarray(given[k], dtype=float)
+        q, pointwise[k], row = _score_output(calibration, k, val, pred, eps, w)
         per_draw.append(q)
-        weights.append(val.n if combine == "rows" else 1.0)
+        shares.append(w.sum() if combine == "rows" else 1.0)
         rows.append(row)
     n = sum(validation[k].n for k in outputs)
-    rows.append(_combined_row(per_draw, weights, n, combine))
+    rows.append(_combined_row(per_draw, shares, n, combine))
     table = pd.DataFrame(rows).set_index("output")
     return OutputReliability(table, pointwise, combine)
 
@@ -149,9 +161,9 @@ def _scored_outputs(
 
 
 def _score_output(
-    calibration: MultiOutputCalibration, k: str, val: Any, pred: Any, eps: float
+    calibration: MultiOutputCalibration, k: str, val: Any, pred: Any, eps: float, w: np.ndarray
 ) -> tuple[np.ndarray, xr.DataArray, dict[str, Any]]:
-    """Output ``k``'s per-draw mean probabilities, its r(x) and its table row."""
+    """Output ``k``'s per-draw weighted mean probabilities, its r(x) and its table row."""
     da = pred.predictions["y_model"]  # arviz adds groups at run time
     ym = da.transpose("chain", "draw", "pred").values
     if ym.shape[-1] != val.n:
@@ -163,7 +175,10 @@ def _score_output(
     )
     D, sd = _measurement_model(val, noise, ym.shape)
     prob = _probabilities(ym, D, sd, eps)
-    q = prob.mean(axis=2)
+    try:
+        q = prob @ row_weights(w, val.n)
+    except ValueError as err:
+        raise ValueError(f"output {k!r}: {err}") from err
     pointwise = xr.DataArray(
         prob.mean(axis=(0, 1)),
         dims=("pred",),

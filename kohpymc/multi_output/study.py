@@ -10,20 +10,27 @@ it is sampled, with the fingerprint of everything its posterior depends on; a la
 into the same folder reuses a file whose fingerprint still matches (the model is rebuilt,
 which is cheap, and the validation scores are recomputed).  A formulation that fails is
 recorded in the manifest and in :attr:`MultiOutputStudyResult.failures`; the others go on.
+
+The formulations run in this process one after the other, or as tasks on a Dask
+cluster exactly as a single-output study's do (``workers``, ``scheduler`` or the file's
+``[execution]``; :func:`kohpymc.execution.run_tasks`): a worker calibrates and predicts,
+the draws come back, and this process rebuilds the model, writes the file and scores it.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import closing
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import arviz as az
 import pandas as pd
 
+from kohpymc.checks import check_execution
+from kohpymc.execution import run_tasks, runs_remotely
 from kohpymc.fingerprint import (
     data_fingerprint,
     digest,
@@ -37,8 +44,11 @@ from kohpymc.multi_output.calibration import (
     predict_output,
 )
 from kohpymc.multi_output.config import MultiOutputStudySpec
+from kohpymc.multi_output.loo import output_loo
 from kohpymc.multi_output.model import compose_multi_output_model
 from kohpymc.multi_output.reliability import OutputReliability, output_reliability
+from kohpymc.progress import LineDisplay, TaskDisplay
+from kohpymc.study import _where
 from kohpymc.study_files import (
     CALIBRATION_HASH,
     StudyFolder,
@@ -65,6 +75,10 @@ class MultiOutputStudyResult:
         Formulations whose posterior was read from an earlier run's file.
     predictions : dict of str to dict of str to InferenceData
         Label -> output -> predictions at that output's validation inputs.
+    loo : pandas.DataFrame or None
+        LOO comparison on the calibration data per output and combined
+        (:func:`~kohpymc.multi_output.loo.output_loo`; with two or more finished
+        formulations), its columns also in :attr:`table`.
     """
 
     calibrations: dict[str, MultiOutputCalibration]
@@ -72,6 +86,7 @@ class MultiOutputStudyResult:
     failures: dict[str, str] = field(default_factory=dict)
     reused: list[str] = field(default_factory=list)
     predictions: dict[str, dict[str, az.InferenceData]] = field(default_factory=dict)
+    loo: pd.DataFrame | None = None
 
     @property
     def table(self) -> pd.DataFrame:
@@ -87,7 +102,8 @@ class MultiOutputStudyResult:
             frames.append(frame.assign(formulation=label).reset_index())
         if not frames:
             raise ValueError(f"no formulation finished; failures: {self.failures}")
-        return pd.concat(frames).set_index(["formulation", "output"])
+        table = pd.concat(frames).set_index(["formulation", "output"])
+        return table if self.loo is None else table.join(self.loo)
 
 
 def run_multi_output_study(
@@ -97,6 +113,9 @@ def run_multi_output_study(
     fresh: bool = False,
     figures: bool = True,
     progress: Callable[[str], None] | None = None,
+    workers: int | None = None,
+    scheduler: Any = None,
+    display: TaskDisplay | None = None,
     **overrides: Any,
 ) -> MultiOutputStudyResult:
     """Calibrate and score every formulation of a multi-output study.
@@ -115,6 +134,16 @@ def run_multi_output_study(
         ``predictions_<output>.png`` (validation predictions per formulation).
     progress : callable, optional
         Receives one line per step (``print`` for a terminal).
+    workers, scheduler :
+        Where the formulations run, as in :func:`kohpymc.run_study`: ``workers > 1``
+        starts a local Dask cluster of that many processes, ``scheduler`` (an address
+        or a ``distributed.Client``) uses an existing one
+        (:func:`kohpymc.execution.run_tasks`).  Default the file's ``[execution]``
+        (in this process when it has none).  Each formulation's seed comes from the
+        study's seed and its label, so the draws are the same wherever it runs.
+    display : TaskDisplay, optional
+        Shows each formulation queued, running, done or failed; default plain lines
+        through ``progress``.
     **overrides :
         Replace sampler settings of the file (e.g. ``draws=300``).
 
@@ -122,72 +151,218 @@ def run_multi_output_study(
     -------
     MultiOutputStudyResult
 
+    Raises
+    ------
+    ValueError
+        ``workers`` not a positive integer, or both ``workers > 1`` and ``scheduler``.
+
     Examples
     --------
     >>> result = run_multi_output_study(spec, draws=300, tune=300)  # doctest: +SKIP
     >>> result.table.loc["M0"].index.tolist()  # doctest: +SKIP
     ['u', 'strain', 'combined']
     """
-    settings = {**spec.sampling, **overrides}
+    execution = _execution(spec, workers, scheduler)
     say = progress or (lambda message: None)
+    display = display or (LineDisplay(say) if progress else TaskDisplay())
     folder = None if out_dir is None else StudyFolder(out_dir, fresh=fresh)
+    job = _Job(spec, {**spec.sampling, **overrides})
     result = MultiOutputStudyResult({}, {})
-    n = len(spec.formulations)
-    for i, (label, formulation) in enumerate(spec.formulations.items(), 1):
-        start = time.perf_counter()
-        try:
-            _run_formulation(spec, label, formulation, settings, folder, result)
-        except Exception as err:  # noqa: BLE001 - reported, the study goes on
-            result.failures[label] = f"{type(err).__name__}: {err}"
+    todo = _reuse_finished(job, folder, result, say)
+    if len(todo) < 2:  # one formulation: no cluster to start (an existing one is used)
+        execution["workers"] = 1
+    if todo:
+        say(f"calibrating {len(todo)} formulation(s)" + _where(**execution, n=len(todo)))
+    for label, cal, predictions, error in _calibrate_all(job, todo, execution, display):
+        if cal is not None:  # None when the task failed (error says why)
+            error = _keep(job, folder, label, cal, predictions, result)
+        if error is not None:
+            result.failures[label] = error
             if folder is not None:
-                folder.record(label, status="failed", error=result.failures[label])
-            say(f"[{i}/{n}] {label}: failed: {result.failures[label]}")
-            continue
-        how = "reused" if label in result.reused else "done"
-        say(f"[{i}/{n}] {label}: {how} in {time.perf_counter() - start:.1f} s")
+                folder.record(label, status="failed", error=error)
+    display.close()
+    result = _in_study_order(result, list(spec.formulations))
+    result.loo = _loo_comparison(result, spec, say)
     if folder is not None:
         _write_study_files(folder, result, spec, figures)
     return result
 
 
-def _run_formulation(
-    spec: MultiOutputStudySpec,
-    label: str,
-    formulation: Any,
-    settings: dict[str, Any],
-    folder: StudyFolder | None,
-    result: MultiOutputStudyResult,
-) -> None:
-    """Calibrate (or reuse) one formulation, save it, and score it on the validation data."""
-    seed = settings.get("random_seed")
-    fingerprint = calibration_hash(spec, label, formulation, settings)
-    cal = None
-    if folder is not None:
-        cal = _reusable(spec, folder, label, formulation, fingerprint, settings)
-    if cal is not None:
-        result.reused.append(label)
+def _loo_comparison(
+    result: MultiOutputStudyResult, spec: MultiOutputStudySpec, say: Callable[[str], None]
+) -> pd.DataFrame | None:
+    """LOO per output and combined over the finished formulations (a side comparison)."""
+    if len(result.calibrations) < 2:
+        return None
+    try:
+        idatas = {label: cal.idata for label, cal in result.calibrations.items()}
+        return output_loo(idatas, spec.calibration.outputs)
+    except Exception as err:  # noqa: BLE001 - LOO is a side comparison, as for one output
+        say(f"LOO comparison skipped: {_describe(err)}")
+        return None
+
+
+def _execution(spec: MultiOutputStudySpec, workers: int | None, scheduler: Any) -> dict[str, Any]:
+    """``workers`` / ``scheduler`` given here, else the file's ``[execution]`` (checked)."""
+    if workers is None and scheduler is None:
+        execution = {"workers": 1, "scheduler": None, **spec.execution}
     else:
+        execution = {"workers": 1 if workers is None else workers, "scheduler": scheduler}
+    check_execution(execution["workers"], execution["scheduler"])
+    return execution
+
+
+@dataclass
+class _Job:
+    """What every formulation's calibration in a study shares (travels to the workers)."""
+
+    spec: MultiOutputStudySpec
+    settings: dict[str, Any]
+
+    @property
+    def seed(self) -> int | None:
+        return self.settings.get("random_seed")
+
+    def fit(self, label: str, formulation: Any) -> tuple[MultiOutputCalibration, dict]:
+        """Calibrate one formulation and predict its outputs at the validation inputs."""
         cal = calibrate_outputs(
-            spec.physics,
-            spec.calibration,
+            self.spec.physics,
+            self.spec.calibration,
             formulation,
-            **{**settings, "random_seed": derived_seed(seed, label, 0)},
+            **{**self.settings, "random_seed": derived_seed(self.seed, label, 0)},
         )
-        if folder is not None:
-            _save(folder, label, cal, fingerprint)
+        return cal, self.predict(label, cal)
+
+    def fit_remotely(self, label: str, formulation: Any) -> tuple:
+        """:meth:`fit` on a Dask worker: only picklable results travel back (no model)."""
+        cal, predictions = self.fit(label, formulation)
+        return (cal.idata, cal.problems, cal.identifiability), predictions
+
+    def predict(self, label: str, cal: MultiOutputCalibration) -> dict[str, az.InferenceData]:
+        """Each calibrated output's predictions at its validation inputs (seeded per label)."""
+        seed = derived_seed(self.seed, label, 1)
+        validation = self.spec.validation
+        return {
+            k: predict_output(cal, k, validation[k], random_seed=seed)
+            for k in validation.outputs
+            if k in cal.outputs
+        }
+
+    def rebuild(
+        self, formulation: Any, idata: az.InferenceData, problems: list[str], report: Any = None
+    ) -> MultiOutputCalibration:
+        """A calibration around finished draws, its model rebuilt here (building is cheap)."""
+        noise_prior = self.settings.get("noise_sd_prior")
+        spec = self.spec
+        built = compose_multi_output_model(
+            spec.physics, spec.calibration, formulation, noise_sd_prior=noise_prior
+        )
+        return MultiOutputCalibration(
+            spec.physics, spec.calibration, formulation, built, idata, problems, report,
+            noise_prior,
+        )  # fmt: skip
+
+
+def _reuse_finished(
+    job: _Job, folder: StudyFolder | None, result: MultiOutputStudyResult, say
+) -> list[str]:
+    """Score the formulations whose earlier files are still valid; the labels left to run."""
+    if folder is None:
+        return list(job.spec.formulations)
+    todo = []
+    for label, formulation in job.spec.formulations.items():
+        cal = _reusable(job, folder, label, formulation)
+        if cal is None:
+            todo.append(label)
+            folder.record(label, status="queued")
+            continue
+        result.reused.append(label)
+        try:
+            error = _keep(job, folder, label, cal, job.predict(label, cal), result)
+        except Exception as err:  # noqa: BLE001 - reported, the study goes on
+            error = _describe(err)
+        if error is not None:
+            result.failures[label] = error
+            folder.record(label, status="failed", error=error)
+        else:
+            say(f"  {label}: reused ({folder.formulation_file(label)})")
+    return todo
+
+
+def _calibrate_all(
+    job: _Job, todo: list[str], execution: dict[str, Any], display: TaskDisplay
+) -> Iterator[tuple[str, MultiOutputCalibration | None, dict, str | None]]:
+    """Yield ``(label, calibration, predictions, error)`` as formulations finish.
+
+    In this process, or as tasks on a Dask cluster (:func:`kohpymc.execution.run_tasks`),
+    whose results get their model rebuilt here.
+    """
+    remote = runs_remotely(**execution)
+    task = job.fit_remotely if remote else job.fit
+    items = {label: job.spec.formulations[label] for label in todo}
+    with closing(run_tasks(task, items, progress=display, **execution)) as outcomes:
+        for outcome in outcomes:
+            if outcome.error is not None:
+                yield outcome.key, None, {}, outcome.error
+                continue
+            cal, predictions = outcome.value
+            if remote:
+                try:
+                    cal = job.rebuild(items[outcome.key], *cal)
+                except Exception as err:  # noqa: BLE001 - reported, the study goes on
+                    yield outcome.key, None, {}, f"rebuilding the model: {_describe(err)}"
+                    continue
+            yield outcome.key, cal, predictions, None
+
+
+def _describe(err: BaseException) -> str:
+    return f"{type(err).__name__}: {err}"
+
+
+def _keep(
+    job: _Job,
+    folder: StudyFolder | None,
+    label: str,
+    cal: MultiOutputCalibration,
+    predictions: dict[str, az.InferenceData],
+    result: MultiOutputStudyResult,
+) -> str | None:
+    """Save a finished formulation (new ones), score it; the error if that fails."""
+    reused = label in result.reused
+    try:
+        if folder is not None and not reused:
+            _save(
+                folder, label, cal, calibration_hash(job.spec, label, cal.discrepancy, job.settings)
+            )
+        reliability = output_reliability(
+            cal, job.spec.validation, job.spec.tolerance, predictions=predictions,
+            weights=job.spec.validation_weights,
+        )  # fmt: skip
+    except Exception as err:  # noqa: BLE001 - reported, the study goes on
+        return _describe(err)
     result.calibrations[label] = cal
-    predictions = {
-        k: predict_output(cal, k, spec.validation[k], random_seed=derived_seed(seed, label, 1))
-        for k in spec.validation.outputs
-        if k in cal.outputs
-    }
     result.predictions[label] = predictions
-    result.reliabilities[label] = output_reliability(
-        cal, spec.validation, spec.tolerance, predictions=predictions
-    )
+    result.reliabilities[label] = reliability
     if folder is not None:
-        status = "reused" if label in result.reused else "done"
+        status = "reused" if reused else "done"
         folder.record(label, status=status, file=f"{label}.nc", sampler_problems=cal.problems)
+    return None
+
+
+def _in_study_order(result: MultiOutputStudyResult, labels: list[str]) -> MultiOutputStudyResult:
+    """The result's per-formulation dicts in the file's order (tasks finish in any order)."""
+
+    def ordered(mapping: dict) -> dict:
+        return {k: mapping[k] for k in labels if k in mapping}
+
+    return replace(
+        result,
+        calibrations=ordered(result.calibrations),
+        reliabilities=ordered(result.reliabilities),
+        failures=ordered(result.failures),
+        reused=[k for k in labels if k in result.reused],
+        predictions=ordered(result.predictions),
+    )
 
 
 def calibration_hash(
@@ -223,28 +398,18 @@ def calibration_hash(
 
 
 def _reusable(
-    spec: MultiOutputStudySpec,
-    folder: StudyFolder,
-    label: str,
-    formulation: Any,
-    fingerprint: str,
-    settings: Mapping[str, Any],
+    job: _Job, folder: StudyFolder, label: str, formulation: Any
 ) -> MultiOutputCalibration | None:
     """The formulation's calibration from an earlier file with the same fingerprint, or None."""
     earlier = folder.finished(label)
+    fingerprint = calibration_hash(job.spec, label, formulation, job.settings)
     if earlier is None or earlier.attrs.get(CALIBRATION_HASH) != fingerprint:
         return None
     idata = calibration_part(earlier)
     attrs = dict(earlier.attrs)
     problems = json.loads(attrs.pop("sampler_problems", "[]"))
     idata.attrs.update(attrs)
-    noise_prior = settings.get("noise_sd_prior")
-    built = compose_multi_output_model(
-        spec.physics, spec.calibration, formulation, noise_sd_prior=noise_prior
-    )
-    return MultiOutputCalibration(
-        spec.physics, spec.calibration, formulation, built, idata, problems, None, noise_prior
-    )
+    return job.rebuild(formulation, idata, problems)
 
 
 def _save(folder: StudyFolder, label: str, cal: MultiOutputCalibration, fingerprint: str) -> None:
@@ -264,7 +429,16 @@ def _write_study_files(
         if figures:
             _write_figures(folder, result, spec)
     status = "failed" if not result.reliabilities else "done"
-    folder.update(status=status, failures=result.failures, reused=result.reused)
+    loo = {} if result.loo is None else _loo_weights(result.loo)
+    folder.update(status=status, failures=result.failures, reused=result.reused, loo_weights=loo)
+
+
+def _loo_weights(loo: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """Output (or ``"combined"``) -> formulation -> LOO stacking weight, for the manifest."""
+    weights: dict[str, dict[str, float]] = {}
+    for (label, output), weight in loo["loo_weight"].items():
+        weights.setdefault(str(output), {})[str(label)] = float(weight)
+    return weights
 
 
 def _write_figures(

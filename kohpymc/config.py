@@ -92,7 +92,7 @@ from kohpymc.checks import (
     check_workers,
     resolve_sampler,
 )
-from kohpymc.data import CalibrationData, read_csv_table
+from kohpymc.data import CalibrationData, NoReplicatesError, read_csv_table
 from kohpymc.discrepancy import Discrepancy, FormulationSpecError, from_dict
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.execution import ship_by_value
@@ -547,6 +547,24 @@ def _priors(path: Path, params: Any, inputs: list[str]) -> dict[str, Any]:
     return priors
 
 
+def _validation_data(
+    path: Path, base: Path, file: Any, inputs, output, noise_sd, replicates, pooled
+) -> CalibrationData:
+    """``[data] validation``; a file without replicated settings takes the calibration's σ.
+
+    The validation rows come from the same instrument: when ``replicates`` is set and no
+    validation setting was measured twice, the calibration data's pooled σ (``pooled``)
+    stands for theirs instead of failing.
+    """
+    key = "data.validation"
+    try:
+        return _data(path, base, key, file, inputs, output, noise_sd, replicates)
+    except StudyConfigError as err:
+        if not isinstance(err.__cause__, NoReplicatesError) or pooled is None:
+            raise
+    return _data(path, base, key, file, inputs, output, pooled, None)
+
+
 def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
     """``[data]``: the calibration and validation data (the model must run on the latter)."""
     noise_sd = data.get("noise_sd")
@@ -560,9 +578,9 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
         inputs, output, noise_sd, replicates,
     )  # fmt: skip
-    validation = _data(
-        path, base, "data.validation", _require(path, data, "data", "validation"),
-        inputs, output, noise_sd, replicates,
+    validation = _validation_data(
+        path, base, _require(path, data, "data", "validation"),
+        inputs, output, noise_sd, replicates, calibration.noise_sd,
     )  # fmt: skip
     if validation.n == 0:
         raise _err(path, "data.validation", f"{validation.source} has no rows")

@@ -22,7 +22,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-__all__ = ["CalibrationData", "non_numeric_entry", "pooled_replicate_sd", "read_csv_table"]
+__all__ = [
+    "CalibrationData",
+    "NoReplicatesError",
+    "non_numeric_entry",
+    "pooled_replicate_sd",
+    "read_csv_table",
+]
 
 #: the largest magnitude a data value may have: its square (variances, distances) and sums
 #: of squares over millions of rows stay finite floats
@@ -72,6 +78,10 @@ def read_csv_table(path: str | PathLike[str]) -> pd.DataFrame:
     return frame
 
 
+class NoReplicatesError(ValueError):
+    """Replicates were asked for, but no setting of the data was measured twice."""
+
+
 def pooled_replicate_sd(values: Sequence[float], groups: Sequence[Any]) -> float:
     """Pooled within-group standard deviation of replicates (paper Eq. 28).
 
@@ -100,7 +110,9 @@ def pooled_replicate_sd(values: Sequence[float], groups: Sequence[Any]) -> float
     grouped = frame.groupby("g", sort=False)["v"]
     dof = int((grouped.size() - 1).sum())
     if dof < 1:
-        raise ValueError("replicates: no setting has two or more measurements; cannot estimate")
+        raise NoReplicatesError(
+            "replicates: no setting has two or more measurements; cannot estimate"
+        )
     ss = float(((frame["v"] - grouped.transform("mean")) ** 2).sum())
     return float(np.sqrt(ss / dof))
 

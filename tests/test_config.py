@@ -252,3 +252,29 @@ def test_emulator_formulation_must_be_a_study_formulation(tmp_path, write_study)
     path = write_study(tmp_path, text + table.format("M9"))
     with pytest.raises(StudyConfigError, match=r"\[emulator\.formulation\] 'M9' is not one of"):
         load_study(path)
+
+
+def test_validation_without_replicated_settings_takes_the_calibrations_pooled_sd(
+    tmp_path, write_study
+):
+    """``replicates = "inputs"``: calibration rows repeated at each setting give σ by Eq. 28;
+    a validation file measured once per setting takes that σ instead of failing, while a
+    calibration file without repeats is still an error naming its key."""
+    path = write_study(tmp_path, **{"noise_sd = 0.316": 'replicates = "inputs"'})
+    once = (tmp_path / "calib.csv").read_text().splitlines()
+    rng = np.random.default_rng(8)
+    rows = [once[0]]
+    for line in once[1:]:
+        x, p, u = (float(v) for v in line.split(","))
+        rows += [f"{x!r},{p!r},{float(u + 0.3 * e)!r}" for e in rng.normal(size=3)]
+    (tmp_path / "calib.csv").write_text("\n".join(rows) + "\n")
+    table = np.array([[float(v) for v in r.split(",")] for r in rows[1:]])
+    groups = table[:, 2].reshape(-1, 3)
+    within = ((groups - groups.mean(axis=1, keepdims=True)) ** 2).sum()
+    by_hand = np.sqrt(within / (2 * len(groups)))  # Eq. 28: 2 dof per setting
+    spec = load_study(path)
+    assert spec.calibration.noise_sd == pytest.approx(by_hand, rel=1e-12)
+    assert spec.validation.noise_sd == pytest.approx(by_hand, rel=1e-12)
+    (tmp_path / "calib.csv").write_text("\n".join(once) + "\n")
+    with pytest.raises(StudyConfigError, match=r"\[data\.calibration\] .*no setting has two"):
+        load_study(path)

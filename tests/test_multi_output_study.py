@@ -193,6 +193,17 @@ def test_replicates_per_output_and_bad_values_are_named(tmp_path):
             load_multi_output_study(_write_replicated(tmp_path, data)[0])
 
 
+def test_validation_measured_once_per_setting_takes_each_outputs_calibration_sd(tmp_path):
+    """With ``replicates`` set, a validation file without repeated settings gives each
+    output the pooled σ of its calibration rows (same instrument) rather than an error."""
+    path, table = _write_replicated(tmp_path, 'replicates = "inputs"')
+    once = pd.read_csv(tmp_path / "val.csv").drop_duplicates(subset=["x", "P"])
+    once.to_csv(tmp_path / "val.csv", index=False)
+    spec = load_multi_output_study(path)
+    for k in ("u", "strain"):
+        assert spec.validation[k].noise_sd == pytest.approx(_pooled_sd(table, k), rel=1e-12)
+
+
 # ---------------------------------------------------------- validation weights
 def test_validation_weights_read_at_each_outputs_rows_and_used(tmp_path):
     """``weights = "w"``: each output gets the column at the rows it keeps (an empty

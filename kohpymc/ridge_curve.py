@@ -268,59 +268,84 @@ class _Conditional:
             logp, grad = self.identity.logp_dlogp(self.space, w, safe=True)
         return logp, grad[self.rest]
 
-    def mode(self, w_pivot: float, start: np.ndarray) -> tuple[np.ndarray, float]:
-        """L-BFGS in the whitened conditional coordinates, restarted until it stops gaining."""
+    def mode(
+        self, w_pivot: float, start: np.ndarray, chol: np.ndarray | None = None
+    ) -> tuple[np.ndarray, float]:
+        """L-BFGS whitened by ``chol`` (default: the factor at the mode), with restarts.
+
+        Restarted until it stops gaining.
+        """
+        chol = self.chol if chol is None else chol
         x, best = start, -np.inf
         for _ in range(4):
             result = optimize.minimize(
-                self._objective(w_pivot, x), np.zeros(x.size), jac=True, method="L-BFGS-B",
-                options={"maxiter": 2000, "ftol": 1e-14, "gtol": 1e-8},
+                self._objective(w_pivot, x, chol), np.zeros(x.size), jac=True,
+                method="L-BFGS-B", options={"maxiter": 2000, "ftol": 1e-14, "gtol": 1e-8},
             )  # fmt: skip
             if not -result.fun > best + 1e-9:
                 break
-            x, best = x + self.chol @ result.x, -float(result.fun)
+            x, best = x + chol @ result.x, -float(result.fun)
         return x, best
 
-    def _objective(self, w_pivot: float, x0: np.ndarray):
+    def _objective(self, w_pivot: float, x0: np.ndarray, chol: np.ndarray):
         def objective(u):
-            logp, grad = self._logp(w_pivot, x0 + self.chol @ u)
+            logp, grad = self._logp(w_pivot, x0 + chol @ u)
             if not np.isfinite(logp) or not np.all(np.isfinite(grad)):
                 return np.inf, np.zeros(u.size)
-            return -logp, -(self.chol.T @ grad)
+            return -logp, -(chol.T @ grad)
 
         return objective
 
-    def factor(self, w_pivot: float, x: np.ndarray) -> np.ndarray | None:
-        """Cholesky factor of the conditional Laplace covariance at ``x`` (None if not PD)."""
-        n = x.size
-        hess = _hessian(lambda y: self._whitened_logp(w_pivot, x, y), np.zeros(n), np.full(n, 1e-3))
-        inner = _inverse_cholesky(hess)
-        return None if inner is None else self.chol @ inner
+    def factor(
+        self, w_pivot: float, x: np.ndarray, chol: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """Cholesky factor of the conditional Laplace covariance at ``x`` (None if not PD).
 
-    def _whitened_logp(self, w_pivot: float, x: np.ndarray, y: np.ndarray):
-        logp, grad = self._logp(w_pivot, x + self.chol @ y)
-        return logp, self.chol.T @ grad
+        Differenced along the axes of ``chol`` (default: the factor at the mode).
+        """
+        chol = self.chol if chol is None else chol
+        n = x.size
+        hess = _hessian(
+            lambda y: self._whitened_logp(w_pivot, x, y, chol), np.zeros(n), np.full(n, 1e-3)
+        )
+        inner = _inverse_cholesky(hess)
+        return None if inner is None else chol @ inner
+
+    def _whitened_logp(self, w_pivot: float, x: np.ndarray, y: np.ndarray, chol: np.ndarray):
+        logp, grad = self._logp(w_pivot, x + chol @ y)
+        return logp, chol.T @ grad
 
 
 def _march(cond: _Conditional, nodes: np.ndarray, start: float, first: np.ndarray):
-    """Conditional modes and profile at ``nodes``, from ``start`` outwards both ways.
+    """Conditional modes, profile and Laplace factors at ``nodes``, from ``start`` outwards.
 
-    Each optimisation starts from the linear extrapolation of the two previous modes.
+    Each optimisation starts from the linear extrapolation of the two previous modes and
+    is whitened by the previous node's conditional Laplace factor: along the ridge the
+    conditional scales change by orders of magnitude, and whitened by the factor at the
+    mode alone the 25 optimisations took 23 600 evaluations of the log density
+    (dielectric M5, 52 s of a 92 s plan).  None when a node has no finite mode or no
+    positive-definite conditional Hessian.
     """
     modes = np.empty((nodes.size, first.size))
     profile = np.empty(nodes.size)
+    factors = np.empty((nodes.size, first.size, first.size))
     for order in (np.flatnonzero(nodes >= start), np.flatnonzero(nodes < start)[::-1]):
-        previous = [(start, first)]
+        previous, chol = [(start, first)], cond.chol
         for i in order:
             guess = previous[-1][1]
             if len(previous) > 1:
                 (sa, xa), (sb, xb) = previous[-2], previous[-1]
                 guess = xb + (xb - xa) * (nodes[i] - sb) / (sb - sa)
-            modes[i], profile[i] = cond.mode(float(logit(nodes[i])), guess)
+            w_pivot = float(logit(nodes[i]))
+            modes[i], profile[i] = cond.mode(w_pivot, guess, chol)
             if not np.isfinite(profile[i]):
                 return None
+            factor = cond.factor(w_pivot, modes[i], chol)
+            if factor is None:
+                return None
+            factors[i], chol = factor, factor
             previous.append((nodes[i], modes[i]))
-    return modes, profile
+    return modes, profile, factors
 
 
 def _pivot_moments(nodes: np.ndarray, profile: np.ndarray) -> tuple[float, float]:
@@ -376,14 +401,9 @@ def ridge_curve_plan(
     marched = _march(cond, nodes, float(expit(mean[pivot])), mean[rest].copy())
     if marched is None:
         return None
-    modes, profile = marched
+    modes, profile, factors = marched
     lower = np.tril_indices(rest.size, -1)
-    entries = []
-    for s, x in zip(nodes, modes, strict=True):
-        factor = cond.factor(float(logit(s)), x)
-        if factor is None:
-            return None
-        entries.append(np.concatenate([np.log(np.diag(factor)), factor[lower]]))
+    entries = [np.concatenate([np.log(np.diag(f)), f[lower]]) for f in factors]
     centre, scale = _pivot_moments(nodes, profile)
     plan = RidgeCurvePlan(
         "ridge-curve-soft-box", np.zeros(space.ndim), np.eye(space.ndim), coords, "", mode,

@@ -613,6 +613,11 @@ REGRESSIONS = {
                     r"\[data\.calibration\].*calib\.csv", "overflow when squared"),
     "huge physics": (_file("physics.py", BROKEN_PHYSICS["huge"].encode()),
                      r"\[data\.calibration\]", "returns 1.65e+200 at the prior centre"),
+    # a parameter renamed in the TOML but not in the function: a bare "KeyError: 'k'"
+    "parameter renamed": (
+        lambda doc, files: doc["physics"]["parameters"].update(
+            rate=doc["physics"]["parameters"].pop("k")),
+        r"\[data\.calibration\]", "'k' is neither a parameter (A, rate) nor an input (t)"),
 }  # fmt: skip
 
 

@@ -639,7 +639,7 @@ def test_mode_search_adds_starts_until_a_second_one_reaches_the_best():
     priors = {"k": LogUniform(0.1, 1e3), "m": LogUniform(1e-3, 1.0), "c": LogUniform(1e-3, 10.0)}
     physics = PhysicsModel(lambda x, p: _step_response(x, p, np), priors, inputs=["t", "F"])
     data = CalibrationData({"t": t, "F": force}, y, noise_sd=5e-4)
-    space = value_space(compose_model(physics, data, NoDiscrepancy()).model)
+    space = value_space(compose_model(physics, data, NoDiscrepancy()).model, mode="NUMBA")
 
     def residual(log_theta):
         theta = dict(zip(truth, np.exp(log_theta), strict=True))

@@ -584,6 +584,13 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
     )  # fmt: skip
     if validation.n == 0:
         raise _err(path, "data.validation", f"{validation.source} has no rows")
+    if calibration.n < len(physics.parameters):
+        raise _err(
+            path, "data.calibration",
+            f"{calibration.source} has {calibration.n} row(s) for {len(physics.parameters)} "
+            f"physics parameters {list(physics.parameters)}: the identifiability check of "
+            "every formulation needs at least one row per parameter",
+        )  # fmt: skip
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         try:
             check_physics_runs(physics, data_set, key)

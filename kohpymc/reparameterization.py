@@ -686,9 +686,16 @@ def find_mode(
     starts: Sequence[np.ndarray] = (),
     *,
     n_design: int = 4,
+    max_design: int = 32,
     seed: int = 0,
 ) -> Mode:
     """Multi-start L-BFGS for the posterior mode in value space.
+
+    The best optimum counts as found when a second start reaches it too (log density
+    within :data:`SAME_OPTIMUM` of it).  Until then the Sobol design is doubled, up to
+    ``max_design`` starts: a posterior with many local optima — an oscillator's
+    frequency, a periodic fit — has a global basin a handful of starts may all miss,
+    while on a posterior whose starts agree the first design is all it costs.
 
     Parameters
     ----------
@@ -698,6 +705,9 @@ def find_mode(
     n_design : int
         Number of scrambled-Sobol starts over the central 90 % of the prior (rounded
         up to a power of two; 0 for none).
+    max_design : int
+        Most Sobol starts when the best optimum is reached by one start only (the design
+        is doubled while it is smaller than this; no extra starts with ``n_design=0``).
     seed : int
         Seed of the prior draws and the design.
 
@@ -714,16 +724,14 @@ def find_mode(
     """
     center, scale = prior_scales(space, seed)
     candidates = [space.initial, *[np.asarray(s, float) for s in starts]]
-    if n_design > 0:
-        m = int(np.ceil(np.log2(n_design)))
-        unit = stats.qmc.Sobol(space.ndim, scramble=True, seed=seed).random_base2(m)
-        z = stats.norm.ppf(0.05 + 0.9 * unit)
-        candidates.extend(center + scale * row * 1.645 / 1.645 for row in z)
-    optima = []
-    for start in candidates:
-        found = _optimize(space, start, center, scale)
-        if found is not None:
-            optima.append(found)
+    m = int(np.ceil(np.log2(n_design))) if n_design > 0 else -1
+    candidates.extend(_design_starts(space.ndim, m, seed, center, scale, first=0))
+    optima = _optimize_all(space, candidates, center, scale)
+    while m >= 0 and 2**m < max_design and not _confirmed(optima):
+        m += 1
+        more = _design_starts(space.ndim, m, seed, center, scale, first=2 ** (m - 1))
+        candidates.extend(more)
+        optima += _optimize_all(space, more, center, scale)
     if not optima:
         raise RuntimeError(
             "the posterior log density is not finite at any starting point "
@@ -732,6 +740,35 @@ def find_mode(
     optima.sort(key=lambda item: -item[0])
     best_logp, best = optima[0]
     return Mode(best, best_logp, optima, len(candidates))
+
+
+#: optima whose log densities differ by less than this count as the same optimum
+SAME_OPTIMUM = 1e-3
+
+
+def _design_starts(ndim: int, m: int, seed: int, center, scale, *, first: int) -> list:
+    """Points ``first .. 2**m - 1`` of the scrambled Sobol design over the prior's centre.
+
+    The central 90 % of the prior; a design doubled keeps its first points (the same
+    scrambling).
+    """
+    if m < 0:
+        return []
+    unit = stats.qmc.Sobol(ndim, scramble=True, seed=seed).random_base2(m)[first:]
+    return [center + scale * row for row in stats.norm.ppf(0.05 + 0.9 * unit)]
+
+
+def _optimize_all(space: ValueSpace, starts: Sequence[np.ndarray], center, scale) -> list:
+    found = (_optimize(space, start, center, scale) for start in starts)
+    return [f for f in found if f is not None]
+
+
+def _confirmed(optima: list[tuple[float, np.ndarray]]) -> bool:
+    """Whether at least two starts reached the best log density found."""
+    if not optima:
+        return False
+    best = max(logp for logp, _ in optima)
+    return sum(best - logp < SAME_OPTIMUM for logp, _ in optima) >= 2
 
 
 def _hessian(logp_grad, x: np.ndarray, steps: np.ndarray) -> np.ndarray:

@@ -613,6 +613,15 @@ REGRESSIONS = {
                     r"\[data\.calibration\].*calib\.csv", "overflow when squared"),
     "huge physics": (_file("physics.py", BROKEN_PHYSICS["huge"].encode()),
                      r"\[data\.calibration\]", "returns 1.65e+200 at the prior centre"),
+    # fewer calibration rows than physics parameters passed --dry-run, then every
+    # formulation's identifiability check failed (exit 1, study.json written)
+    "one calibration row": (_file("calib.csv", _calib_with("t,signal,w", "0.5,1.4,1")),
+                            r"\[data\.calibration\].*calib\.csv", "1 row(s) for 2 physics"),
+    # a parameter renamed in the TOML but not in the function: a bare "KeyError: 'k'"
+    "parameter renamed": (
+        lambda doc, files: doc["physics"]["parameters"].update(
+            rate=doc["physics"]["parameters"].pop("k")),
+        r"\[data\.calibration\]", "'k' is neither a parameter (A, rate) nor an input (t)"),
 }  # fmt: skip
 
 

@@ -217,3 +217,30 @@ def test_independent_likelihood_matches_scipy(beam_physics, two_load_data):
     G = beam.euler_bernoulli(two_load_data.inputs, {"E": E})
     ref = stats.norm(G + 1.1, np.sqrt(two_load_data.noise_sd**2 + 0.64)).logpdf(two_load_data.y)
     assert got == pytest.approx(ref.sum(), rel=1e-10)
+
+
+def test_gp_likelihood_is_not_swamped_by_jitter_on_small_outputs():
+    """An output of order 1e-6 (a rate in mol/(L·s)) with noise sd 1e-8: the GP likelihood
+    is the dense normal with covariance K + c 11ᵀ + (σ² + 1e-6·sd(y)²) I (the integrated
+    intercept's prior variance c = (2 sd(y))²).  PyMC's absolute jitter 1e-6 (an sd of
+    1e-3, 10⁵ times the noise) made the data uninformative."""
+    from kohpymc import PhysicsModel
+
+    rng = np.random.default_rng(SEED)
+    x = np.linspace(0.0, 1.0, 12)
+    y = 2e-6 * x + 1e-7 * np.sin(6.0 * x) + rng.normal(0.0, 1e-8, x.size)
+    physics = PhysicsModel(
+        lambda inputs, p: p["E"] * inputs["x"], {"E": Uniform(1e-6, 4e-6)}, inputs=["x"],
+        backend="pytensor",
+    )  # fmt: skip
+    data = CalibrationData({"x": x}, y, noise_sd=1e-8)
+    model = build_model(physics, data, GaussianProcess(["x"], mean=[]))
+    E, eta, ls = 2e-6, 1e-7, 0.3
+    sd_y = float(np.std(y))
+    K = eta**2 * np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / ls**2) + (2 * sd_y) ** 2
+    C = K + (1e-8**2 + 1e-6 * sd_y**2) * np.eye(x.size)
+    reference = stats.multivariate_normal(E * x, C).logpdf(y)
+    point = dict(model.initial_point(), E_interval__=np.log(1.0 / 2.0))
+    point.update(delta_eta_log__=np.log(eta), delta_ls_log__=np.log([ls]))
+    y_logp = model.compile_logp(vars=[model["y"]])
+    np.testing.assert_allclose(y_logp(point), reference, rtol=1e-9)

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytensor
 import pytensor.tensor as pt
@@ -130,3 +132,18 @@ def test_declaration_errors():
         PhysicsModel(decay_numpy, {"t": Uniform(0, 1)}, inputs=["t"])
     with pytest.raises(ValueError, match="lower"):
         PhysicsModel(decay_numpy, {"a": {"prior": "uniform", "lower": 2, "upper": 1}}, inputs=["t"])
+
+
+@pytest.mark.parametrize(
+    ("body", "named"),
+    [
+        (lambda x, p: p["c"] * x["t"], "'c' is neither a parameter (k, damping) nor an input (t)"),
+        (lambda x, p: p["k"] * x["time"], "'time' is neither a parameter (k, damping) nor an"),
+    ],
+)
+def test_a_key_the_model_lacks_is_named_with_what_it_has(body, named):
+    """A function reading params["c"] where the priors say "damping" (or inputs["time"] where
+    the column is "t") gets a message saying what the model does have."""
+    physics = PhysicsModel(body, {"k": Uniform(1, 2), "damping": Uniform(0, 1)}, inputs=["t"])
+    with pytest.raises(PhysicsModelError, match=re.escape(named)):
+        physics.evaluate({"t": np.array([0.1, 0.2])}, {"k": 1.5, "damping": 0.5})

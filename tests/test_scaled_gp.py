@@ -78,7 +78,8 @@ def small_data():
 
 
 def test_likelihood_covariance_with_the_default_lambda_z(small_data):
-    """Record covariance = K_z + σ² I (+ M4's 1e-6 jitter), λ_z from RobustCalibration's rule."""
+    """Record covariance = K_z + σ² I (+ M4's jitter, 1e-6·sd(y)² here: sd(y) < 1), λ_z from
+    RobustCalibration's rule."""
     point = {"theta": 1.0, "delta_eta": 0.4, "delta_ls": np.array([0.3])}
     got, built = _record_covariance(ScaledGP(["x"]), small_data, point)
     assert "delta_lambda_z" in built.formulation_variables
@@ -88,7 +89,8 @@ def test_likelihood_covariance_with_the_default_lambda_z(small_data):
     lam = np.sqrt(n * beta * span * 0.4**2 / sd**2)
     K = _se(X, X, 0.4, 0.3)
     expected = np.linalg.inv(np.linalg.inv(K) + lam / (n * 0.4**2) * np.eye(n))
-    np.testing.assert_allclose(got, expected + (sd**2 + 1e-6) * np.eye(n), rtol=1e-6, atol=1e-8)
+    jitter = 1e-6 * min(1.0, float(np.std(small_data.y)) ** 2)
+    np.testing.assert_allclose(got, expected + (sd**2 + jitter) * np.eye(n), rtol=1e-6, atol=1e-8)
 
 
 @pytest.mark.parametrize("lam", [0.0, 1e-10])

@@ -27,16 +27,35 @@ from kohpymc.discrepancy.functions import LinearBasis, MeanSpec, as_function, ma
 from kohpymc.gaussian import GaussianLikelihood
 from kohpymc.priors import HalfNormal, Prior, as_prior
 
-__all__ = ["GaussianProcess", "CovarianceFactory"]
+__all__ = ["GaussianProcess", "CovarianceFactory", "jitter"]
 
 #: ``factory(ctx, active_dims) -> pm.gp.cov.Covariance``
 CovarianceFactory = Callable[[ModelContext, list[int]], Any]
 
 
+def jitter(ctx: ModelContext) -> float:
+    """The variance added to a GP covariance's diagonal, scaled to the output.
+
+    1e-6 (PyMC's) in the output's units squared when its sd is at least 1, else 1e-6 × its
+    variance.  PyMC's absolute 1e-6 is a floor of sd 1e-3 on every row's noise: on an
+    output measured in units where it is ~1e-6 (a rate in mol/(L·s), a displacement in m)
+    that floor is larger than the data and the GP likelihood learns nothing.  Scaled by
+    the output's variance it stays 1e-6 of it; it is never larger than PyMC's.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> jitter(SimpleNamespace(y_scale=250.0)), jitter(SimpleNamespace(y_scale=1e-3))
+    (1e-06, 1e-12)
+    """
+    return JITTER_DEFAULT * min(1.0, float(ctx.y_scale) ** 2)
+
+
 def _marginal_likelihood(gp: pm.gp.Marginal, ctx: ModelContext, X: pt.TensorVariable):
     """Observe ``y ~ N(m(X), K(X) + σ_obs² I)`` as ``gp.marginal_likelihood`` would.
 
-    Same mean, covariance and 1e-6 jitter, and ``gp.conditional`` works afterwards; the
+    Same mean and covariance, the :func:`jitter` scaled to the output, and
+    ``gp.conditional`` works afterwards; the
     likelihood is :class:`~kohpymc.gaussian.GaussianLikelihood` (one LAPACK pass per
     gradient instead of PyMC's Cholesky-and-solve graph).  Returns ``(mean, cov)``.
     """
@@ -45,7 +64,7 @@ def _marginal_likelihood(gp: pm.gp.Marginal, ctx: ModelContext, X: pt.TensorVari
         if ctx.physics_covariance is None
         else _CalibrationRowsNoise(ctx.noise_sd, ctx.physics_covariance, len(ctx.input_names))
     )
-    mu, cov = gp._build_marginal_likelihood(X=X, noise_func=noise, jitter=JITTER_DEFAULT)
+    mu, cov = gp._build_marginal_likelihood(X=X, noise_func=noise, jitter=jitter(ctx))
     gp.X, gp.y, gp.sigma = X, ctx.y, noise
     GaussianLikelihood("y", mu=mu, cov=cov, observed=ctx.y, dims=ctx.obs_dim)
     return mu, cov
@@ -211,7 +230,7 @@ class GaussianProcess(Discrepancy, kind="gp"):
             )
             mu, total = _marginal_likelihood(gp, ctx, X)
             B = spec.design(ctx, X)  # type: ignore[union-attr]
-            c0 = cov(X) + (ctx.noise_sd**2 + 1e-6) * pt.eye(ctx.X.shape[0])
+            c0 = cov(X) + (ctx.noise_sd**2 + jitter(ctx)) * pt.eye(ctx.X.shape[0])
             if ctx.physics_covariance is not None:
                 c0 = c0 + ctx.physics_covariance
             chol = pt.linalg.cholesky(c0)
@@ -229,7 +248,7 @@ class GaussianProcess(Discrepancy, kind="gp"):
 
         def predict(X_new: pt.TensorVariable, G_new: pt.TensorVariable) -> pt.TensorVariable:
             del G_new  # the GP mean evaluates the physics at X_new itself
-            return gp.conditional("gp_conditional", X_new, dims="pred")
+            return gp.conditional("gp_conditional", X_new, dims="pred", jitter=jitter(ctx))
 
         return Likelihood(predict, mean=mu, covariance=total)
 

@@ -21,8 +21,8 @@ linear algebra lives in :mod:`kohpymc.kronecker`):
    give the analytic gradient ``½ (α'ᵀ ∂K α' - tr((K' + s² I)⁻¹ ∂K))`` in the eigenbasis,
    so PyTensor never differentiates through ``eigh``.
 
-Like ``GaussianProcess`` the noise variance carries the 1e-6 jitter of
-``pm.gp.Marginal`` (``σ² → σ² + 1e-6``), so both give the same log density.
+Like ``GaussianProcess`` the noise variance carries its jitter
+(``σ² → σ² + jitter``, :func:`kohpymc.discrepancy.gp.jitter`), so both give the same log density.
 """
 
 from __future__ import annotations
@@ -35,14 +35,13 @@ import pymc as pm
 import pytensor
 import pytensor.tensor as pt
 import xarray as xr
-from pymc.gp.util import JITTER_DEFAULT
 from pymc.model.transform.conditioning import remove_value_transforms
 from pytensor.graph.basic import Constant
 from pytensor.graph.traversal import ancestors
 
 from kohpymc.discrepancy.base import Likelihood, ModelContext
 from kohpymc.discrepancy.functions import LinearBasis, marginalizable
-from kohpymc.discrepancy.gp import GaussianProcess
+from kohpymc.discrepancy.gp import GaussianProcess, jitter
 from kohpymc.kronecker import (
     GridLayout,
     KronSolver,
@@ -162,7 +161,7 @@ class GridGP(GaussianProcess, kind="grid_gp"):
         layout, sigma = self._check(ctx)
         shape, r, m, order = layout.shape, layout.replicates, layout.size, layout.order
         axes = layout.axes
-        var = sigma**2 + JITTER_DEFAULT  # noise plus the jitter of pm.gp.Marginal
+        var = sigma**2 + jitter(ctx)  # noise plus the GP's jitter
         s2 = var / r
         eta, ls = self.hyperparameters(ctx)
         spec = self.mean
@@ -222,7 +221,7 @@ class GridGP(GaussianProcess, kind="grid_gp"):
             cond_mean = G_new + mean_new + pt.sum(Kc * alpha, axis=axes_sum)
             prior_var = eta**2 + c
             cond_var = prior_var - pt.sum(Kc * solver.solve(Kc), axis=axes_sum)
-            sd = pt.sqrt(pt.maximum(cond_var, 0.0) + JITTER_DEFAULT)
+            sd = pt.sqrt(pt.maximum(cond_var, 0.0) + jitter(ctx))
             return pm.Normal("gp_conditional", mu=cond_mean, sigma=sd, dims="pred")
 
         def pointwise(posterior: xr.Dataset, model: pm.Model) -> xr.Dataset:

@@ -52,7 +52,7 @@ def call_function(
     except Exception as err:
         raise PhysicsModelError(
             f"physics function {model.name!r} raised {type(err).__name__}: {err} "
-            f"at parameters {format_params(params)}"
+            f"at parameters {format_params(params)}{unknown_key_hint(err, arrays, params)}"
         ) from err
     out = np.asarray(out, dtype=float)
     if out.ndim == 0 and n == 1:
@@ -63,6 +63,31 @@ def call_function(
             f"(one value per data row) at parameters {format_params(params)}"
         )
     return out
+
+
+def unknown_key_hint(err: Exception, arrays: Mapping, params: Mapping) -> str:
+    """A sentence for a ``KeyError`` whose key is neither a parameter nor an input, else "".
+
+    A function reading ``params["c"]`` when the priors declare ``damping``, or
+    ``inputs["time"]`` when the input column is ``t``, fails with a bare ``KeyError: 'c'``;
+    this names what the model does have.
+
+    Examples
+    --------
+    >>> unknown_key_hint(KeyError("c"), {"t": 0}, {"k": 1.0, "damping": 0.1})
+    "; 'c' is neither a parameter (k, damping) nor an input (t) of the model"
+    >>> unknown_key_hint(KeyError("k"), {"t": 0}, {"k": 1.0})
+    ''
+    """
+    if not isinstance(err, KeyError) or len(err.args) != 1:
+        return ""
+    key = err.args[0]
+    if key in arrays or key in params:
+        return ""
+    return (
+        f"; {key!r} is neither a parameter ({', '.join(map(str, params))}) nor an input "
+        f"({', '.join(map(str, arrays))}) of the model"
+    )
 
 
 class Backend:
@@ -157,7 +182,7 @@ class NumpyBackend(Backend):
         except Exception as err:
             raise PhysicsModelError(
                 f"jacobian of {model.name!r} raised {type(err).__name__}: {err} "
-                f"at parameters {format_params(params)}"
+                f"at parameters {format_params(params)}{unknown_key_hint(err, arrays, params)}"
             ) from err
         if isinstance(jac, Mapping):
             missing = [k for k in names if k not in jac]

@@ -204,8 +204,9 @@ def density_in_z(
 
 
 def parameters(mapping: Reparameterization, shared: Sequence[Any] = ()) -> np.ndarray:
-    """``θ`` of :func:`density_in_z`: ``μ``, ``vec L``, the map constants and the ``shared``
-    values, C-contiguous.
+    """``θ`` of :func:`density_in_z`: ``μ``, ``vec L``, map constants, ``shared`` values.
+
+    One C-contiguous vector.
 
     Examples
     --------
@@ -341,10 +342,10 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     """Nutpie's C function as ``map_in_z`` around the space's compiled density, or None.
 
     Returns ``(C function, the map's compiled function, user data)``: the user data are
-    the plan's ``μ``, ``vec L`` and map constants and the density's shared values, which the C function
-    reads as arrays of their shapes (no copy).  ``None`` when the space's density is not
-    a :class:`NumbaDensity` or has a shared input that is not float64 (the caller then
-    compiles the whole density in ``z``, :func:`density_in_z`).
+    the plan's ``μ``, ``vec L`` and map constants and the density's shared values, which
+    the C function reads as arrays of their shapes (no copy).  ``None`` when the space's
+    density is not a :class:`NumbaDensity` or has a shared input that is not float64 (the
+    caller then compiles the whole density in ``z``, :func:`density_in_z`).
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
 

@@ -72,7 +72,7 @@ KINDS = ["affine", "log-logit", "walls", "shares", "bound-ridge", "bent", "squee
 def _bent(plan, kind):
     """``plan`` with an arbitrary (not fitted) bend of axis 1 and, for "squeezed-bent", a
     squeeze of axis 3: unit-triangular as :func:`kohpymc.bends.bend_plan` builds it."""
-    from kohpymc.bends import BentPlan, Bend, Squeeze
+    from kohpymc.bends import Bend, BentPlan, Squeeze
 
     inverse = np.linalg.inv(plan.chol)
     coefs = np.array([[0.3], [0.0], [-0.2], [0.1], [0.25]])  # zero on the bent axis

@@ -37,7 +37,7 @@ from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
 
 from kohpymc.reparameterization import ArrayMath, Reparameterization
-from kohpymc.value_space import NumbaDensity, ValueSpace
+from kohpymc.value_space import NumbaDensity, ValueSpace, value_logp
 
 __all__ = [
     "PYTENSOR",
@@ -180,7 +180,7 @@ def density_in_z(
     >>> f(np.zeros(space.ndim), parameters(plan, shared))  # doctest: +SKIP
     """
     n = space.ndim
-    logp = space.model.logp()
+    logp = value_logp(space.model)
     shared = [var for var in graph_inputs([logp]) if isinstance(var, SharedVariable)]
     packed = [var for var in shared if getattr(var.type, "dtype", None) == "float64"]
     sizes = [int(np.size(var.get_value())) for var in packed]

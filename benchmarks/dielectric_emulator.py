@@ -1,7 +1,7 @@
 """The dielectric stand-in calibrated through the principal-component emulator.
 
     OPENBLAS_NUM_THREADS=1 python -m benchmarks.dielectric_emulator [--out benchmarks/results]
-        [--direct PATH.nc] [--runs 250] [--held-out 50]
+        [--direct PATH.nc] [--runs 150] [--held-out 50]
 
 Issue 18: the dielectric stand-in (``kohpymc.examples.dielectric``, 7 parameters,
 12 (V, T) settings × 40 times) through :class:`kohpymc.FunctionalEmulator` with at most
@@ -222,7 +222,7 @@ def main() -> None:
     parser.add_argument("--direct", default="/tmp/pca/direct_M0.nc")
     parser.add_argument("--direct-only", action="store_true")
     parser.add_argument("--emulated", default="/tmp/pca/emulated_M0.nc")
-    parser.add_argument("--runs", type=int, default=250)
+    parser.add_argument("--runs", type=int, default=150)
     parser.add_argument("--held-out", type=int, default=50)
     parser.add_argument("--half-width", type=float, default=5.0)
     parser.add_argument("--variance", type=float, default=0.99999)

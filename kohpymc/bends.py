@@ -147,6 +147,44 @@ class BentPlan(Reparameterization):
     def _squeezed(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
         return u if self.squeeze is None else self.squeeze.forward(u, xp)
 
+    def _map_arrays(self) -> list[np.ndarray]:
+        """The bend's and the squeeze's arrays, in :meth:`map_constants` order."""
+        arrays = []
+        if self.bend is not None:
+            arrays += [self.bend.centre, self.bend.rows, self.bend.shifts]
+        if self.squeeze is not None:
+            s = self.squeeze
+            arrays += [s.centre, s.rows, s.columns, s.beta]
+        return [np.asarray(a, dtype=float) for a in arrays]
+
+    def map_constants(self) -> np.ndarray:
+        """The bend's centre, rows and shifts, then the squeeze's centre, rows, columns, β."""
+        arrays = self._map_arrays()
+        return np.concatenate([a.ravel() for a in arrays]) if arrays else np.zeros(0)
+
+    def with_map_constants(self, values: Any) -> BentPlan:
+        """The plan with its bend and squeeze read from ``values`` (e.g. a tensor slice).
+
+        Examples
+        --------
+        >>> bend = Bend(np.zeros(2), np.array([[1.0, 0.0]]), np.array([[0.0], [0.5]]))
+        >>> plan = BentPlan("bent-affine", np.zeros(2), np.eye(2), None, "", bend=bend)
+        >>> copy = plan.with_map_constants(2.0 * plan.map_constants())
+        >>> copy.bend.shifts.tolist()
+        [[0.0], [1.0]]
+        """
+        parts, start = [], 0
+        for array in self._map_arrays():
+            parts.append(values[start : start + array.size].reshape(array.shape))
+            start += array.size
+        bend, squeeze = self.bend, self.squeeze
+        if bend is not None:
+            bend = Bend(*parts[:3])
+            parts = parts[3:]
+        if squeeze is not None:
+            squeeze = Squeeze(*parts)
+        return replace(self, bend=bend, squeeze=squeeze)
+
     def _unshared(self, u: Any, xp: ArrayMath = NUMPY) -> Any:
         u = self._squeezed(u, xp)
         return super()._unshared(u if self.bend is None else self.bend.forward(u, xp), xp)

@@ -37,7 +37,7 @@ from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
 
 from kohpymc.reparameterization import ArrayMath, Reparameterization
-from kohpymc.value_space import NumbaDensity, ValueSpace
+from kohpymc.value_space import NumbaDensity, ValueSpace, value_logp
 
 __all__ = [
     "PYTENSOR",
@@ -107,13 +107,19 @@ def _python_only(op: Any) -> list[str]:
 
 
 def symbolic_value(
-    mapping: Reparameterization, z: Any, *, mean: Any = None, chol: Any = None
+    mapping: Reparameterization,
+    z: Any,
+    *,
+    mean: Any = None,
+    chol: Any = None,
+    constants: Any = None,
 ) -> tuple[Any, Any]:
     """``v(z)`` and ``log|dv/dz|`` (constant terms left out) as PyTensor graphs.
 
     The same map as :meth:`Reparameterization.to_value` and the Jacobian term of
-    :meth:`Reparameterization.logp_dlogp`; ``mean`` and ``chol`` (default: the plan's,
-    as constants) may be shared variables holding them.
+    :meth:`Reparameterization.logp_dlogp`; ``mean``, ``chol`` and ``constants`` (the
+    plan's :meth:`~Reparameterization.map_constants`; default: the plan's, as constants)
+    may be variables holding them.
 
     Examples
     --------
@@ -126,7 +132,23 @@ def symbolic_value(
     """
     mean = mapping.mean if mean is None else mean
     chol = mapping.chol if chol is None else chol
+    if constants is not None:
+        mapping = mapping.with_map_constants(constants)
     return mapping.value_from_affine(mean + pt.dot(chol, z), PYTENSOR)
+
+
+def _map_size(mapping: Reparameterization) -> int:
+    """Length of the plan's part of θ: ``μ``, ``vec L`` and its map constants."""
+    n = mapping.ndim
+    return n + n * n + int(mapping.map_constants().size)
+
+
+def _symbolic_map(mapping: Reparameterization, z: Any, m: Any) -> tuple[Any, Any]:
+    """:func:`symbolic_value` with the plan's numbers read from the vector ``m``."""
+    n = mapping.ndim
+    return symbolic_value(
+        mapping, z, mean=m[:n], chol=m[n : n + n * n].reshape((n, n)), constants=m[n + n * n :]
+    )
 
 
 def _value_replacements(space: ValueSpace, v: Any) -> dict[Any, Any]:
@@ -146,8 +168,8 @@ def density_in_z(
 
     ``log p(v(z)) + log|dv/dz|`` (constant terms left out, as
     :meth:`Reparameterization.logp_dlogp`).  ``θ`` is a second input holding the plan's
-    ``μ`` and ``L`` and the values of the model's float shared variables (e.g. data
-    swapped in by :func:`kohpymc.sbc.check_calibration`), returned last, in
+    ``μ``, ``L`` and map constants and the values of the model's float shared variables
+    (e.g. data swapped in by :func:`kohpymc.sbc.check_calibration`), returned last, in
     :func:`parameters`' order; other shared variables are frozen as constants.  So the
     graph — and numba's disk cache of it — does not change with the plan or the data.
 
@@ -158,24 +180,23 @@ def density_in_z(
     >>> f(np.zeros(space.ndim), parameters(plan, shared))  # doctest: +SKIP
     """
     n = space.ndim
-    logp = space.model.logp()
+    logp = value_logp(space.model)
     shared = [var for var in graph_inputs([logp]) if isinstance(var, SharedVariable)]
     packed = [var for var in shared if getattr(var.type, "dtype", None) == "float64"]
     sizes = [int(np.size(var.get_value())) for var in packed]
     z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
-    theta = pt.TensorType("float64", shape=(n + n * n + sum(sizes),))(f"{_PREFIX}theta")
-    mean, chol = theta[:n], theta[n : n + n * n].reshape((n, n))
+    start = _map_size(mapping)
+    theta = pt.TensorType("float64", shape=(start + sum(sizes),))(f"{_PREFIX}theta")
     replacements: dict[Any, Any] = {
         var: pt.constant(var.get_value(), dtype=getattr(var.type, "dtype", None))
         for var in shared
         if var not in packed
     }
-    start = n + n * n
     for var, size in zip(packed, sizes, strict=True):
         shape = np.shape(var.get_value())
         replacements[var] = pt.specify_shape(theta[start : start + size].reshape(shape), shape)
         start += size
-    v, logjac = symbolic_value(mapping, z, mean=mean, chol=chol)
+    v, logjac = _symbolic_map(mapping, z, theta[: _map_size(mapping)])
     replacements.update(_value_replacements(space, v))
     (logp,) = replace_vars_in_graphs([logp], replacements)
     logp = logp + logjac
@@ -183,7 +204,9 @@ def density_in_z(
 
 
 def parameters(mapping: Reparameterization, shared: Sequence[Any] = ()) -> np.ndarray:
-    """``θ`` of :func:`density_in_z`: ``μ``, ``vec L`` and the ``shared`` values, C-contiguous.
+    """``θ`` of :func:`density_in_z`: ``μ``, ``vec L``, map constants, ``shared`` values.
+
+    One C-contiguous vector.
 
     Examples
     --------
@@ -193,7 +216,7 @@ def parameters(mapping: Reparameterization, shared: Sequence[Any] = ()) -> np.nd
     >>> parameters(plan)
     array([1., 2.])
     """
-    values = [np.ravel(mapping.mean), np.ravel(mapping.chol)]
+    values = [np.ravel(mapping.mean), np.ravel(mapping.chol), mapping.map_constants()]
     values += [np.ravel(var.get_value()) for var in shared]
     return np.ascontiguousarray(np.concatenate(values), dtype=float)
 
@@ -227,7 +250,7 @@ def native_model(
     ValueError
         When the graph holds an Op numba can only run from Python.
     NotImplementedError
-        When ``mapping`` is a plan with its own map (e.g. a
+        When ``mapping`` is a plan with its own numpy map (e.g. a
         :class:`~kohpymc.reparameterization.BoxRidgePlan`), which has no symbolic form.
     Exception
         Whatever the compilation raises.
@@ -238,14 +261,17 @@ def native_model(
     """
     from nutpie import compile_pymc as ncp
 
-    if type(mapping) is not Reparameterization:
+    if not mapping.symbolic:
         raise NotImplementedError(f"no symbolic form of a {type(mapping).__name__}'s map")
+    python_ops = python_only_ops([value_logp(space.model)])
+    if python_ops:  # before any compiling (a numpy physics model's usual case)
+        raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
     composed = _composed_logp(space, mapping)
     if composed is not None:
         logp_c, function, user_data = composed
     else:
         z, theta, logp, grad, shared = density_in_z(space, mapping)
-        python_ops = python_only_ops([logp, grad])
+        python_ops = python_only_ops([logp, grad])  # e.g. a Python Op in a gradient only
         if python_ops:
             raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
         with warnings.catch_warnings():
@@ -275,8 +301,8 @@ def native_model(
 def map_in_z(mapping: Reparameterization, n: int) -> tuple[Any, Any, Any, list[Any]]:
     """The map ``z -> v`` with ``log|dv/dz|`` and the gradient of a density through it.
 
-    Inputs ``z``, ``m`` (the plan's ``μ`` and ``vec L``, :func:`parameters` without
-    shared values) and ``g``; outputs ``v(z)``, ``log|dv/dz|`` and
+    Inputs ``z``, ``m`` (the plan's ``μ``, ``vec L`` and map constants, :func:`parameters`
+    without shared values) and ``g``; outputs ``v(z)``, ``log|dv/dz|`` and
     ``(∂v/∂z)ᵀ g + ∂ log|dv/dz| / ∂z``: with ``g = ∇ log p(v)`` the gradient of
     ``log p(v(z)) + log|dv/dz|`` in ``z``.  A graph of a few dozen nodes, which lets
     :func:`native_model` reuse the model's compiled density (:class:`NumbaDensity`)
@@ -295,9 +321,9 @@ def map_in_z(mapping: Reparameterization, n: int) -> tuple[Any, Any, Any, list[A
     [[1.0], 0.0, [6.0]]
     """
     z = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}z")
-    m = pt.TensorType("float64", shape=(n + n * n,))(f"{_PREFIX}map")
+    m = pt.TensorType("float64", shape=(_map_size(mapping),))(f"{_PREFIX}map")
     g = pt.TensorType("float64", shape=(n,))(f"{_PREFIX}gradient")
-    v, logjac = symbolic_value(mapping, z, mean=m[:n], chol=m[n:].reshape((n, n)))
+    v, logjac = _symbolic_map(mapping, z, m)
     logjac = pt.as_tensor_variable(logjac).astype("float64")
     grad = pytensor.grad(pt.dot(v, g) + logjac, z)
     return z, m, g, [v, logjac, grad]
@@ -319,10 +345,10 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     """Nutpie's C function as ``map_in_z`` around the space's compiled density, or None.
 
     Returns ``(C function, the map's compiled function, user data)``: the user data are
-    the plan's ``μ``, ``vec L`` and the density's shared values, which the C function
-    reads as arrays of their shapes (no copy).  ``None`` when the space's density is not
-    a :class:`NumbaDensity` or has a shared input that is not float64 (the caller then
-    compiles the whole density in ``z``, :func:`density_in_z`).
+    the plan's ``μ``, ``vec L`` and map constants and the density's shared values, which
+    the C function reads as arrays of their shapes (no copy).  ``None`` when the space's
+    density is not a :class:`NumbaDensity` or has a shared input that is not float64 (the
+    caller then compiles the whole density in ``z``, :func:`density_in_z`).
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
 
@@ -336,7 +362,8 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     z, m, g, outputs = map_in_z(mapping, n)
     function = pm.pytensorf.compile([z, m, g], outputs, mode="NUMBA")
     map_jit = function.vm.jit_fn
-    slices, start = [], n + n * n
+    n_map = _map_size(mapping)
+    slices, start = [], n_map
     for value in values:
         slices.append(f"theta[{start}:{start + value.size}].reshape({value.shape!r})")
         start += value.size
@@ -346,15 +373,10 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     if density.key is not None and map_key is not None:
         shapes = [value.shape for value in values]
         parts = f"{density.key}-{map_key}-{n}-{start}-{shapes}".encode()
-        key = f"kohpymc-native-composed-v1-{hashlib.sha256(parts).hexdigest()}"  # a file name
-    names = {"N_MAP": n + n * n, "map_fn": _inlined(map_jit), "graph": density.graph}
+        key = f"kohpymc-native-composed-v2-{hashlib.sha256(parts).hexdigest()}"  # a file name
+    names = {"N_MAP": n_map, "map_fn": _inlined(map_jit), "graph": density.graph}
     logp_c = _logp_c(body, n, start, names, key)
-    user_data = np.ascontiguousarray(
-        np.concatenate(
-            [np.ravel(mapping.mean), np.ravel(mapping.chol)] + [v.ravel() for v in values]
-        ),
-        dtype=float,
-    )
+    user_data = parameters(mapping, density.shared)
     return logp_c, function, user_data
 
 
@@ -367,50 +389,57 @@ _LOGP_SIGNATURE = numba.types.int64(
     numba.types.voidptr,
 )
 
-#: nutpie's log-density C function; BODY (from ``x`` and ``theta``, the user data) sets
-#: ``logp[()]`` and ``out``, the gradient.  Return codes are those of nutpie's own
-#: wrapper (1: the body raised, 3: non-finite gradient, 4: non-finite density).
+#: nutpie's log-density C function; ``body`` (a numba function of ``x``, ``theta`` (the user
+#: data), ``out`` and ``logp``) sets ``logp[()]`` and ``out``, the gradient.  Return codes are
+#: those of nutpie's own wrapper (1: the body raised, 3: non-finite gradient, 4: non-finite
+#: density).  Only the call is inside ``try``: numba's exception handling around the inlined
+#: graph itself made the first compile ~2× slower (emulated dielectric: 19 s CPU against 9.5 s).
 _LOGP_TEMPLATE = """
 def logp_c(dim, x_, out_, logp_, user_data_):
     if dim != N_DIM:
         return -1
+    x = carray(x_, (N_DIM,))
+    out = carray(out_, (N_DIM,))
+    logp = carray(logp_, ())
+    theta = carray(user_data_, (N_THETA,), float64)
     try:
-        x = carray(x_, (N_DIM,))
-        out = carray(out_, (N_DIM,))
-        logp = carray(logp_, ())
-        theta = carray(user_data_, (N_THETA,), float64)
-BODY
-        if not np.all(np.isfinite(out)):
-            return 3
-        if not np.isfinite(logp[()]):
-            return 4
+        body(x, theta, out, logp)
     except Exception:
         return 1
+    if not np.all(np.isfinite(out)):
+        return 3
+    if not np.isfinite(logp[()]):
+        return 4
     return 0
 """
 
 
 def _logp_c(body: str, n_dim: int, n_theta: int, names: dict[str, Any], key: str | None) -> Any:
-    """Nutpie's C function :data:`_LOGP_TEMPLATE` with ``body``, compiled by numba.
+    """Nutpie's C function :data:`_LOGP_TEMPLATE` around ``body``, compiled by numba.
 
-    ``names``: what ``body`` calls, besides ``np``, ``N_DIM`` and ``N_THETA``.  Cached on
-    disk under ``key`` (a file name) when it is not ``None``.
+    ``body``: the statements of a function of ``x``, ``theta``, ``out`` and ``logp``;
+    ``names``: what they call, besides ``np``, ``N_DIM`` and ``N_THETA``.  Both functions
+    are cached on disk under ``key`` (a file name) when it is not ``None``.
     """
     from pytensor.link.numba.cache import compile_numba_function_src
+    from pytensor.link.numba.dispatch.basic import numba_njit
 
     lines = body.strip("\n").splitlines()
-    source = _LOGP_TEMPLATE.replace("BODY", "\n".join(" " * 8 + line for line in lines))
+    source = "def body(x, theta, out, logp):\n" + "\n".join(" " * 4 + line for line in lines)
+    # numba rebuilds a cached function's environment from an importable module
+    env = {"N_DIM": n_dim, "N_THETA": n_theta, "np": np, "__name__": __name__, **names}
+    body_key = None if key is None else f"{key}-body"
+    raw_body = compile_numba_function_src(source, "body", env, cache_key=body_key)
     env = {
         "N_DIM": n_dim,
         "N_THETA": n_theta,
         "carray": numba.carray,
         "float64": numba.float64,
         "np": np,
-        # numba rebuilds a cached function's environment from an importable module
         "__name__": __name__,
-        **names,
+        "body": numba_njit(raw_body, cache=key is not None),
     }
-    raw = compile_numba_function_src(source, "logp_c", env, cache_key=key)
+    raw = compile_numba_function_src(_LOGP_TEMPLATE, "logp_c", env, cache_key=key)
     return numba.cfunc(_LOGP_SIGNATURE, cache=key is not None)(raw)
 
 
@@ -423,7 +452,7 @@ def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
 
     graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
-    key = None if graph_key is None else f"kohpymc-native-logp-v4-{graph_key}-{n_dim}-{n_theta}"
+    key = None if graph_key is None else f"kohpymc-native-logp-v5-{graph_key}-{n_dim}-{n_theta}"
     body = "value, grad = jit_fn(x, theta)\nlogp[()] = value\nout[...] = grad"
     return _logp_c(body, n_dim, n_theta, {"jit_fn": _inlined(jit_fn)}, key)
 

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy import optimize, stats
@@ -601,6 +601,21 @@ class Reparameterization:
         """Sampling coordinates of a value-space vector."""
         w = self.coordinates.from_value(np.asarray(v, float))
         return np.linalg.solve(self.chol, w - self.mean)
+
+    #: the map ``z -> v`` has a symbolic form over :class:`ArrayMath` (nutpie's native path)
+    symbolic: ClassVar[bool] = True
+
+    def map_constants(self) -> np.ndarray:
+        """The map's numbers besides ``μ`` and ``L``, flattened (none for this plan).
+
+        :mod:`kohpymc.native` passes them to the compiled map as inputs, so that its
+        graph, and numba's disk cache of it, does not change with the plan's values.
+        """
+        return np.zeros(0)
+
+    def with_map_constants(self, values: Any) -> Reparameterization:
+        """The plan with :meth:`map_constants` replaced by ``values`` (e.g. a tensor)."""
+        return self
 
     def logp_dlogp(
         self, space: ValueSpace, z: np.ndarray, *, safe: bool = False
@@ -1324,6 +1339,8 @@ class BoxRidgePlan(Reparameterization):
     >>> bool(np.allclose(box.to_value(box.from_value(v)), v))
     True
     """
+
+    symbolic: ClassVar[bool] = False  # its own map, in numpy only
 
     origin: np.ndarray = field(default_factory=lambda: np.zeros(0))
     basis: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))

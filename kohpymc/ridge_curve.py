@@ -28,7 +28,7 @@ that compensates it linearly bends exponentially).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy import optimize
@@ -137,6 +137,8 @@ class RidgeCurvePlan(Reparameterization):
     ``s`` of the splines; beyond the first and last node (within 10⁻⁶ of the faces)
     ``c`` and ``L`` are held constant.
     """
+
+    symbolic: ClassVar[bool] = False  # its own map, in numpy only
 
     pivot: int = 0
     rest: np.ndarray = field(default_factory=lambda: np.zeros(0, int))

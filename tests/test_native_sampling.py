@@ -66,7 +66,28 @@ def _coordinates(space, kind):
     return coords.with_ridge(ridge)
 
 
-KINDS = ["affine", "log-logit", "walls", "shares", "bound-ridge"]
+KINDS = ["affine", "log-logit", "walls", "shares", "bound-ridge", "bent", "squeezed-bent"]
+
+
+def _bent(plan, kind):
+    """``plan`` with an arbitrary (not fitted) bend of axis 1 and, for "squeezed-bent", a
+    squeeze of axis 3: unit-triangular as :func:`kohpymc.bends.bend_plan` builds it."""
+    from kohpymc.bends import Bend, BentPlan, Squeeze
+
+    inverse = np.linalg.inv(plan.chol)
+    coefs = np.array([[0.3], [0.0], [-0.2], [0.1], [0.25]])  # zero on the bent axis
+    bend = Bend(plan.mean.copy(), inverse[[1]], plan.chol @ coefs)
+    squeeze = None
+    if kind == "squeezed-bent":
+        squeeze = Squeeze(plan.mean.copy(), inverse[[3]], plan.chol[:, [3]], np.array([0.4]))
+    return BentPlan(kind, plan.mean, plan.chol, plan.coordinates, "", bend=bend, squeeze=squeeze)
+
+
+def _any_plan(space, kind):
+    """:func:`_plan` in the coordinates of ``kind``, bent for the bent kinds."""
+    if kind.endswith("bent"):
+        return _bent(_plan(space, _coordinates(space, "shares"), kind), kind)
+    return _plan(space, _coordinates(space, kind), kind)
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +98,9 @@ def space():
 @pytest.mark.parametrize("kind", KINDS)
 def test_symbolic_map_and_density_equal_the_numpy_ones(space, kind):
     """v(z), log p(v(z)) + log|dv/dz| and its gradient: PyTensor graph against the numpy map
-    and Reparameterization.logp_dlogp, to 1e-10 relative, at three points around the mean."""
-    plan = _plan(space, _coordinates(space, kind), kind)
+    and Reparameterization.logp_dlogp, to 1e-10 relative, at three points around the mean.
+    The bent plans' bend and squeeze enter through θ, not as constants of the graph."""
+    plan = _any_plan(space, kind)
     z_var, theta, logp, grad, shared = density_in_z(space, plan)
     density = pytensor.function([z_var, theta], [logp, grad])
     value = pytensor.function([z_var], symbolic_value(plan, z_var)[0])
@@ -135,7 +157,7 @@ def _call_c(logp_c, z, user_data):
     return code, float(value), out
 
 
-@pytest.mark.parametrize("kind", ["affine", "walls", "bound-ridge"])
+@pytest.mark.parametrize("kind", ["affine", "walls", "bound-ridge", "squeezed-bent"])
 def test_native_model_reuses_the_compiled_density_and_equals_the_numpy_one(kind):
     """A NUMBA space: nutpie's C function is the map z -> v around the space's compiled
     density (the model's graph is not compiled again), with shared data read from the
@@ -146,7 +168,7 @@ def test_native_model_reuses_the_compiled_density_and_equals_the_numpy_one(kind)
     with model:  # a second likelihood term on shared data, as an emulator's matrices
         pm.Normal("y2", model["c"], model["a"] + 1.0, observed=y_obs)
     space = value_space(model, mode="NUMBA")
-    plan = _plan(space, _coordinates(space, kind), kind)
+    plan = _any_plan(space, kind)
     composed = native._composed_logp(space, plan)
     assert composed is not None
     logp_c, _, user_data = composed

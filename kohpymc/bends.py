@@ -21,7 +21,7 @@ quartic tail Gaussian.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,7 +31,7 @@ from scipy.linalg import solve_triangular
 from kohpymc.reparameterization import NUMPY, ArrayMath, Reparameterization, _gaussian_score
 from kohpymc.value_space import ValueSpace
 
-__all__ = ["Bend", "BentPlan", "bend_plan"]
+__all__ = ["Bend", "BentCoordinatesPlan", "BentPlan", "bend_coordinates", "bend_plan"]
 
 #: a bend is fitted when the ridge's centre moves this many transverse sds at ±reach
 _MIN_SHIFT = 0.5
@@ -262,13 +262,10 @@ def bend_plan(
     """
     if type(plan) is not Reparameterization or plan.ndim < 2:
         return None
-    coefs = _coefficients(space, plan, reach)
-    size = np.linalg.norm(np.nan_to_num(coefs, nan=0.0), axis=0) * reach**2
-    bent = [int(k) for k in np.argsort(-size) if size[k] > _MIN_SHIFT]
-    if not bent:
+    axes = _bent_axes(space, plan, reach)
+    if axes is None:
         return None
-    chosen = coefs[:, bent].copy()
-    chosen[bent, :] = 0.0
+    bent, chosen = axes
     inverse = solve_triangular(plan.chol, np.eye(plan.ndim), lower=True)
     bend = Bend(plan.mean.copy(), inverse[bent], plan.chol @ chosen)
     base = {k: v for k, v in plan.__dict__.items() if k != "kind"}
@@ -277,6 +274,92 @@ def bend_plan(
     if not score < plan.gaussian_score:
         return None
     return _squeezed_plan(space, replace(candidate, gaussian_score=score), inverse)
+
+
+def _bent_axes(
+    space: ValueSpace, plan: Reparameterization, reach: float, *, targets_first: bool = False
+) -> tuple[list[int], np.ndarray] | None:
+    """The bent axes of ``plan``'s ``z``, most bent first, and their coefficients ``C``.
+
+    Axis ``k`` is bent when the conditional mode of the others moves more than
+    ``_MIN_SHIFT`` sds symmetrically at ``z_k = ±reach``; the coefficients on the bent axes
+    are set to zero (none is moved by another's bend).  With ``targets_first``, an axis that
+    a more bent one moves by more than ``_MIN_SHIFT`` stays a target and is not bent itself
+    (dielectric M2's ridge curve: E_A's axis, bent 0.6, would have cancelled the 4.9 sds
+    that ε_∞'s parabola moves it).  None when no axis is bent.
+    """
+    coefs = _coefficients(space, plan, reach)
+    shifts = np.nan_to_num(coefs, nan=0.0) * reach**2
+    size = np.linalg.norm(shifts, axis=0)
+    bent: list[int] = []
+    for k in (int(k) for k in np.argsort(-size) if size[k] > _MIN_SHIFT):
+        if not (targets_first and bent and np.abs(shifts[k, bent]).max() > _MIN_SHIFT):
+            bent.append(k)
+    if not bent:
+        return None
+    chosen = coefs[:, bent].copy()
+    chosen[bent, :] = 0.0
+    return bent, chosen
+
+
+@dataclass(frozen=True)
+class BentCoordinatesPlan(Reparameterization):
+    """A plan with its own map (e.g. a ridge curve) bent in its sampling coordinates.
+
+    ``z' = z + C (z_K)²`` (a :class:`Bend` with centre 0 and unit rows) before ``inner``'s
+    map: unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.
+    """
+
+    inner: Any = None
+    bend: Bend = field(
+        default_factory=lambda: Bend(np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)))
+    )
+
+    def to_value(self, z: np.ndarray) -> np.ndarray:
+        """PyMC value-space vector of sampling coordinates ``z``."""
+        return self.inner.to_value(self.bend.forward(np.asarray(z, float)))
+
+    def from_value(self, v: np.ndarray) -> np.ndarray:
+        """Sampling coordinates of a value-space vector."""
+        return self.bend.inverse(self.inner.from_value(v))
+
+    def laplace_value_sd(self) -> np.ndarray:
+        """``inner``'s."""
+        return self.inner.laplace_value_sd()
+
+    def logp_dlogp(
+        self, space: ValueSpace, z: np.ndarray, *, safe: bool = False
+    ) -> tuple[float, np.ndarray]:
+        """Log density of ``z`` (exact up to a constant) and its gradient."""
+        z = np.asarray(z, float)
+        logp, grad = self.inner.logp_dlogp(space, self.bend.forward(z), safe=safe)
+        return logp, self.bend.pull_back(z, grad)
+
+
+def bend_coordinates(
+    space: ValueSpace, plan: Reparameterization, *, reach: float = 1.5
+) -> BentCoordinatesPlan | None:
+    """``plan`` (any map ``z → v``) bent along its parabolic axes, if that scores better.
+
+    Like :func:`bend_plan`, in ``plan``'s own sampling coordinates ``z``.
+
+    Examples
+    --------
+    >>> bent = bend_coordinates(space, curve)  # doctest: +SKIP
+    >>> bent.kind  # doctest: +SKIP
+    'bent-ridge-curve-soft-box'
+    """
+    axes = _bent_axes(space, plan, reach, targets_first=True)
+    if axes is None:
+        return None
+    bent, chosen = axes
+    bend = Bend(np.zeros(plan.ndim), np.eye(plan.ndim)[bent], chosen)
+    base = {k: getattr(plan, k) for k in Reparameterization.__dataclass_fields__}
+    candidate = BentCoordinatesPlan(**{**base, "kind": f"bent-{plan.kind}"}, inner=plan, bend=bend)
+    score = _gaussian_score(space, candidate)
+    if not score < plan.gaussian_score:
+        return None
+    return replace(candidate, gaussian_score=score)
 
 
 #: an axis is light-tailed when its log density drops more than this at ±3 sd (mean of the

@@ -21,17 +21,20 @@ quartic tail Gaussian.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 from scipy import optimize
+from scipy.interpolate import CubicSpline
 from scipy.linalg import solve_triangular
 
 from kohpymc.reparameterization import NUMPY, ArrayMath, Reparameterization, _gaussian_score
 from kohpymc.value_space import ValueSpace
 
-__all__ = ["Bend", "BentCoordinatesPlan", "BentPlan", "bend_coordinates", "bend_plan"]
+__all__ = ["Bend", "BentCoordinatesPlan", "BentPlan", "CurveBend", "bend_coordinates", "bend_plan"]
 
 #: a bend is fitted when the ridge's centre moves this many transverse sds at ±reach
 _MIN_SHIFT = 0.5
@@ -192,10 +195,15 @@ class BentPlan(Reparameterization):
         return replace(self, reason=reason, warnings=white.warnings)
 
 
-def _conditional_mode(space: ValueSpace, plan: Reparameterization, k: int, at: float):
-    """The other whitened coordinates' conditional mode at ``z_k = at`` (None if not found)."""
+def _conditional_mode(
+    space: ValueSpace, plan: Reparameterization, k: int, at: float, held: Sequence[int] = ()
+):
+    """The other whitened coordinates' conditional mode at ``z_k = at`` (None if not found).
+
+    The coordinates ``held`` stay at 0.
+    """
     n = plan.ndim
-    rest = np.array([i for i in range(n) if i != k], dtype=int)
+    rest = np.array([i for i in range(n) if i != k and i not in held], dtype=int)
 
     def objective(y):
         z = np.zeros(n)
@@ -302,18 +310,81 @@ def _bent_axes(
     return bent, chosen
 
 
+#: where :func:`bend_coordinates` finds the conditional modes along a bent axis (beyond
+#: the outer nodes the path goes on straight)
+_CURVE_NODES = np.array([-4.5, -3.0, -1.5, 0.0, 1.5, 3.0, 4.5])
+
+
+@dataclass(frozen=True)
+class CurveBend:
+    r"""``z' = z + Σ_k φ_k(z_k)``: the others follow their conditional modes along axes ``K``.
+
+    ``φ_k`` is a natural cubic spline through the shifts of the conditional modes of the
+    other coordinates at nodes of ``z_k`` (zero at 0, zero on the bent axes), continued
+    along its end tangents beyond the outer nodes.  A parabola fitted at ±1.5 sds
+    (:class:`Bend`) overshoots a ridge that curves less further out (dielectric M2's
+    ε_∞–E_A ridge: at ε_∞'s z = 3.3 the parabola puts E_A 12 sds past the ridge, where
+    NUTS diverged); the spline follows it.  Unit-triangular, inverse explicit.
+
+    Examples
+    --------
+    >>> bend = CurveBend((0,), np.array([-1.0, 0.0, 1.0]), np.array([[[0, 1.0], [0, 0], [0, 1.0]]]))
+    >>> bend.forward(np.array([1.0, 0.0]))
+    array([1., 1.])
+    >>> bend.inverse(bend.forward(np.array([2.0, 0.3])))
+    array([2. , 0.3])
+    """
+
+    axes: tuple[int, ...]
+    nodes: np.ndarray
+    shifts: np.ndarray  # (|K|, len(nodes), n)
+
+    @cached_property
+    def _splines(self) -> list[CubicSpline]:
+        return [CubicSpline(self.nodes, path, axis=0, bc_type="natural") for path in self.shifts]
+
+    def _phi(self, j: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``φ_j(t)`` and ``φ_j'(t)``."""
+        spline = self._splines[j]
+        lo, hi = self.nodes[0], self.nodes[-1]
+        end = min(max(t, lo), hi)
+        slope = spline(end, 1)
+        return spline(end) + slope * (t - end), slope
+
+    def _total(self, z: np.ndarray) -> np.ndarray:
+        out = np.zeros(z.size)
+        for j, k in enumerate(self.axes):
+            out += self._phi(j, float(z[k]))[0]
+        return out
+
+    def forward(self, z: np.ndarray) -> np.ndarray:
+        """``z'`` from ``z``."""
+        z = np.asarray(z, float)
+        return z + self._total(z)
+
+    def inverse(self, w: np.ndarray) -> np.ndarray:
+        """``z`` from ``z'`` (the bent axes are not moved)."""
+        w = np.asarray(w, float)
+        return w - self._total(w)
+
+    def pull_back(self, z: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Gradient with respect to ``z`` from the gradient at :meth:`forward` of ``z``."""
+        out = np.array(grad, dtype=float)
+        for j, k in enumerate(self.axes):
+            out[k] += float(self._phi(j, float(z[k]))[1] @ grad)
+        return out
+
+
 @dataclass(frozen=True)
 class BentCoordinatesPlan(Reparameterization):
     """A plan with its own map (e.g. a ridge curve) bent in its sampling coordinates.
 
-    ``z' = z + C (z_K)²`` (a :class:`Bend` with centre 0 and unit rows) before ``inner``'s
-    map: unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.
+    ``z' = z + Σ_k φ_k(z_k)`` (a :class:`CurveBend`) before ``inner``'s map:
+    unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.
     """
 
     inner: Any = None
-    bend: Bend = field(
-        default_factory=lambda: Bend(np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)))
-    )
+    bend: CurveBend = field(default_factory=lambda: CurveBend((), np.zeros(2), np.zeros((0, 2, 0))))
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
@@ -336,12 +407,31 @@ class BentCoordinatesPlan(Reparameterization):
         return logp, self.bend.pull_back(z, grad)
 
 
+def _mode_path(
+    space: ValueSpace, plan: Reparameterization, k: int, bent: list[int]
+) -> np.ndarray | None:
+    """Shifts of the others' conditional modes at :data:`_CURVE_NODES` of ``z_k``.
+
+    Relative to the mode at ``z_k = 0``, with the other bent axes held at 0 (where the
+    map leaves them); None where a mode is not found.
+    """
+    modes = [_conditional_mode(space, plan, k, float(t), bent) for t in _CURVE_NODES]
+    if any(m is None for m in modes):
+        return None
+    centre = modes[int(np.flatnonzero(_CURVE_NODES == 0.0)[0])]
+    shifts = np.array([m - centre for m in modes])
+    shifts[:, bent] = 0.0
+    return shifts
+
+
 def bend_coordinates(
     space: ValueSpace, plan: Reparameterization, *, reach: float = 1.5
 ) -> BentCoordinatesPlan | None:
-    """``plan`` (any map ``z → v``) bent along its parabolic axes, if that scores better.
+    """``plan`` (any map ``z → v``) bent along its curved axes, if that scores better.
 
-    Like :func:`bend_plan`, in ``plan``'s own sampling coordinates ``z``.
+    The axes are chosen as in :func:`bend_plan` (in ``plan``'s own ``z``, an axis that a
+    more bent one moves staying its target); each is followed by a :class:`CurveBend`
+    through the conditional modes at :data:`_CURVE_NODES`.
 
     Examples
     --------
@@ -352,8 +442,11 @@ def bend_coordinates(
     axes = _bent_axes(space, plan, reach, targets_first=True)
     if axes is None:
         return None
-    bent, chosen = axes
-    bend = Bend(np.zeros(plan.ndim), np.eye(plan.ndim)[bent], chosen)
+    bent, _ = axes
+    paths = [_mode_path(space, plan, k, bent) for k in bent]
+    if any(p is None for p in paths):
+        return None
+    bend = CurveBend(tuple(bent), _CURVE_NODES.copy(), np.array(paths))
     base = {k: getattr(plan, k) for k in Reparameterization.__dataclass_fields__}
     candidate = BentCoordinatesPlan(**{**base, "kind": f"bent-{plan.kind}"}, inner=plan, bend=bend)
     score = _gaussian_score(space, candidate)

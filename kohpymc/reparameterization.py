@@ -1468,7 +1468,7 @@ def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization)
                 if near
                 else ""
             )
-            + (f"; {bend.rows.shape[0]} axis/axes bent along a parabola" if bend else "")
+            + (f"; {len(bend.axes)} axis/axes bent along the conditional modes" if bend else "")
         ),
     )
 

@@ -196,17 +196,25 @@ class BentPlan(Reparameterization):
 
 
 def _conditional_mode(
-    space: ValueSpace, plan: Reparameterization, k: int, at: float, held: Sequence[int] = ()
+    space: ValueSpace,
+    plan: Reparameterization,
+    k: int,
+    at: float,
+    held: Sequence[int] = (),
+    fixed: dict[int, float] | None = None,
 ):
     """The other whitened coordinates' conditional mode at ``z_k = at`` (None if not found).
 
-    The coordinates ``held`` stay at 0.
+    The coordinates ``held`` stay at 0, or at ``fixed[i]`` where given.
     """
     n = plan.ndim
     rest = np.array([i for i in range(n) if i != k and i not in held], dtype=int)
+    start = np.zeros(n)
+    for i, value in (fixed or {}).items():
+        start[i] = value
 
     def objective(y):
-        z = np.zeros(n)
+        z = start.copy()
         z[k], z[rest] = at, y
         with np.errstate(all="ignore"):
             logp, grad = plan.logp_dlogp(space, z, safe=True)
@@ -338,6 +346,8 @@ class CurveBend:
     axes: tuple[int, ...]
     nodes: np.ndarray
     shifts: np.ndarray  # (|K|, len(nodes), n)
+    #: ``{(j, l): c}``: a term ``c z_{K_j} z_{K_l}`` for bent axes whose paths interact
+    cross: tuple[tuple[int, int, np.ndarray], ...] = ()
 
     @cached_property
     def _splines(self) -> list[CubicSpline]:
@@ -355,6 +365,8 @@ class CurveBend:
         out = np.zeros(z.size)
         for j, k in enumerate(self.axes):
             out += self._phi(j, float(z[k]))[0]
+        for a, b, c in self.cross:
+            out += c * (z[self.axes[a]] * z[self.axes[b]])
         return out
 
     def forward(self, z: np.ndarray) -> np.ndarray:
@@ -372,6 +384,10 @@ class CurveBend:
         out = np.array(grad, dtype=float)
         for j, k in enumerate(self.axes):
             out[k] += float(self._phi(j, float(z[k]))[1] @ grad)
+        for a, b, c in self.cross:
+            along = float(c @ grad)
+            out[self.axes[a]] += along * z[self.axes[b]]
+            out[self.axes[b]] += along * z[self.axes[a]]
         return out
 
 
@@ -424,6 +440,30 @@ def _mode_path(
     return shifts
 
 
+def _interactions(space: ValueSpace, plan: Reparameterization, bent: list[int], at: float = 2.0):
+    """Bilinear terms between bent axes from the others' conditional modes at ``(±at, ±at)``.
+
+    ``c = [m(+,+) + m(−,−) − m(+,−) − m(−,+)] / (4 at²)`` (zero on the bent axes), the part
+    of the ridge's path that the axes' own paths, added, miss (dielectric M2: ε_∞'s and
+    ln N_T's paths added leave a drop of 227 at 3.2 sds on both, 10.1 for a Gaussian).
+    None where a mode is not found.
+    """
+    cross = []
+    pairs = [(a, b) for a in range(len(bent)) for b in range(a + 1, len(bent))]
+    for a, b in pairs:
+        corners = []
+        for sa, sb in ((1, 1), (-1, -1), (1, -1), (-1, 1)):
+            others = [k for k in bent if k != bent[a]]
+            mode = _conditional_mode(space, plan, bent[a], sa * at, others, {bent[b]: sb * at})
+            if mode is None:
+                return None
+            corners.append(mode)
+        c = (corners[0] + corners[1] - corners[2] - corners[3]) / (4 * at**2)
+        c[bent] = 0.0
+        cross.append((a, b, c))
+    return tuple(cross)
+
+
 def bend_coordinates(
     space: ValueSpace, plan: Reparameterization, *, reach: float = 1.5
 ) -> BentCoordinatesPlan | None:
@@ -446,7 +486,10 @@ def bend_coordinates(
     paths = [_mode_path(space, plan, k, bent) for k in bent]
     if any(p is None for p in paths):
         return None
-    bend = CurveBend(tuple(bent), _CURVE_NODES.copy(), np.array(paths))
+    cross = _interactions(space, plan, bent)
+    if cross is None:
+        return None
+    bend = CurveBend(tuple(bent), _CURVE_NODES.copy(), np.array(paths), cross)
     base = {k: getattr(plan, k) for k in Reparameterization.__dataclass_fields__}
     candidate = BentCoordinatesPlan(**{**base, "kind": f"bent-{plan.kind}"}, inner=plan, bend=bend)
     score = _gaussian_score(space, candidate)

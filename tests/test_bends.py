@@ -97,6 +97,25 @@ def test_banana_is_bent_exactly():
     _check_plan_exact(space, reparam, z, rtol=1e-6, atol=1e-7, inverse_atol=1e-10)
 
 
+def test_curve_bend_inverse_gradient_and_unit_jacobian():
+    """A spline path per bent axis (inside and beyond its nodes) and a bilinear term between
+    two bent axes: inverse to 1e-12, pulled-back gradient and det(∂z'/∂z) = 1 against central
+    differences."""
+    from kohpymc.bends import CurveBend
+
+    rng = np.random.default_rng(SEED)
+    nodes = np.array([-3.0, -1.5, 0.0, 1.5, 3.0])
+    shifts = rng.normal(size=(2, nodes.size, 4))
+    shifts[:, 2, :] = 0.0
+    shifts[:, :, [0, 2]] = 0.0  # the bent axes 0 and 2 are not moved
+    cross = rng.normal(size=4)
+    cross[[0, 2]] = 0.0
+    bend = CurveBend((0, 2), nodes, shifts, ((0, 1, cross),))
+    for u in (rng.normal(size=4), np.array([4.2, -0.3, -3.7, 1.0])):
+        jac = _check_inverse_and_pull_back(bend, u, rng)
+        assert np.linalg.det(jac) == pytest.approx(1.0, abs=1e-6)
+
+
 def test_any_plan_is_bent_in_its_own_coordinates():
     """bend_coordinates bends a plan through its ``z`` alone (here an unbent whitened plan
     wrapped as a black box): the banana's score falls as with bend_plan, the density in the

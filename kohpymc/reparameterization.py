@@ -1462,7 +1462,14 @@ def _ridge_curve(
     from kohpymc.ridge_curve import ridge_curve_plan
 
     log_logit = [p for p in plans if p.coordinates.name == "log-logit"]
-    return ridge_curve_plan(space, log_logit[0], mode) if log_logit else None
+    curve = ridge_curve_plan(space, log_logit[0], mode) if log_logit else None
+    if curve is None or not curve.gaussian_score > _BEND_SCORE:
+        return curve
+    from kohpymc.bends import bend_coordinates
+
+    # across the ridge two parameters may still trade off nonlinearly (dielectric M2: the
+    # ε_∞–E_A parabola, drop 44 at ±2 sd along ε_∞'s axis, 2.0 for a Gaussian)
+    return bend_coordinates(space, curve) or curve
 
 
 def _ridge_segment(
@@ -1495,16 +1502,27 @@ def _ridge_segment(
 def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization):
     """``curve`` with its reason: which parameters lead the ridge, and the scores."""
     by_index = interval_labels(space)
-    soft = ", ".join(by_index[int(i)] for i in np.flatnonzero(curve.coordinates.soft))
+    ridge = getattr(curve, "inner", curve)  # the curve itself, or the one bent
+    coords = ridge.coordinates
+    soft = ", ".join(by_index[int(i)] for i in np.flatnonzero(coords.soft))
+    near = "" if coords.ridge is None else ", ".join(by_index[int(i)] for i in coords.ridge.bounded)
+    bend = getattr(curve, "bend", None)
     return replace(
         curve,
         reason=(
-            f"the posterior is a curved ridge led by {by_index[int(curve.pivot)]} from one "
+            f"the posterior is a curved ridge led by {by_index[int(ridge.pivot)]} from one "
             f"face of its prior box to the other (Gaussian score of the best Laplace map "
             f"{best.gaussian_score:.3g}, of this map {curve.gaussian_score:.3g}): sampled "
-            f"along it by the logit of {by_index[int(curve.pivot)]}'s position in its box "
-            f"and across it whitened around the conditional modes at {curve.nodes.size} "
-            "nodes" + (f"; {soft} in their own units in a soft box" if soft else "")
+            f"along it by the logit of {by_index[int(ridge.pivot)]}'s position in its box "
+            f"and across it whitened around the conditional modes at {ridge.nodes.size} "
+            "nodes"
+            + (f"; {soft} in their own units in a soft box" if soft else "")
+            + (
+                f"; {near} near a bound, the others following what the box leaves of it"
+                if near
+                else ""
+            )
+            + (f"; {len(bend.axes)} axis/axes bent along the conditional modes" if bend else "")
         ),
     )
 

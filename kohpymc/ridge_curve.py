@@ -22,7 +22,10 @@ covariances there.  The map is triangular: ``log|∂w/∂z| = log σ_p + log det
 gradient in ``t`` is carried exactly.  The other bounded parameters are sampled in their
 own units through a soft box (:class:`SoftBoxCoordinates`), where linear trade-offs
 between them stay straight (in the logit of a parameter 1.6 sd from its bound, a partner
-that compensates it linearly bends exponentially).
+that compensates it linearly bends exponentially).  Where a soft-box parameter lies within
+a few sds of a bound, its partners are measured from their regression on what the box
+leaves of it (a :class:`~kohpymc.reparameterization.BoundRidge`), so that past the bound
+they stop with it instead of running into a wall of their conditional precision.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from scipy.linalg import solve_triangular
 from scipy.special import expit, logit
 
 from kohpymc.reparameterization import (
+    BoundRidge,
     Coordinates,
     Mode,
     Reparameterization,
@@ -47,7 +51,7 @@ from kohpymc.reparameterization import (
 )
 from kohpymc.value_space import ValueSpace
 
-__all__ = ["RidgeCurvePlan", "SoftBoxCoordinates", "ridge_curve_plan"]
+__all__ = ["ChainedBoundRidge", "RidgeCurvePlan", "SoftBoxCoordinates", "ridge_curve_plan"]
 
 #: marginal over conditional Laplace sd of the pivot above which a ridge is followed
 _RIDGE_RATIO = 10.0
@@ -117,15 +121,16 @@ class SoftBoxCoordinates(Coordinates):
         return v, logjac
 
     def from_value(self, v: np.ndarray) -> np.ndarray:
-        """``w(v)``: the inverse of :meth:`to_value`."""
-        w = super().from_value(v)
+        """``w(v)``: the inverse of the elementwise map, then of the shares and the ridge."""
+        w = Coordinates.from_value(self.elementwise(), v)
         m = self.soft
         if m.any():
             a, b, h = self.lower[m], self.upper[m], self.width[m]
             c = (b - a) / h
             gap = np.clip((b - a) * expit(np.asarray(v, float)[m]) / h, 1e-300, c * (1 - 1e-15))
             w[m] = a + h * (np.log(np.expm1(gap)) - np.log(-np.expm1(gap - c)))
-        return w
+        w = w if self.shares is None else self.shares.inverse(w)
+        return w if self.ridge is None else self.ridge.inverse(self, w)
 
 
 @dataclass(frozen=True)
@@ -250,6 +255,121 @@ def _soft_box(space: ValueSpace, laplace: Reparameterization, members: np.ndarra
         log_scale, space.lower.copy(), space.upper.copy(), shares=coords.shares,
         soft=soft, width=width,
     )  # fmt: skip
+
+
+#: a soft-box parameter whose mode lies within this many Laplace sds of one bound gets
+#: partners that follow what the box leaves of it (far from the bound the correction
+#: vanishes, so a generous reach costs nothing; dielectric M2's E_A, 3.3 sds below its
+#: upper bound, is reached once the ε_∞–E_A parabola is bent: 42 divergences there)
+_SOFT_NEAR_SDS = 6.0
+
+
+@dataclass(frozen=True)
+class ChainedBoundRidge(BoundRidge):
+    r"""A bound ridge whose bounded elements also follow each other, in order.
+
+    A :class:`~kohpymc.reparameterization.BoundRidge` generalised to chained elements.
+
+    Element ``b_k``'s bend (its value in its own units less its tangent at the mode) moves
+    every coordinate except ``b_0 … b_k`` by ``beta[:, k]``, the regression on ``x_{b_k}``
+    given ``b_0 … b_{k−1}``; ``b_k`` is bent where the earlier ones left it.  The map is
+    unit-triangular (no Jacobian term) and its inverse explicit: each ``b_k`` keeps its
+    final value from step ``k`` on.  ``others`` is every index; ``beta`` is ``(n, |B|)``.
+
+    Examples
+    --------
+    >>> from kohpymc.reparameterization import Coordinates
+    >>> coords = Coordinates.identity(3)
+    >>> cov = np.array([[1.0, 0.9, 0.5], [0.9, 1.0, 0.5], [0.5, 0.5, 1.0]])
+    >>> ridge = ChainedBoundRidge.fit(coords, np.array([4.0, -4.0, 0.0]), cov,
+    ...                               np.array([0, 1]), (np.zeros(2), np.ones(2)))
+    >>> u = np.array([6.0, -7.0, 0.3])
+    >>> bool(np.allclose(ridge.inverse(coords, ridge.forward(coords, u)), u))
+    True
+    """
+
+    @classmethod
+    def fit(
+        cls,
+        coords: Coordinates,
+        mean: np.ndarray,
+        cov: np.ndarray,
+        bounded: np.ndarray,
+        bounds: tuple[np.ndarray, np.ndarray],
+    ) -> ChainedBoundRidge:
+        """The map for ``bounded`` (in this order) from ``w``'s Laplace fit."""
+        n = mean.size
+        plain = cls(bounded, np.arange(n), bounds)
+        x, slope = plain.bounded_value(coords, mean)
+        beta = np.zeros((n, bounded.size))
+        for k, b in enumerate(bounded):
+            earlier = bounded[:k]
+            given = (
+                cov
+                - cov[:, earlier] @ np.linalg.solve(cov[np.ix_(earlier, earlier)], cov[earlier, :])
+                if k
+                else cov
+            )
+            beta[:, k] = given[:, b] / given[b, b] / slope[k]
+            beta[bounded[: k + 1], k] = 0.0
+        return cls(bounded, np.arange(n), bounds, beta, (mean[bounded].copy(), x), slope)
+
+    def forward(self, coords: Coordinates, u: Any, xp: Any = None) -> Any:
+        """``w`` from the sampling coordinates ``u`` (numpy)."""
+        w = np.array(u, dtype=float)
+        for k in range(self.bounded.size):
+            w += self.beta[:, k] * self._bend(coords, w)[0][k]
+        return w
+
+    def inverse(self, coords: Coordinates, w: np.ndarray) -> np.ndarray:
+        """``u`` from ``w`` (every bend is known from ``w``)."""
+        return np.asarray(w, float) - self.beta @ self._bend(coords, w)[0]
+
+    def pull_back(self, coords: Coordinates, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Gradient with respect to ``u`` from the gradient at :meth:`forward` of ``u``."""
+        slopes = self._bend(coords, self.forward(coords, u))[1]
+        out = np.array(grad, dtype=float)
+        for k in reversed(range(self.bounded.size)):
+            out[self.bounded[k]] += slopes[k] * float(self.beta[:, k] @ out)
+        return out
+
+
+def _near_bound_ridge(
+    space: ValueSpace,
+    coords: SoftBoxCoordinates,
+    mean: np.ndarray,
+    chol: np.ndarray,
+    pivot: int,
+    value_sd: np.ndarray,
+) -> ChainedBoundRidge | None:
+    """Partners of the soft-box parameters near one bound measured from what the box leaves.
+
+    A soft-box parameter ``x_B`` a few sds from a bound, with partners that compensate it
+    (dielectric M2: ``ln γ`` 1.2 sd above its lower bound, ``E_A`` and others following it
+    given the pivot), meets a wall where ``ξ_B`` crosses the bound: ``x_B`` stops there,
+    but the whitened partners keep following ``ξ_B``, and the log density falls with their
+    conditional precision, not with ``1/h`` (drop > 100 at 1.5 sd along ``ln γ``'s axis).
+    A :class:`ChainedBoundRidge` on those parameters (nearest its bound first) makes the
+    partners follow ``x_B`` instead (regression on ``x_B`` given the pivot, which it leaves
+    alone); None when no soft-box parameter lies within :data:`_SOFT_NEAR_SDS` Laplace sds
+    of one bound.
+    """
+    from kohpymc.bound_distance import near_bounds
+
+    v = coords.to_value(mean)[0]
+    near, _ = near_bounds(space, v, value_sd, _SOFT_NEAR_SDS)
+    bounded = np.flatnonzero(near & coords.soft)
+    if bounded.size == 0:
+        return None
+    share = expit(v[bounded])
+    gap = np.minimum(share, 1.0 - share) / (share * (1.0 - share) * value_sd[bounded])
+    bounded = bounded[np.argsort(gap, kind="stable")]
+    rest = np.array([i for i in range(mean.size) if i != pivot])
+    precision = np.linalg.inv(chol @ chol.T)
+    given_pivot = np.eye(mean.size)
+    given_pivot[np.ix_(rest, rest)] = np.linalg.inv(precision[np.ix_(rest, rest)])
+    bounds = (space.lower[bounded], space.upper[bounded])
+    return ChainedBoundRidge.fit(coords, mean, given_pivot, bounded, bounds)
 
 
 class _Conditional:
@@ -383,8 +503,9 @@ def ridge_curve_plan(
     >>> curve.kind  # doctest: +SKIP
     'ridge-curve-soft-box'
     """
-    found = _ridge_members(laplace) if laplace.value_sd is not None else None
-    if found is None:
+    value_sd = laplace.value_sd
+    found = _ridge_members(laplace) if value_sd is not None else None
+    if found is None or value_sd is None:
         return None
     pivot, members = found
     coords = _soft_box(space, laplace, members)
@@ -393,6 +514,12 @@ def ridge_curve_plan(
     mean, chol = _laplace(space, coords, coords.from_value(mode.value))
     if chol is None:
         return None
+    ridge = _near_bound_ridge(space, coords, mean, chol, pivot, value_sd)
+    if ridge is not None:
+        coords = coords.with_ridge(ridge)
+        mean, chol = _laplace(space, coords, coords.from_value(mode.value))
+        if chol is None:
+            return None
     rest = np.array([i for i in range(space.ndim) if i != pivot])
     precision = np.linalg.inv(chol @ chol.T)
     conditional = _inverse_cholesky(precision[np.ix_(rest, rest)])

@@ -653,3 +653,88 @@ def test_mode_search_adds_starts_until_a_second_one_reaches_the_best():
         theta = [lo + (hi - lo) / (1 + np.exp(-float(found[f"{n}_interval__"])))
                  for n, (lo, hi) in zip(truth, bounds, strict=True)]  # fmt: skip
         np.testing.assert_allclose(theta, reference, rtol=1e-3, err_msg=f"seed {seed}")
+
+
+#: k + h fixed to 0.005 and h to 0.05: k's mode 0.06 lies 1.2 sds above its bound 0 and
+#: h compensates it (correlation −0.995), like dielectric M2's ln γ and E_A
+_K_H = (0.06, 0.0)
+
+
+def _curved_ridge_with_partner_model():
+    """The curved ridge of :func:`_curved_ridge_model`, and a pair (k, h) apart from it."""
+    model = _curved_ridge_model()
+    with model:
+        k = pm.Uniform("k", 0.0, 1.0)
+        h = pm.Normal("h", 0.0, 1.0)
+        pm.Normal("y3", k + h, 0.005, observed=sum(_K_H))
+        pm.Normal("y4", h, 0.05, observed=_K_H[1])
+    return model
+
+
+def _partner_reference():
+    """Means and sds of k and h by quadrature (k in its box, h on a grid of 12 sds)."""
+    k = np.linspace(0.0, 1.0, 20001)[:, None]
+    h = np.linspace(-0.3, 0.3, 2401)[None, :]
+    logp = -((k + h - sum(_K_H)) ** 2) / (2 * 0.005**2) - (h - _K_H[1]) ** 2 / (2 * 0.05**2)
+    weight = np.exp(logp - logp.max() - h**2 / 2)
+    weight /= weight.sum()
+    out = {}
+    for name, value in (("k", k), ("h", h)):
+        mean = float((weight * value).sum())
+        out[name] = (mean, float(np.sqrt((weight * (value - mean) ** 2).sum())))
+    return out
+
+
+def test_chained_bound_ridge_inverse_gradient_and_unit_jacobian():
+    """Two bounded elements, the second following the first: inverse to 1e-10, the pulled-back
+    gradient and det(∂w/∂u) = 1 against central differences, far from and past the bounds."""
+    from kohpymc.ridge_curve import ChainedBoundRidge
+
+    coords = Coordinates.identity(4)
+    a = np.array([[1.0, 0.9, 0.5, 0.2], [0.9, 1.0, 0.5, 0.1], [0.5, 0.5, 1.0, 0.3]])
+    cov = np.vstack([a, [0.2, 0.1, 0.3, 1.0]])
+    mean = np.array([4.0, -4.0, 0.0, 1.0])
+    ridge = ChainedBoundRidge.fit(coords, mean, cov, np.array([0, 1]), (np.zeros(2), np.ones(2)))
+    rng = np.random.default_rng(SEED)
+    for u in (mean + 0.1 * rng.normal(size=4), mean + 3.0 * rng.normal(size=4)):
+        np.testing.assert_allclose(ridge.inverse(coords, ridge.forward(coords, u)), u, atol=1e-10)
+        jac = np.column_stack(
+            [(ridge.forward(coords, u + e) - ridge.forward(coords, u - e)) / 2e-6
+             for e in 1e-6 * np.eye(4)]
+        )  # fmt: skip
+        g = rng.normal(size=4)
+        np.testing.assert_allclose(ridge.pull_back(coords, u, g), jac.T @ g, rtol=1e-6, atol=1e-8)
+        assert np.linalg.det(jac) == pytest.approx(1.0, abs=1e-6)
+    # the second element follows the first's bend: beta[1, 0] is its regression on x_0
+    assert ridge.beta[1, 0] != 0.0 and ridge.beta[0, 1] == ridge.beta[1, 1] == 0.0
+
+
+def _drop_below(space, reparam, axis, at=-3.0):
+    """Log density at z = 0 minus at z_axis = ``at`` (the others 0)."""
+    z = np.zeros(reparam.ndim)
+    z[axis] = at
+    return reparam.logp_dlogp(space, np.zeros(reparam.ndim))[0] - reparam.logp_dlogp(space, z)[0]
+
+
+def test_soft_box_partner_follows_a_parameter_near_its_bound(monkeypatch):
+    """k in the soft box 1.2 sd above its bound with a partner h: without the bound ridge the
+    partner keeps following k's unclipped coordinate past the bound, and the density 3 sd
+    down k's axis (1.8 sd beyond the bound) drops by 95 (a wall; a Gaussian: 4.5); with
+    it by < 10.  The map stays exact (gradient against finite differences, round trip)."""
+    import kohpymc.ridge_curve as rc
+    from kohpymc.reparameterization import log_coordinates
+
+    space = value_space(_curved_ridge_with_partner_model())
+    reparam = plan(space, seed=SEED)
+    assert "ridge-curve-soft-box" in reparam.kind, reparam.reason
+    assert "k, g near a bound" in reparam.reason, reparam.reason  # k nearest its bound first
+    for z in (np.array([0.4, -1.1, 0.3, -2.0, 0.5]), np.array([-2.5, 2.0, -1.7, -3.5, 1.0])):
+        logp = _check_plan_exact(space, reparam, z, rtol=1e-5, atol=1e-5, inverse_atol=1e-7)
+        assert np.isfinite(logp)
+    ridge = getattr(reparam, "inner", reparam)
+    k_axis = 1 + list(ridge.rest).index(space.names.index("k_interval__"))
+    with_ridge = _drop_below(space, ridge, k_axis)
+    monkeypatch.setattr(rc, "_near_bound_ridge", lambda *args: None)
+    laplace = _whitened(space, log_coordinates(space), reparam.mode.value, reparam.mode)
+    without = _drop_below(space, rc.ridge_curve_plan(space, laplace, reparam.mode), k_axis)
+    assert with_ridge < 10.0 < 50.0 < without, (with_ridge, without)

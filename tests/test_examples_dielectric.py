@@ -615,9 +615,9 @@ INFORMED = ["ln_NT", "ln_sigma", "ln_gamma", "eps_inf", "E_A"]
 
 @pytest.mark.slow
 @pytest.mark.xfail(
-    reason="issue 15 not reached (2026-11-26): with the bend, squeeze and bound-distance maps "
-    "M0 keeps 1 divergence (7.2 steps per draw, r_hat 1.002, ESS 2006), M1 16 (ESS 774); "
-    "M2 69 divergences in 22 min; M3-M5 not run; see docs/paper-reproduction.md",
+    reason="issue 15 not reached (2026-11-27): M0 3 divergences (r_hat 1.003, ESS 1778), "
+    "M1 8 (ESS 1324), M2 36 (ESS 2052), each under 3 min at load 1-2; M3-M5 project to "
+    "26-76 CPU min each (74-473 leapfrog steps per draw); see docs/paper-reproduction.md",
     strict=False,
 )
 def test_six_formulations_converge_at_default_settings():

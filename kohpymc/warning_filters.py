@@ -137,6 +137,27 @@ def quiet_command_line() -> None:
     for name, level in _QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
     warnings.formatwarning = one_line_warning
+    if not getattr(warnings.showwarning, "shows_each_once", False):
+        warnings.showwarning = _show_each_once(warnings.showwarning)
+
+
+def _show_each_once(show):
+    """``show`` (a :func:`warnings.showwarning`) skipping repeats of a category and text.
+
+    Python's once-per-location rule is reset by every ``catch_warnings`` block, so a
+    warning from the user's physics function, called from many steps, would print once
+    per step; the command line prints each distinct warning once per process.
+    """
+    shown: set[tuple[type[Warning], str]] = set()
+
+    def show_once(message, category, filename, lineno, file=None, line=None):
+        key = (category, str(message))
+        if key not in shown:
+            shown.add(key)
+            show(message, category, filename, lineno, file, line)
+
+    show_once.shows_each_once = True  # type: ignore[attr-defined]
+    return show_once
 
 
 def _internal(filename: str) -> bool:

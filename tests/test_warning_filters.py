@@ -101,6 +101,24 @@ def test_command_line_filters_let_every_kohpymc_warning_through(category):
     assert [w.category for w in seen] == [category]
 
 
+def test_command_line_prints_each_distinct_warning_once():
+    """A user's physics warning raised in several steps (each step's ``catch_warnings``
+    resets Python's once-per-location registry) prints once; another text still prints."""
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")
+        quiet_command_line()
+        for _ in range(3):
+            with warnings.catch_warnings():
+                warnings.warn("mesh too coarse", UserWarning, stacklevel=1)
+        warnings.warn("mesh too fine", UserWarning, stacklevel=1)
+        warnings.warn("mesh too coarse", RuntimeWarning, stacklevel=1)
+    assert [(w.category, str(w.message)) for w in seen] == [
+        (UserWarning, "mesh too coarse"),
+        (UserWarning, "mesh too fine"),
+        (RuntimeWarning, "mesh too coarse"),
+    ]
+
+
 def test_command_line_filters_are_narrow():
     """Every filter kohpymc adds names a message: no category or module is silenced whole."""
     with warnings.catch_warnings():

@@ -513,14 +513,18 @@ def test_coregionalized_matern_kernel_against_dense_reference(physics):
 
 
 # ---------------------------------------------------------------------- TOML
-_STUDY = """
+#: a study file's [physics] table for the beam example (braces doubled for ``str.format``)
+PHYSICS_TABLE = """
 [physics]
 function = "kohpymc.examples.beam_multi_output:beam_outputs"
 inputs = ["x", "P"]
 output = ["u", "strain"]
 [physics.parameters]
 E = {{ prior = "uniform", lower = 50, upper = 300 }}
-[data]
+"""
+_STUDY = (
+    PHYSICS_TABLE
+    + """[data]
 calibration = "{cal}"
 validation = "{cal}"
 noise_sd = {noise}
@@ -531,6 +535,7 @@ M0 = "none"
 both = {{ u = {{ type = "input_dependent", mean = ["x"] }}, strain = "constant" }}
 ICM = {{ type = "coregionalized", inputs = ["x"], rank = 2 }}
 """
+)
 
 
 def _write_study(tmp_path, *, noise="{ u = 0.3, strain = 3.0 }", drop=None):

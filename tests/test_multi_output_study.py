@@ -17,20 +17,16 @@ from kohpymc.multi_output import (
     load_multi_output_study,
     run_multi_output_study,
 )
+from tests.test_multi_output import PHYSICS_TABLE
 
 #: seed of this file's synthetic data
 SEED = 4711
 #: tiny sampler settings: 2 chains x 200 draws
 SMALL = dict(draws=200, tune=200, chains=2, cores=1, random_seed=11, warn=False)
 
-_STUDY = """
-[physics]
-function = "kohpymc.examples.beam_multi_output:beam_outputs"
-inputs = ["x", "P"]
-output = ["u", "strain"]
-[physics.parameters]
-E = {{ prior = "uniform", lower = 50, upper = 300 }}
-[data]
+_STUDY = (
+    PHYSICS_TABLE
+    + """[data]
 calibration = "cal.csv"
 validation = "val.csv"
 {data}
@@ -42,6 +38,7 @@ M0 = "none"
 M1 = "constant"
 {extra}
 """
+)
 
 
 def _write(tmp_path, *, data="noise_sd = { u = 0.3, strain = 3.0 }", validation="", extra=""):

@@ -73,7 +73,7 @@ import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -547,22 +547,26 @@ def _priors(path: Path, params: Any, inputs: list[str]) -> dict[str, Any]:
     return priors
 
 
+#: what a loader of one data file returns
+T = TypeVar("T")
+
+
 def _validation_data(
-    path: Path, base: Path, file: Any, inputs, output, noise_sd, replicates, pooled
-) -> CalibrationData:
-    """``[data] validation``; a file without replicated settings takes the calibration's σ.
+    load: Callable[[Any, Any], T], noise_sd: Any, replicates: Any, pooled: Any
+) -> T:
+    """``[data] validation`` by ``load(noise_sd, replicates)``; without repeats, ``pooled``.
 
     The validation rows come from the same instrument: when ``replicates`` is set and no
-    validation setting was measured twice, the calibration data's pooled σ (``pooled``)
-    stands for theirs instead of failing.
+    validation setting was measured twice, the calibration data's pooled σ (``pooled``:
+    one number, or per output for a multi-output study) stands for theirs instead of
+    failing.
     """
-    key = "data.validation"
     try:
-        return _data(path, base, key, file, inputs, output, noise_sd, replicates)
+        return load(noise_sd, replicates)
     except StudyConfigError as err:
         if not isinstance(err.__cause__, NoReplicatesError) or pooled is None:
             raise
-    return _data(path, base, key, file, inputs, output, pooled, None)
+    return load(pooled, None)
 
 
 def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
@@ -578,9 +582,12 @@ def _data_section(path: Path, base: Path, data: dict, physics, inputs, output):
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
         inputs, output, noise_sd, replicates,
     )  # fmt: skip
+    file = _require(path, data, "data", "validation")
     validation = _validation_data(
-        path, base, _require(path, data, "data", "validation"),
-        inputs, output, noise_sd, replicates, calibration.noise_sd,
+        lambda noise, groups: _data(
+            path, base, "data.validation", file, inputs, output, noise, groups
+        ),
+        noise_sd, replicates, calibration.noise_sd,
     )  # fmt: skip
     if validation.n == 0:
         raise _err(path, "data.validation", f"{validation.source} has no rows")

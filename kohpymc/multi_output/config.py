@@ -54,7 +54,6 @@ import pandas as pd
 
 from kohpymc.checks import check_positive_number, check_tolerance
 from kohpymc.config import (
-    StudyConfigError,
     _err,
     _execution_section,
     _formulation,
@@ -68,9 +67,10 @@ from kohpymc.config import (
     _sampling_section,
     _time_input,
     _units_table,
+    _validation_data,
     _weight_column,
 )
-from kohpymc.data import NoReplicatesError, read_csv_table
+from kohpymc.data import read_csv_table
 from kohpymc.discrepancy.defaults import default_formulations
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
@@ -160,25 +160,6 @@ def _multi_data(path: Path, base: Path, key: str, file: Any, inputs, outputs, no
         )
     except (KeyError, ValueError, TypeError) as err:
         raise _err(path, key, str(err).strip("'\"")) from err
-
-
-def _multi_validation_data(
-    path: Path, base: Path, file: Any, inputs, outputs, noise, groups, calibration
-) -> MultiOutputData:
-    """``[data] validation``; without replicated settings each output takes its calibration σ.
-
-    As for one output (``kohpymc.config``): when ``replicates`` is set and a validation
-    output has no setting measured twice, the calibration data's pooled σ of each output
-    stands for the validation's.
-    """
-    key = "data.validation"
-    try:
-        return _multi_data(path, base, key, file, inputs, outputs, noise, groups)
-    except StudyConfigError as err:
-        if not isinstance(err.__cause__, NoReplicatesError):
-            raise
-    pooled = {k: calibration[k].noise_sd for k in outputs if calibration[k].noise_sd is not None}
-    return _multi_data(path, base, key, file, inputs, outputs, {**pooled, **(noise or {})}, None)
 
 
 def _per_output_replicates(path: Path, value: Any, outputs: list[str]) -> Any:
@@ -329,9 +310,13 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
         path, base, "data.calibration", _require(path, data, "data", "calibration"),
         inputs, outputs, noise, groups,
     )  # fmt: skip
-    validation = _multi_validation_data(
-        path, base, _require(path, data, "data", "validation"),
-        inputs, outputs, noise, groups, calibration,
+    file = _require(path, data, "data", "validation")
+    pooled = {k: calibration[k].noise_sd for k in outputs if calibration[k].noise_sd is not None}
+    validation = _validation_data(
+        lambda noise_sd, replicates: _multi_data(
+            path, base, "data.validation", file, inputs, outputs, noise_sd, replicates
+        ),
+        noise, groups, {**pooled, **(noise or {})},
     )  # fmt: skip
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         for name in outputs:

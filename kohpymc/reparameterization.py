@@ -1137,21 +1137,58 @@ def _candidate_coordinates(
 def _flat_plan(
     space: ValueSpace, pymc_coords: Coordinates, mode: Mode, shared: str
 ) -> Reparameterization:
-    """No plan has a positive Hessian: PyMC's coordinates from the mode, with a warning."""
+    """No plan has a positive Hessian: PyMC's coordinates from the mode, with a warning.
+
+    The warning names the cause: a flat direction, or, when the Hessian changes with the
+    finite-difference step (:func:`_hessian_noise`), a gradient too noisy to difference.
+    """
+    start = pymc_coords.from_value(mode.value)
+    noise = _hessian_noise(space, pymc_coords, start)
+    if noise > _NOISY_HESSIAN:
+        warning = (
+            f"the gradient of the log density is noisy at the mode: its finite-difference "
+            f"Hessian changes by {noise:.0%} when the step grows tenfold (a solver tolerance, "
+            "or finite differences of a simulator whose output jitters with the "
+            "parameters), so no Laplace map was computed; give the physics an exact "
+            "Jacobian, or if the sampler reports trouble use sampler='smc'"
+        )
+    else:
+        warning = (
+            "the posterior is flat in some direction at its mode: a combination of "
+            "parameters the data and priors do not inform (see the identifiability "
+            "report); NUTS may need very long trajectories there"
+        )
     return Reparameterization(
         "none",
-        pymc_coords.from_value(mode.value),
+        start,
         np.eye(space.ndim),
         pymc_coords,
         shared + "the Hessian of the log density is not positive definite at the mode "
-        "(a flat direction or a saddle): sampling in PyMC's coordinates from the mode",
+        "(a flat direction, a saddle or a noisy gradient): sampling in PyMC's coordinates "
+        "from the mode",
         mode,
-        warnings=(
-            "the posterior is flat in some direction at its mode: a combination of "
-            "parameters the data and priors do not inform (see the identifiability "
-            "report); NUTS may need very long trajectories there",
-        ),
+        warnings=(warning,),
     )
+
+
+#: relative change of the finite-difference Hessian, step ×10, that marks a noisy gradient
+#: (a simulator whose output jitters by 1e-5 relative, under a finite-difference Jacobian:
+#: 0.9; a smooth log density: truncation error only)
+_NOISY_HESSIAN = 0.5
+
+
+def _hessian_noise(space: ValueSpace, coords: Coordinates, w: np.ndarray) -> float:
+    """‖H(10h) − H(h)‖ / max ‖H‖ of the central-difference Hessians at ``w`` (Frobenius)."""
+    identity = Reparameterization("none", w, np.eye(w.size), coords, "")
+
+    def logp_w(x):
+        return identity.logp_dlogp(space, x - w, safe=True)
+
+    first, second = (_hessian(logp_w, w, k * _steps(w)) for k in (1.0, 10.0))
+    if not (np.all(np.isfinite(first)) and np.all(np.isfinite(second))):
+        return float("inf")
+    scale = max(np.linalg.norm(first), np.linalg.norm(second), np.finfo(float).tiny)
+    return float(np.linalg.norm(first - second) / scale)
 
 
 def _unwhitened_plan(

@@ -624,7 +624,7 @@ def _run_smc(
     """
     kwargs = {"kernel": pm.smc.kernels.MH, **kwargs}
     with model:
-        return pm.sample_smc(
+        idata = pm.sample_smc(
             draws=settings["draws"],
             chains=settings["chains"],
             cores=settings["cores"],
@@ -633,3 +633,22 @@ def _run_smc(
             compute_convergence_checks=False,
             **kwargs,
         )
+    return _smc_stats_per_stage(idata)
+
+
+def _smc_stats_per_stage(idata: az.InferenceData) -> az.InferenceData:
+    """SMC's statistics as floats over a ``stage`` dimension, so NetCDF can store them.
+
+    PyMC gives one value per tempering stage as ``object`` arrays (β mixing floats and the
+    final int 1, NaN-padded where a chain took fewer stages) over a dimension named
+    ``draw`` that is not the posterior's; ``to_netcdf`` refused them ("unable to infer
+    dtype on variable 'beta'"), so a study with ``sampler = "smc"`` lost every result.
+    """
+    if "sample_stats" not in idata.groups():
+        return idata
+    stats = idata["sample_stats"]
+    stats = stats.assign({k: v.astype(float) for k, v in stats.data_vars.items()})
+    if "draw" in stats.dims:
+        stats = stats.rename({"draw": "stage"})
+    idata["sample_stats"] = stats
+    return idata

@@ -775,7 +775,8 @@ def _row(label, scored: Scored, results, identifiability) -> dict[str, Any]:
     with single_chain_notes_hidden():
         row["r_hat_max"] = float(az.rhat(results[label].posterior).to_array().max())
     row["ess_bulk_min"] = float(diag["ess_bulk"].min())
-    row["divergences"] = int(diag.attrs["divergences"])
+    divergences = diag.attrs["divergences"]  # None: a sampler without them (SMC)
+    row["divergences"] = None if divergences is None else int(divergences)
     row["validation_noise"] = describe_noise(scored.noise)
     row["identifiable"] = identifiability.get(label, {}).get("identifiable")
     row["status"] = "ok" if not cal.problems else "; ".join(cal.problems)

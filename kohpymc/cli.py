@@ -152,6 +152,31 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
     return physics
 
 
+def _emulated_outputs(spec: Any, execution: dict, out: Path) -> Any:
+    """A multi-output study with its physics replaced by one emulator per output."""
+    from dataclasses import replace
+
+    from kohpymc.multi_output.emulator import study_outputs_physics
+
+    physics = study_outputs_physics(
+        spec.emulator,
+        spec.physics,
+        spec.calibration,
+        out,
+        workers=execution.get("workers", 1),
+        scheduler=execution.get("scheduler"),
+        validation=spec.validation,
+    )
+    runs = physics.output(physics.outputs[0]).emulator.runs
+    print(
+        f"emulator: {len(runs.points)} runs ({runs.simulated} simulated, {runs.cached} from "
+        f"{out}/emulator/runs/), one GP per output (checks in {out}/emulator/<output>/)"
+    )
+    for name in physics.outputs:
+        print(f"  {name}: {physics.output(name).emulator!r}")
+    return replace(spec, physics=physics)
+
+
 def _emulator_note(spec: Any, what: str) -> None:
     """Say that ``[emulator]`` is for ``kohpymc study``: ``check``/``discover`` run the physics."""
     if spec.emulator is not None:
@@ -206,12 +231,20 @@ def _multi_output_study(args: argparse.Namespace) -> int:
             f"dry run: {spec.source} is a multi-output study (outputs {outputs}; "
             f"parameters {', '.join(spec.physics.parameter_names)}); formulations "
             f"{', '.join(spec.formulations)} (each builds on the calibration data)\n"
-            f"would write to {out}; nothing sampled, nothing written"
+            + (
+                f"[emulator]: {spec.emulator.runs} simulator runs (each giving every output), "
+                "one GP emulator per output\n"
+                if spec.emulator is not None
+                else ""
+            )
+            + f"would write to {out}; nothing sampled, nothing written"
         )
         return 0
     print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")
     display = task_display(sys.stdout, quiet=args.quiet)
     try:
+        if spec.emulator is not None:
+            spec = _emulated_outputs(spec, execution, out)
         result = run_multi_output_study(
             spec,
             out_dir=out,
@@ -384,6 +417,7 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
         )
     except StudyConfigError as err:
         return _bad_input(err)
+    _emulator_note(spec, "discover")
     options = _discovery_options(args, spec.sampling)
     if args.dry_run:
         print(

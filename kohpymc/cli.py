@@ -29,7 +29,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from kohpymc.warning_filters import quiet_command_line
 
@@ -156,6 +156,7 @@ def _emulated_outputs(spec: Any, execution: dict, out: Path) -> Any:
     """A multi-output study with its physics replaced by one emulator per output."""
     from dataclasses import replace
 
+    from kohpymc.emulator import EmulatedPhysics
     from kohpymc.multi_output.emulator import study_outputs_physics
 
     physics = study_outputs_physics(
@@ -167,13 +168,14 @@ def _emulated_outputs(spec: Any, execution: dict, out: Path) -> Any:
         scheduler=execution.get("scheduler"),
         validation=spec.validation,
     )
-    runs = physics.output(physics.outputs[0]).emulator.runs
+    emulators = {k: cast(EmulatedPhysics, physics.output(k)).emulator for k in physics.outputs}
+    runs = next(iter(emulators.values())).runs
     print(
         f"emulator: {len(runs.points)} runs ({runs.simulated} simulated, {runs.cached} from "
         f"{out}/emulator/runs/), one GP per output (checks in {out}/emulator/<output>/)"
     )
-    for name in physics.outputs:
-        print(f"  {name}: {physics.output(name).emulator!r}")
+    for name, emulator in emulators.items():
+        print(f"  {name}: {emulator!r}")
     return replace(spec, physics=physics)
 
 

@@ -24,7 +24,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -34,10 +34,13 @@ from kohpymc.physics import PhysicsModel
 from kohpymc.progress import TaskDisplay
 from kohpymc.study_files import write_atomic
 
+if TYPE_CHECKING:
+    from kohpymc.multi_output.physics import MultiOutputPhysics
+
 __all__ = ["SimulatorRuns", "point_key", "run_design", "simulator_identity"]
 
 
-def simulator_identity(physics: PhysicsModel, label: str | None = None) -> str:
+def simulator_identity(physics: PhysicsModel | MultiOutputPhysics, label: str | None = None) -> str:
     """A string naming the simulator for cache keys: its name and its source code.
 
     ``label`` (e.g. a version of an external solver) replaces the source when given.
@@ -52,7 +55,8 @@ def simulator_identity(physics: PhysicsModel, label: str | None = None) -> str:
         return f"{physics.name}:{label}"
     function = physics.function
     try:
-        source = inspect.getsource(function)
+        # None (a model made of per-output models) raises TypeError, handled below
+        source = inspect.getsource(function)  # type: ignore[arg-type]
     except (OSError, TypeError):
         source = getattr(function, "__qualname__", repr(function))
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
@@ -190,7 +194,7 @@ def _read_cache(path: Path) -> dict[str, Any] | None:
 
 
 def run_design(
-    physics: PhysicsModel,
+    physics: PhysicsModel | MultiOutputPhysics,
     design: pd.DataFrame,
     *,
     cache: str | Path | None = None,
@@ -204,8 +208,9 @@ def run_design(
 
     Parameters
     ----------
-    physics : PhysicsModel
-        The simulator: ``physics.evaluate(inputs, params)``.
+    physics : PhysicsModel or MultiOutputPhysics
+        The simulator: ``physics.evaluate(inputs, params)`` (one array, or a mapping
+        output -> array for several outputs).
     design : pandas.DataFrame
         One column per physics input and per parameter (e.g. from
         :func:`~kohpymc.emulator.design.space_filling_design`).
@@ -259,7 +264,9 @@ def run_design(
     )
 
 
-def _design_values(physics: PhysicsModel, design: pd.DataFrame, columns: list[str]) -> np.ndarray:
+def _design_values(
+    physics: PhysicsModel | MultiOutputPhysics, design: pd.DataFrame, columns: list[str]
+) -> np.ndarray:
     """The design's ``columns`` as a finite float array (a missing column is a KeyError)."""
     missing = [k for k in columns if k not in design.columns]
     if missing:
@@ -329,7 +336,7 @@ def _usable(hit: dict[str, Any], outputs: tuple[str, ...], retry_failed: bool) -
 
 
 def _theta_tasks(
-    physics: PhysicsModel,
+    physics: PhysicsModel | MultiOutputPhysics,
     todo: dict[tuple[float, ...], list[str]],
     records: dict[str, dict[str, Any]],
     inputs: tuple[str, ...],

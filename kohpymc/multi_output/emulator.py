@@ -121,8 +121,13 @@ def emulate_outputs(
     box = output_design_box(physics, data, bounds=bounds)
     points = space_filling_design(box, runs, method=design, seed=seed)
     done = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
-    fit = {"box": box, "kernel": kernel, "seed": seed, "log_output": log_output}
-    return {k: Emulator(done.output(k), physics.output(k), **fit) for k in physics.outputs}
+    return {k: _fitted(done.output(k), physics.output(k), box, kernel, seed, log_output)
+            for k in physics.outputs}  # fmt: skip
+
+
+def _fitted(runs, physics, box, kernel, seed, log_output) -> Emulator:  # noqa: ANN001
+    """One output's emulator on the shared design box."""
+    return Emulator(runs, physics, box=box, kernel=kernel, seed=seed, log_output=log_output)
 
 
 def emulated_outputs(

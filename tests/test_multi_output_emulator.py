@@ -109,6 +109,11 @@ def test_evaluating_every_output_runs_the_function_once():
     out = _physics(counted).evaluate({"x": [0.0, 1.0]}, {"a": 2.0, "k": 1.0})
     assert counted.calls == 1
     np.testing.assert_allclose(out["rate"], [2.0, 2.0 * np.exp(-1.0)])
+    # outputs given as separate models (an emulator each, or replaced by discovery) are
+    # each evaluated by their own model
+    rebuilt = MultiOutputPhysics.from_models(_physics(counted).models, name="two")
+    np.testing.assert_allclose(rebuilt.evaluate({"x": [1.0]}, [2.0, 1.0])["level"], 2 / np.e)
+    assert counted.calls == 3
 
 
 # ------------------------------------------------------------------ the likelihood

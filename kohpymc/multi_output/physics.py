@@ -173,10 +173,23 @@ class MultiOutputPhysics:
         >>> sorted(out), round(float(out["u"][0]), 6)
         (['strain', 'u'], 600.0)
         """
-        if self.function is None or any(m.backend != "numpy" for m in self.models.values()):
+        if not self._one_function():
             return {k: m.evaluate(inputs, params) for k, m in self.models.items()}
         once = _Once(self.function)
         return {k: _reading(m, once, k).evaluate(inputs, params) for k, m in self.models.items()}
+
+    def _one_function(self) -> bool:
+        """Whether every output is read from one numpy function (then it can run once).
+
+        Not for a model made of per-output models (an emulator each), nor for one whose
+        outputs were replaced (discovery embeds an output's model with added effects).
+        """
+        return self.function is not None and all(
+            m.backend == "numpy"
+            and isinstance(m.function, _Select)
+            and m.function.function is self.function
+            for m in self.models.values()
+        )
 
     @classmethod
     def from_models(cls, models: Mapping[str, PhysicsModel], *, name: str) -> MultiOutputPhysics:

@@ -372,7 +372,7 @@ def calibrate(
     )
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
-    problems = convergence_problems(idata) if sampling.sampler != "smc" else []
+    problems = convergence_problems(idata)  # SMC: r̂ between its independent runs
     problems += [
         _explained(text, presampling.explaining(report))
         for text in sampling.reparameterization.get("warnings", [])

@@ -1137,21 +1137,58 @@ def _candidate_coordinates(
 def _flat_plan(
     space: ValueSpace, pymc_coords: Coordinates, mode: Mode, shared: str
 ) -> Reparameterization:
-    """No plan has a positive Hessian: PyMC's coordinates from the mode, with a warning."""
+    """No plan has a positive Hessian: PyMC's coordinates from the mode, with a warning.
+
+    The warning names the cause: a flat direction, or, when the Hessian changes with the
+    finite-difference step (:func:`_hessian_noise`), a gradient too noisy to difference.
+    """
+    start = pymc_coords.from_value(mode.value)
+    noise = _hessian_noise(space, pymc_coords, start)
+    if noise > _NOISY_HESSIAN:
+        warning = (
+            f"the gradient of the log density is noisy at the mode: its finite-difference "
+            f"Hessian changes by {noise:.0%} when the step grows tenfold (a solver tolerance, "
+            "or finite differences of a simulator whose output jitters with the "
+            "parameters), so no Laplace map was computed; give the physics an exact "
+            "Jacobian, or if the sampler reports trouble use sampler='smc'"
+        )
+    else:
+        warning = (
+            "the posterior is flat in some direction at its mode: a combination of "
+            "parameters the data and priors do not inform (see the identifiability "
+            "report); NUTS may need very long trajectories there"
+        )
     return Reparameterization(
         "none",
-        pymc_coords.from_value(mode.value),
+        start,
         np.eye(space.ndim),
         pymc_coords,
         shared + "the Hessian of the log density is not positive definite at the mode "
-        "(a flat direction or a saddle): sampling in PyMC's coordinates from the mode",
+        "(a flat direction, a saddle or a noisy gradient): sampling in PyMC's coordinates "
+        "from the mode",
         mode,
-        warnings=(
-            "the posterior is flat in some direction at its mode: a combination of "
-            "parameters the data and priors do not inform (see the identifiability "
-            "report); NUTS may need very long trajectories there",
-        ),
+        warnings=(warning,),
     )
+
+
+#: relative change of the finite-difference Hessian, step ×10, that marks a noisy gradient
+#: (a simulator whose output jitters by 1e-5 relative, under a finite-difference Jacobian:
+#: 0.9; a smooth log density: truncation error only)
+_NOISY_HESSIAN = 0.5
+
+
+def _hessian_noise(space: ValueSpace, coords: Coordinates, w: np.ndarray) -> float:
+    """‖H(10h) − H(h)‖ / max ‖H‖ of the central-difference Hessians at ``w`` (Frobenius)."""
+    identity = Reparameterization("none", w, np.eye(w.size), coords, "")
+
+    def logp_w(x):
+        return identity.logp_dlogp(space, x - w, safe=True)
+
+    first, second = (_hessian(logp_w, w, k * _steps(w)) for k in (1.0, 10.0))
+    if not (np.all(np.isfinite(first)) and np.all(np.isfinite(second))):
+        return float("inf")
+    scale = max(np.linalg.norm(first), np.linalg.norm(second), np.finfo(float).tiny)
+    return float(np.linalg.norm(first - second) / scale)
 
 
 def _unwhitened_plan(
@@ -1255,15 +1292,19 @@ def _needs_whitening(plan: Reparameterization) -> bool:
 
 
 def _gradient_mismatch(
-    space: ValueSpace, white: Reparameterization, seed: int, tol: float = 1e-3
+    space: ValueSpace, white: Reparameterization, seed: int, tol: float = 1e-3, step: float = 1e-2
 ) -> tuple[str, ...]:
     """A warning when the gradient disagrees with finite differences of the log density.
 
     Checked in whitened coordinates (posterior sd 1 on every axis, whatever the units)
     at three points about one sd from the mode, along random directions: a wrong
     physics Jacobian, or a simulator whose output is noisy at the scale of the posterior,
-    shows up as a directional derivative that central differences (step 1e-4 sd) do not
-    reproduce to a relative ``tol``.
+    shows up as a directional derivative that central differences (step ``step`` sd) do not
+    reproduce to a relative ``tol``.  The step is a hundredth of a posterior sd, near the
+    scale of a leapfrog step's variation, so round-off far below it (an emulator's
+    predictive covariance is noisy at ~1e-7 in the log density, which a 1e-4 sd step
+    turned into a relative error of 4e-3) is not reported, while the truncation error of
+    a near-Gaussian density stays ~1e-5.
     """
     rng = np.random.default_rng(seed)
     worst = 0.0
@@ -1272,11 +1313,11 @@ def _gradient_mismatch(
         e = rng.normal(size=white.ndim)
         e /= np.linalg.norm(e)
         logp, grad = white.logp_dlogp(space, z, safe=True)
-        up, _ = white.logp_dlogp(space, z + 1e-4 * e, safe=True)
-        down, _ = white.logp_dlogp(space, z - 1e-4 * e, safe=True)
+        up, _ = white.logp_dlogp(space, z + step * e, safe=True)
+        down, _ = white.logp_dlogp(space, z - step * e, safe=True)
         if not np.isfinite([logp, up, down]).all() or not np.all(np.isfinite(grad)):
             continue
-        analytic, numeric = float(grad @ e), (up - down) / 2e-4
+        analytic, numeric = float(grad @ e), (up - down) / (2.0 * step)
         worst = max(worst, abs(analytic - numeric) / (abs(analytic) + abs(numeric) + 1e-3))
     if worst <= tol:
         return ()

@@ -614,6 +614,15 @@ def _constrained_point(space: ValueSpace, point: Mapping[str, np.ndarray]) -> di
 def _run_smc(
     model: pm.Model, settings: dict[str, Any], kwargs: dict[str, Any], progressbar: bool
 ) -> az.InferenceData:
+    """PyMC's SMC with the random-walk MH kernel; convergence is checked by the caller.
+
+    PyMC's default independent-proposal kernel (IMH) returned a posterior three times too
+    wide, with r̂ 1.05 between runs, on y = a·exp(−b·x) with unknown noise (25 rows, corr(a,
+    b) ≈ 0.9): a = 1.997 ± 0.025 against NUTS's 1.998 ± 0.008; the MH kernel, whose
+    proposals follow the particles' covariance, gave 1.998 ± 0.008, r̂ 1.00.  A ``kernel``
+    in ``sample_kwargs`` is used instead.
+    """
+    kwargs = {"kernel": pm.smc.kernels.MH, **kwargs}
     with model:
         return pm.sample_smc(
             draws=settings["draws"],
@@ -621,5 +630,6 @@ def _run_smc(
             cores=settings["cores"],
             random_seed=settings["seed"],
             progressbar=progressbar,
+            compute_convergence_checks=False,
             **kwargs,
         )

@@ -375,6 +375,9 @@ def pytensor_sd(rv, model, point):
     return np.asarray(fn(point))
 
 
+from kohpymc.emulator.checking import posterior_widening  # noqa: E402
+
+
 def _posterior(cal):
     post = cal.posterior
     return {k: (float(post[k].mean()), float(post[k].std())) for k in ("a", "k")}
@@ -397,9 +400,11 @@ def test_a_near_exact_emulator_gives_the_direct_posterior(direct_posterior):
 
     em, _, data, _ = _emulator(150, kernel="se")  # relative LOO error 0.013, held-out 0.002
     emulated = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING))
+    widening = posterior_widening(em, data)  # predicted before sampling, linearised
     for name, (mean, sd) in direct_posterior.items():
         assert abs(emulated[name][0] - mean) < 0.1 * sd, (name, emulated[name], mean, sd)
         assert 0.9 < emulated[name][1] / sd < 1.25
+        assert 1.0 <= widening[name] < 1.1, widening
 
 
 def test_a_poor_emulator_widens_rather_than_shifts_the_posterior(direct_posterior):
@@ -409,8 +414,12 @@ def test_a_poor_emulator_widens_rather_than_shifts_the_posterior(direct_posterio
     loo_mean, _ = em.leave_one_out()
     assert np.sqrt(np.mean((loo_mean - em.runs.y) ** 2)) / np.std(em.runs.y) > 0.05  # poor
     poor = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING, warn=False))
+    widening = posterior_widening(em, data)  # predicted before sampling, linearised
     for name, (mean, sd) in direct_posterior.items():
         assert poor[name][1] > 1.5 * sd, (name, poor[name], sd)  # wider
+        # within a factor 2 of the measured widening (linearised: 4.2 against 6.5 for a)
+        assert 0.5 < widening[name] / (poor[name][1] / sd) < 2.0, (name, widening, poor, sd)
+        assert widening[name] > 1.25  # so check_emulator(em, data=data) warns
         assert abs(poor[name][0] - _TRUTH[name]) < 2.0 * poor[name][1]  # truth covered
         assert abs(poor[name][0] - mean) < 1.0 * poor[name][1]  # not shifted
 
@@ -654,6 +663,37 @@ def test_log_scales_make_an_arrhenius_emulator_usable():
     bad = run_design(signed, space_filling_design({"x": (0.0, 1.0), "a": (-1.0, 1.0)}, 10))
     with pytest.raises(ValueError, match="outputs <= 0"):
         Emulator(bad, signed, log_output=True)
+
+
+def _offset_line(inputs, params):
+    return params["a"] * inputs["x"] + 0.01
+
+
+@pytest.mark.parametrize("case", ["rate", "offset line"])
+def test_auto_output_scale_is_the_one_that_predicts_held_out_runs_better(case):
+    """Both cases' runs are positive over two or more decades. ``fit_emulator``'s
+    ``"auto"`` keeps the scale with the higher leave-one-out score; judged independently
+    on 40 held-out runs by RMSE, it is ln y for the Arrhenius rate and y for a straight
+    line with a small offset (ln of it is curved near x = 0)."""
+    from kohpymc.emulator import Emulator, fit_emulator
+
+    if case == "rate":
+        physics, box, runs = _arrhenius_runs(40)
+    else:
+        physics = PhysicsModel(_offset_line, {"a": Uniform(0.5, 1.0)}, ["x"], name="line")
+        box = {"x": (0.0, 10.0), "a": (0.5, 1.0)}
+        runs = run_design(physics, space_filling_design(box, 25, seed=3))
+    held = run_design(physics, space_filling_design(box, 40, method="sobol", seed=11))
+    assert runs.y.max() / runs.y.min() > 100  # both scales are candidates
+
+    def held_out_rmse(em):
+        return float(np.sqrt(np.mean((em.predict_matrix(held.X)[0] - held.y) ** 2)))
+
+    rmse = {flag: held_out_rmse(Emulator(runs, physics, box=box, log_output=flag))
+            for flag in (False, True)}  # fmt: skip
+    chosen = fit_emulator(runs, physics, box=box).log_output
+    assert chosen == (case == "rate")
+    assert rmse[chosen] < rmse[not chosen], rmse
 
 
 @pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")

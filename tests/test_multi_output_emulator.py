@@ -125,7 +125,9 @@ def test_each_outputs_likelihood_gets_its_own_emulators_covariance():
     from kohpymc.multi_output.model import compose_multi_output_model
 
     data = _data()
-    emulators = emulate_outputs(_physics(), data, runs=12, seed=2)  # poor: Σ_η matters
+    emulators = emulate_outputs(
+        _physics(), data, runs=12, seed=2, log_output=False
+    )  # poor: Σ_η matters
     built = compose_multi_output_model(emulated_outputs(_physics(), emulators), data)
     model = built.model
     theta = {"a": 1.6, "k": 0.85}
@@ -166,7 +168,9 @@ def direct_posterior():
 
 
 def test_a_near_exact_emulator_gives_the_direct_joint_posterior(direct_posterior):
-    emulators = emulate_outputs(_physics(), _data(), runs=150, kernel="se", seed=1)
+    emulators = emulate_outputs(
+        _physics(), _data(), runs=150, kernel="se", seed=1, log_output=False
+    )
     cal = calibrate_outputs(emulated_outputs(_physics(), emulators), _data(), **_SAMPLING)
     emulated = _posterior(cal)
     for name, (mean, sd) in direct_posterior.items():
@@ -299,7 +303,7 @@ def test_a_poor_emulator_widens_rather_than_shifts_the_joint_posterior(direct_po
     posterior sds grew 1.36-4.1x and the means moved 0.05-2.0 of the wider sds (5 of the
     18 above 1): this design is one of the better ones, the test guards it, not the
     claim for every design."""
-    emulators = emulate_outputs(_physics(), _data(), runs=20, seed=1)
+    emulators = emulate_outputs(_physics(), _data(), runs=20, seed=1, log_output=False)
     for em in emulators.values():
         loo_mean, _ = em.leave_one_out()
         assert np.sqrt(np.mean((loo_mean - em.runs.y) ** 2)) / np.std(em.runs.y) > 0.15

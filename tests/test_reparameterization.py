@@ -511,6 +511,63 @@ def test_a_wrong_physics_jacobian_is_reported(factor):
         assert "sampler='smc'" in flagged[0]
 
 
+def test_round_off_in_the_log_density_is_not_reported_as_a_noisy_gradient():
+    """A ripple of ~1e-6 in the log density (an emulator's predictive covariance has ~1e-7)
+    is far below what a leapfrog step feels: no warning (a 1e-4 sd finite-difference step
+    reports it as a relative error of ~1e-2); a 30 % wrong Jacobian still is (above)."""
+    from kohpymc import CalibrationData, PhysicsModel
+    from kohpymc.model import compose_model
+    from kohpymc.priors import Normal
+
+    x = np.linspace(0.0, 2.0, 15)
+    y = 1.5 * x + np.random.default_rng(SEED).normal(0.0, 0.1, x.size)
+
+    def rippled(i, p):  # value off by ~3e-8 relative, on a scale of 1e-8 in a
+        return p["a"] * i["x"] * (1.0 + 3e-8 * np.sin(7e8 * p["a"]))
+
+    physics = PhysicsModel(
+        rippled, {"a": Normal(1.0, 2.0)}, inputs=["x"], jacobian=lambda i, p: {"a": i["x"]}
+    )
+    data = CalibrationData({"x": x}, y, noise_sd=0.1)
+    space = value_space(compose_model(physics, data, None).model)
+    from kohpymc.reparameterization import _gradient_mismatch
+
+    found = plan(space, seed=SEED)
+    assert not [w for w in found.warnings if "finite differences" in w], found.warnings
+    # whitened at the mode (a's sd 0.022), as the check sees every plan
+    white = Reparameterization(
+        "affine", found.mean, np.diag(found.value_sd), Coordinates.identity(1), ""
+    )
+    assert _gradient_mismatch(space, white, SEED) == ()
+    assert _gradient_mismatch(space, white, SEED, step=1e-4)  # the old step: reported
+
+
+def _jittery_solver(inputs, params):
+    """a·exp(−b·x) from a solver stopped at a relative tolerance of 1e-5 (jitters with θ)."""
+    exact = params["a"] * np.exp(-params["b"] * inputs["x"])
+    return exact * (1.0 + 1e-5 * np.sin(1e7 * params["a"] + 3e7 * params["b"] + 17 * inputs["x"]))
+
+
+def test_a_noisy_gradient_is_named_as_such_not_as_a_flat_direction():
+    """Finite differences of a jittering simulator make the Hessian at the mode indefinite.
+    The plan said "flat in some direction ... the data do not inform", though a and b are
+    well identified (NUTS recovers them); it now names the noisy gradient and sampler='smc'
+    (a structural ridge still gives the flat-direction warning: test_calibration)."""
+    from kohpymc import CalibrationData, PhysicsModel, Uniform
+    from kohpymc.model import compose_model
+
+    x = np.linspace(0.0, 4.0, 25)
+    y = 2.0 * np.exp(-0.7 * x) + np.random.default_rng(3).normal(0.0, 0.01, x.size)
+    physics = PhysicsModel(
+        _jittery_solver, {"a": Uniform(0.1, 10.0), "b": Uniform(0.01, 5.0)}, inputs=["x"]
+    )
+    space = value_space(compose_model(physics, CalibrationData({"x": x}, y), None).model)
+    warnings = plan(space, seed=1).warnings
+    assert any("gradient of the log density is noisy" in w for w in warnings), warnings
+    assert not any("flat in some direction" in w for w in warnings), warnings
+    assert "sampler='smc'" in warnings[0]
+
+
 def test_soft_box_coordinates_map_and_jacobian_against_finite_differences():
     """ξ -> v for Uniform(a, b) through the soft box: the identity in the parameter's units
     well inside (x = ξ), no wall beyond the bounds, inverse, dv/dξ and d log|dv/dξ|/dξ."""

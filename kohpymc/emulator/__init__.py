@@ -32,6 +32,7 @@ from kohpymc.emulator.runs import SimulatorRuns, run_design
 from kohpymc.emulator.sequential import (
     SequentialDesign,
     emulate,
+    fit_emulator,
     posterior_design,
     sequential_design,
 )
@@ -55,6 +56,7 @@ __all__ = [
     "run_design",
     "SequentialDesign",
     "emulate",
+    "fit_emulator",
     "posterior_design",
     "sequential_design",
 ]

@@ -11,7 +11,12 @@ fitted to (``held_out=``) and reports:
 and issues an :class:`EmulatorWarning` when the emulator is not fit for calibration: a
 coverage far below ``level`` (its bands are too narrow, so the calibration would be
 overconfident), far above it (too wide: a posterior wider than needed), or a large
-relative error.  :meth:`EmulatorCheck.figure` draws predicted against simulated with
+relative error.  Given the calibration data (``data=``), it also estimates how much wider
+the posterior of θ will be through the emulator than through the simulator: an emulator
+good to 1 % of its outputs' spread may still be off by a fraction of the noise sd where
+the data are, and its errors are correlated across the data's rows, so they do not
+average out as noise does (:func:`posterior_widening`).  :meth:`EmulatorCheck.figure`
+draws predicted against simulated with
 the bands, and the histogram of the standardised errors.
 """
 
@@ -23,11 +28,12 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from kohpymc.data import CalibrationData
 from kohpymc.emulator.gp import Emulator, EmulatorWarning
 from kohpymc.emulator.runs import SimulatorRuns
 from kohpymc.warning_filters import warn_user
 
-__all__ = ["EmulatorCheck", "EmulatorWarning", "check_emulator"]
+__all__ = ["EmulatorCheck", "EmulatorWarning", "check_emulator", "posterior_widening"]
 
 
 @dataclass
@@ -44,6 +50,9 @@ class EmulatorCheck:
         Nominal coverage of the bands.
     problems : list of str
         Why the emulator is not fit for calibration (empty when it is).
+    widening : dict or None
+        Parameter -> posterior sd through the emulator over that through the simulator,
+        linearised at the least-squares θ (with ``check_emulator(..., data=)``).
 
     Examples
     --------
@@ -62,6 +71,7 @@ class EmulatorCheck:
     sd: np.ndarray
     level: float = 0.9
     problems: list[str] = field(default_factory=list)
+    widening: dict[str, float] | None = None
 
     @property
     def standardized_errors(self) -> np.ndarray:
@@ -101,6 +111,7 @@ class EmulatorCheck:
             "relative_rmse": self.relative_rmse,
             "mean_standardized_error": float(np.mean(self.standardized_errors)),
             "sd_standardized_error": float(np.std(self.standardized_errors)),
+            "widening": self.widening,
             "problems": list(self.problems),
         }
 
@@ -161,6 +172,8 @@ def check_emulator(
     level: float = 0.9,
     coverage_tolerance: float | None = None,
     max_relative_rmse: float = 0.1,
+    data: CalibrationData | None = None,
+    max_widening: float = 1.25,
     warn: bool = True,
 ) -> EmulatorCheck:
     """Score an emulator on runs it did not see and warn when it is not fit.
@@ -179,6 +192,11 @@ def check_emulator(
         three binomial sds ``3 sqrt(level (1 - level) / n)``.
     max_relative_rmse : float
         Largest RMSE relative to the sd of the simulated outputs.
+    data : CalibrationData, optional
+        The calibration data: :attr:`EmulatorCheck.widening` from
+        :func:`posterior_widening`.
+    max_widening : float
+        Largest allowed widening of a parameter's posterior sd (1.25).
     warn : bool
         Issue an :class:`EmulatorWarning` listing the problems.
 
@@ -222,6 +240,16 @@ def check_emulator(
             f"{kind} RMSE is {check.relative_rmse:.3f} of the outputs' sd (> "
             f"{max_relative_rmse}): add runs (see kohpymc.emulator.sequential_design)"
         )
+    if data is not None:
+        check.widening = posterior_widening(emulator, data)
+        wide = {k: v for k, v in check.widening.items() if v > max_widening}
+        if wide:
+            named = ", ".join(f"{k} {v:.2g}×" for k, v in wide.items())
+            check.problems.append(
+                f"its uncertainty at the calibration data makes the posterior sd wider than "
+                f"the simulator's ({named}; > {max_widening}×, linearised at the "
+                "least-squares θ): add runs (more `runs`, or sequential rounds)"
+            )
     if warn and check.problems:
         warn_user(
             f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is not fit for "
@@ -229,3 +257,58 @@ def check_emulator(
             EmulatorWarning,
         )
     return check
+
+
+def posterior_widening(emulator: Emulator, data: CalibrationData) -> dict[str, float]:
+    """Posterior sd of each θ through the emulator over that through the simulator.
+
+    Linearised at the least-squares θ̂ through the emulator's mean, with a flat prior:
+    ``J`` the emulator mean's Jacobian at the data's inputs (central differences), the
+    posterior covariance ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ = σ² I`` (simulator) and
+    ``Σ = σ² I + Σ_η(θ̂)`` (emulator, its full covariance between the rows).  σ is the
+    data's noise sd (known or pooled from replicates), else the residual sd of the fit
+    (discrepancy included).  A parameter the data do not inform (singular ``JᵀJ``) gets
+    the ratio of pseudo-inverse diagonals.
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import emulate
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> widening = posterior_widening(emulate(beam.physics_model(), data, runs=60), data)
+    >>> bool(1.0 <= widening["E"] < 1.25)
+    True
+    """
+    from kohpymc.initialization import multistart_least_squares
+
+    names = list(emulator.physics.parameters)
+    theta = multistart_least_squares(emulator.physics_model(), data, starts=4).params
+    inputs = {k: np.asarray(data.inputs[k], float) for k in emulator.physics.inputs}
+    point = np.array([theta[k] for k in names], dtype=float)
+    mean, _ = emulator.predict(inputs, point)
+    X = np.column_stack([inputs[k] for k in emulator.physics.inputs])
+    cov = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
+    noise = data.noise_sd
+    if noise is None:
+        noise = float(np.sqrt(np.mean((np.asarray(data.y, float) - mean) ** 2)))
+    J = _mean_jacobian(emulator, inputs, point)
+    plain = np.diag(np.linalg.pinv(J.T @ J / noise**2))
+    through = np.diag(np.linalg.pinv(J.T @ np.linalg.solve(noise**2 * np.eye(len(mean)) + cov, J)))
+    ratio = np.sqrt(np.maximum(through, 0.0) / np.maximum(plain, np.finfo(float).tiny))
+    return {k: float(r) for k, r in zip(names, ratio, strict=True)}
+
+
+def _mean_jacobian(emulator: Emulator, inputs: dict, point: np.ndarray) -> np.ndarray:
+    """Central differences of the emulator mean in θ (step 1e-4 of its box width)."""
+    steps = 1e-4 * emulator.width[emulator.n_inputs :]
+    columns = []
+    for j, step in enumerate(steps):
+        theta = point.copy()
+        log = emulator.log_columns[emulator.n_inputs + j]
+        h = step * abs(point[j]) if log else step  # the box is ln θ for a log column
+        theta[j] = point[j] + h
+        up, _ = emulator.predict(inputs, theta)
+        theta[j] = point[j] - h
+        down, _ = emulator.predict(inputs, theta)
+        columns.append((up - down) / (2.0 * h))
+    return np.column_stack(columns)

@@ -259,7 +259,8 @@ class Emulator(SharedTrainingData):
     log_output : bool
         Fit the GP to ln y (every run's output must be positive): for outputs spanning
         decades over the design (rates, currents).  Predictions are the log-normal mean,
-        variance and covariance in output units.
+        variance and covariance in output units.  :func:`~kohpymc.emulator.emulate`
+        chooses it by default (``"auto"``).
 
     Attributes
     ----------
@@ -411,7 +412,7 @@ class Emulator(SharedTrainingData):
         return self._output_moments(mean, var)
 
     def predict(
-        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float] | np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean and variance at input rows ``inputs`` and one θ ``params``.
 
@@ -440,6 +441,30 @@ class Emulator(SharedTrainingData):
         diag = np.sum(self._chol_inv**2, axis=0)  # diag of K⁻¹ = L⁻ᵀ L⁻¹
         mean_z = self.z - self._alpha / diag
         return self._output_moments(mean_z, 1.0 / diag)
+
+    def loo_log_density(self) -> float:
+        """Mean leave-one-out log predictive density of the runs, in output units.
+
+        A proper score of the leave-one-out means and variances together (Gneiting &
+        Raftery 2007): with ``log_output`` the density of ln y less ln y (the log-normal
+        density of y), so emulators on either scale compare.
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import design_box, run_design, space_filling_design
+        >>> from kohpymc.examples import beam
+        >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+        >>> runs = run_design(physics, space_filling_design(design_box(physics, data), 20))
+        >>> bool(np.isfinite(Emulator(runs, physics).loo_log_density()))
+        True
+        """
+        diag = np.sum(self._chol_inv**2, axis=0)
+        error = self._alpha / diag  # latent z_i - μ_-i, standardised units
+        var = self.y_sd**2 / diag
+        latent = -0.5 * (np.log(2.0 * np.pi * var) + (self.y_sd * error) ** 2 / var)
+        if self.log_output:
+            latent = latent - np.log(self.runs.y)
+        return float(np.mean(latent))
 
     # ----------------------------------------------------------------- pytensor
     def _scaled_rows(self, theta: Any, X: Any) -> list[Any]:

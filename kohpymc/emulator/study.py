@@ -11,7 +11,8 @@
     # tolerance = 0.1           # stop when posterior means move less (in posterior sds)
     # formulation = "M0"        # label of [formulations] the rounds calibrate with
     # covariance = "full"       # or "diagonal" (see Emulator.physics_model)
-    # log_output = false        # emulate ln y (positive outputs spanning decades)
+    # log_output = "auto"       # emulate ln y: true, false, or "auto" (positive runs
+    #                           # spanning two decades or more)
     # seed = 0
 
 With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
@@ -31,7 +32,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -42,7 +43,7 @@ from kohpymc.emulator.checking import check_emulator
 from kohpymc.emulator.design import DESIGNS
 from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator, EmulatorWarning
 from kohpymc.emulator.runs import run_design
-from kohpymc.emulator.sequential import emulate, emulator_box, sequential_design
+from kohpymc.emulator.sequential import emulate, emulator_box, fit_emulator, sequential_design
 from kohpymc.fingerprint import (
     data_fingerprint,
     digest,
@@ -91,7 +92,7 @@ class EmulatorSettings:
     tolerance: float = 0.1
     formulation: str | None = None
     covariance: str = "full"
-    log_output: bool = False
+    log_output: bool | Literal["auto"] = "auto"
     seed: int = 0
 
     @classmethod
@@ -120,8 +121,8 @@ class EmulatorSettings:
             if isinstance(tol, bool) or not isinstance(tol, int | float) or not tol > 0:
                 raise _bad("tolerance", f"must be a number > 0, got {tol!r}")
             values["tolerance"] = float(tol)
-        if "log_output" in values and not isinstance(values["log_output"], bool):
-            raise _bad("log_output", f"must be true or false, got {values['log_output']!r}")
+        if "log_output" in values and values["log_output"] not in (True, False, "auto"):
+            raise _bad("log_output", f'must be true, false or "auto", got {values["log_output"]!r}')
         if "formulation" in values and not isinstance(values["formulation"], str):
             raise _bad("formulation", "must be a formulation label (a string)")
         return cls(**values)
@@ -262,7 +263,7 @@ def _first_emulator(
         workers=workers,
         scheduler=scheduler,
     )
-    write_check(folder, check_emulator(emulator))
+    write_check(folder, check_emulator(emulator, data=calibration))
     return emulator
 
 
@@ -325,10 +326,10 @@ def _restored_rounds(
     design = pd.DataFrame(record["design"], columns=record["columns"])
     runs = run_design(physics, design, cache=folder / "runs", workers=workers, scheduler=scheduler)
     box = {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}
-    return Emulator(
-        runs, physics, box=box, kernel=settings.kernel,  # type: ignore[arg-type]
+    return fit_emulator(
+        runs, physics, box=box, kernel=settings.kernel,
         seed=settings.seed,
-        log_output=settings.log_output,
+        log_output=settings.log_output,  # type: ignore[arg-type]
     )  # fmt: skip
 
 
@@ -375,7 +376,7 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    write_check(folder, check_emulator(result.emulator))
+    write_check(folder, check_emulator(result.emulator, data=calibration))
     return result.emulator
 
 

@@ -324,7 +324,7 @@ def _annotate(
     for name in data.outputs:  # every output's rows: coordinates <output>::<input>
         coords = {variable(name, k): v for k, v in data[name].inputs.items()}
         _attach_input_coords(idata, obs_dim(name), coords)
-    problems = convergence_problems(idata) if sampling.sampler != "smc" else []
+    problems = convergence_problems(idata)  # SMC: r̂ between its independent runs
     problems += list(sampling.reparameterization.get("warnings", []))
     idata.attrs.update(
         {

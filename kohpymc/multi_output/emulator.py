@@ -23,7 +23,8 @@ outputs (as the outputs' discrepancies are by default).
 leave-one-out: standardised errors, coverage of the 90 % bands), figure, hyperparameters
 and runs go to ``<output>/emulator/<k>/`` (``check.json``, ``check.png``,
 ``emulator.json``, ``runs.csv``) as a single-output study writes them to
-``<output>/emulator/``.  Sequential design rounds are for single-output studies only.
+``<output>/emulator/``; the predicted posterior widening of the check is that of the
+output's own data alone (linearised).  Sequential design rounds are for single-output studies only.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from kohpymc.emulator.checking import check_emulator
 from kohpymc.emulator.design import DesignMethod, design_box, space_filling_design
 from kohpymc.emulator.gp import Emulator
 from kohpymc.emulator.runs import run_design
+from kohpymc.emulator.sequential import fit_emulator
 from kohpymc.emulator.study import (
     EmulatorSettings,
     warn_if_extrapolating,
@@ -93,7 +95,7 @@ def emulate_outputs(
     seed: int = 0,
     workers: int = 1,
     scheduler: Any = None,
-    log_output: bool = False,
+    log_output: bool | Literal["auto"] = "auto",
 ) -> dict[str, Emulator]:
     """One design, one simulator run per point for every output, one emulator per output.
 
@@ -104,7 +106,8 @@ def emulate_outputs(
     data : MultiOutputData
         Calibration data (their input ranges, over all outputs, bound the design).
     runs, design, kernel, bounds, cache, seed, workers, scheduler, log_output :
-        As for :func:`kohpymc.emulator.emulate` (``log_output`` applies to every output).
+        As for :func:`kohpymc.emulator.emulate`; with ``log_output="auto"`` each
+        output's scale is chosen for that output (:func:`kohpymc.emulator.fit_emulator`).
 
     Returns
     -------
@@ -121,13 +124,17 @@ def emulate_outputs(
     box = output_design_box(physics, data, bounds=bounds)
     points = space_filling_design(box, runs, method=design, seed=seed)
     done = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
-    return {k: _fitted(done.output(k), physics.output(k), box, kernel, seed, log_output)
-            for k in physics.outputs}  # fmt: skip
-
-
-def _fitted(runs, physics, box, kernel, seed, log_output) -> Emulator:  # noqa: ANN001
-    """One output's emulator on the shared design box."""
-    return Emulator(runs, physics, box=box, kernel=kernel, seed=seed, log_output=log_output)
+    return {
+        k: fit_emulator(
+            done.output(k),
+            physics.output(k),
+            box=box,
+            kernel=kernel,
+            seed=seed,
+            log_output=log_output,
+        )
+        for k in physics.outputs
+    }
 
 
 def emulated_outputs(
@@ -227,7 +234,8 @@ def study_outputs_physics(
     for name, emulator in emulators.items():
         part = folder / name
         part.mkdir(exist_ok=True)
-        write_check(part, check_emulator(emulator))
+        data = calibration[name] if name in calibration.outputs else None
+        write_check(part, check_emulator(emulator, data=data))
         write_emulator(part, emulator)
         if validation is not None and name in validation.outputs:
             warn_if_extrapolating(emulator, validation[name], "validation")

@@ -173,7 +173,7 @@ class MultiOutputPhysics:
         >>> sorted(out), round(float(out["u"][0]), 6)
         (['strain', 'u'], 600.0)
         """
-        if not self._one_function():
+        if self.function is None or not self._one_function():
             return {k: m.evaluate(inputs, params) for k, m in self.models.items()}
         once = _Once(self.function)
         return {k: _reading(m, once, k).evaluate(inputs, params) for k, m in self.models.items()}

@@ -231,13 +231,39 @@ def _calls(tmp_path):
 
 
 @pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
+def test_a_studys_emulators_are_rebuilt_from_cached_runs_without_a_simulator_call(tmp_path):
+    """What a resumed study does before sampling (the CLI's step), without sampling:
+    the second build reads all 25 runs from the cache, calls the simulator 0 times and
+    refits emulators with the same fingerprint (so the formulations' files are reused)."""
+    from kohpymc.emulator.study import EmulatorSettings
+    from kohpymc.fingerprint import physics_fingerprint
+    from kohpymc.multi_output.emulator import study_outputs_physics
+
+    counted = _Counted()
+    settings = EmulatorSettings(runs=25, log_output=False)
+    first = study_outputs_physics(settings, _physics(counted), _data(), tmp_path)
+    assert counted.calls == 25
+    again = study_outputs_physics(settings, _physics(counted), _data(), tmp_path)
+    assert counted.calls == 25  # nothing simulated
+    for k in ("level", "rate"):
+        assert physics_fingerprint(again.output(k)) == physics_fingerprint(first.output(k))
+        check = json.loads((tmp_path / "emulator" / k / "check.json").read_text())
+        assert check["runs"] == 25 and 0.0 <= check["coverage"] <= 1.0
+    assert json.loads((tmp_path / "emulator" / "settings.json").read_text())["runs"] == 25
+    with pytest.raises(ValueError, match="sequential"):
+        study_outputs_physics(EmulatorSettings(sequential=1), _physics(), _data(), tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
 def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_runs(
     tmp_path, capsys
 ):
     """The first run simulates the 30 design points once each (both outputs from one
     call) besides the checks a dry run makes (each output at the prior centre, each
     formulation built); the second simulates nothing, refits the same emulators and
-    reuses the formulation's posterior."""
+    reuses the formulation's posterior.  Slow: 48 s with a warm compile cache at load 9,
+    165 s cold (two studies, each compiling its models)."""
     from kohpymc.cli import main
 
     path = _study(tmp_path)

@@ -29,7 +29,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from kohpymc.warning_filters import quiet_command_line
 
@@ -152,6 +152,33 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
     return physics
 
 
+def _emulated_outputs(spec: Any, execution: dict, out: Path) -> Any:
+    """A multi-output study with its physics replaced by one emulator per output."""
+    from dataclasses import replace
+
+    from kohpymc.emulator import EmulatedPhysics
+    from kohpymc.multi_output.emulator import study_outputs_physics
+
+    physics = study_outputs_physics(
+        spec.emulator,
+        spec.physics,
+        spec.calibration,
+        out,
+        workers=execution.get("workers", 1),
+        scheduler=execution.get("scheduler"),
+        validation=spec.validation,
+    )
+    emulators = {k: cast(EmulatedPhysics, physics.output(k)).emulator for k in physics.outputs}
+    runs = next(iter(emulators.values())).runs
+    print(
+        f"emulator: {len(runs.points)} runs ({runs.simulated} simulated, {runs.cached} from "
+        f"{out}/emulator/runs/), one GP per output (checks in {out}/emulator/<output>/)"
+    )
+    for name, emulator in emulators.items():
+        print(f"  {name}: {emulator!r}")
+    return replace(spec, physics=physics)
+
+
 def _emulator_note(spec: Any, what: str) -> None:
     """Say that ``[emulator]`` is for ``kohpymc study``: ``check``/``discover`` run the physics."""
     if spec.emulator is not None:
@@ -206,12 +233,20 @@ def _multi_output_study(args: argparse.Namespace) -> int:
             f"dry run: {spec.source} is a multi-output study (outputs {outputs}; "
             f"parameters {', '.join(spec.physics.parameter_names)}); formulations "
             f"{', '.join(spec.formulations)} (each builds on the calibration data)\n"
-            f"would write to {out}; nothing sampled, nothing written"
+            + (
+                f"[emulator]: {spec.emulator.runs} simulator runs (each giving every output), "
+                "one GP emulator per output\n"
+                if spec.emulator is not None
+                else ""
+            )
+            + f"would write to {out}; nothing sampled, nothing written"
         )
         return 0
     print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")
     display = task_display(sys.stdout, quiet=args.quiet)
     try:
+        if spec.emulator is not None:
+            spec = _emulated_outputs(spec, execution, out)
         result = run_multi_output_study(
             spec,
             out_dir=out,
@@ -384,6 +419,7 @@ def _multi_output_discover(args: argparse.Namespace) -> int:
         )
     except StudyConfigError as err:
         return _bad_input(err)
+    _emulator_note(spec, "discover")
     options = _discovery_options(args, spec.sampling)
     if args.dry_run:
         print(

@@ -585,15 +585,12 @@ def test_study_file_without_formulations_runs_the_single_output_defaults(tmp_pat
 
 @pytest.mark.parametrize(
     ("extra", "key"),
-    [
-        ("[emulator]\nruns = 20\n", r"\[emulator\]"),
-        ('[check]\nformulation = "M0"\n', r"\[check\]"),
-    ],
+    [('[check]\nformulation = "M0"\n', r"\[check\]")],
 )
 def test_study_file_single_output_sections_are_named_not_ignored(tmp_path, extra, key):
-    """[emulator] and [check] were read and silently ignored (the simulator was then
-    called directly); now they stop the file with its key named ([execution] and
-    [output] now work: tests/test_multi_output_study.py)."""
+    """[check] was read and silently ignored; now it stops the file with its key named
+    ([execution] and [output] now work: tests/test_multi_output_study.py; [emulator]:
+    tests/test_multi_output_emulator.py)."""
     from kohpymc import StudyConfigError
     from kohpymc.multi_output import load_multi_output_study
 

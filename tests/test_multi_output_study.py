@@ -319,3 +319,36 @@ def test_units_per_output_reach_discovery(tmp_path, monkeypatch):
         path.write_text(text.replace("[validation]", f"[data.units]\n{bad}\n[validation]"))
         with pytest.raises(StudyConfigError, match=r"study\.toml: " + key):
             load_multi_output_study(path)
+
+
+# ------------------------------------------------------------------ weights and mixture
+def test_reliability_weights_come_from_the_combined_rows_and_make_the_mixture(tmp_path):
+    """Each formulation's weight is its combined μ_r (every validation row of every
+    output counted once, recomputed here from the per-row reliabilities) over their sum;
+    the mixture of E takes that share of its draws from each formulation and is written
+    to combined.nc with the weights in study.json and the table."""
+    spec = load_multi_output_study(_write(tmp_path))
+    out = tmp_path / "out"
+    result = run_multi_output_study(spec, out_dir=out, figures=False, **SMALL)
+    combined_mu = {}
+    for label, rel in result.reliabilities.items():
+        rows = np.concatenate([rel.pointwise[k].values.ravel() for k in ("u", "strain")])
+        combined_mu[label] = rows.sum() / rows.size
+    total = sum(combined_mu.values())
+    assert total > 0
+    for label, mu in combined_mu.items():
+        assert result.weights[label] == pytest.approx(mu / total, rel=1e-12)
+        assert result.table.loc[(label, "combined"), "weight"] == result.weights[label]
+        assert np.isnan(result.table.loc[(label, "u"), "weight"])
+    origin = result.combined.posterior["formulation"].values
+    n = origin.size
+    for label, w in result.weights.items():
+        assert abs(np.mean(origin == label) - w) <= 1.0 / n
+        own = result.combined.posterior["E"].values.ravel()[origin == label]
+        assert np.isin(own, result.calibrations[label].posterior["E"].values).all()
+    manifest = json.loads((out / "study.json").read_text())
+    assert manifest["weights"] == pytest.approx(result.weights)
+    saved = az.from_netcdf(str(out / "combined.nc"))
+    np.testing.assert_array_equal(
+        saved.posterior["E"].values, result.combined.posterior["E"].values
+    )

@@ -9,6 +9,11 @@ named by a hash of (input point, simulator identity), atomically; a rerun, or a 
 an extended design, reads those files and only runs the points not there yet.  A
 failed run is recorded (with its error) and skipped; it is not retried unless
 ``retry_failed=True``.
+
+A simulator with several outputs (a :class:`~kohpymc.multi_output.MultiOutputPhysics`,
+whose ``evaluate`` returns ``{output: array}``) runs once per task for all of them; each
+cached point keeps every output, and :meth:`SimulatorRuns.output` gives one output's
+runs as single-output runs (to fit one emulator per output).
 """
 
 from __future__ import annotations
@@ -17,9 +22,9 @@ import hashlib
 import inspect
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -29,10 +34,13 @@ from kohpymc.physics import PhysicsModel
 from kohpymc.progress import TaskDisplay
 from kohpymc.study_files import write_atomic
 
+if TYPE_CHECKING:
+    from kohpymc.multi_output.physics import MultiOutputPhysics
+
 __all__ = ["SimulatorRuns", "point_key", "run_design", "simulator_identity"]
 
 
-def simulator_identity(physics: PhysicsModel, label: str | None = None) -> str:
+def simulator_identity(physics: PhysicsModel | MultiOutputPhysics, label: str | None = None) -> str:
     """A string naming the simulator for cache keys: its name and its source code.
 
     ``label`` (e.g. a version of an external solver) replaces the source when given.
@@ -47,7 +55,8 @@ def simulator_identity(physics: PhysicsModel, label: str | None = None) -> str:
         return f"{physics.name}:{label}"
     function = physics.function
     try:
-        source = inspect.getsource(function)
+        # None (a model made of per-output models) raises TypeError, handled below
+        source = inspect.getsource(function)  # type: ignore[arg-type]
     except (OSError, TypeError):
         source = getattr(function, "__qualname__", repr(function))
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
@@ -76,7 +85,8 @@ class SimulatorRuns:
     Attributes
     ----------
     points : pandas.DataFrame
-        Successful runs: the design's columns plus ``"output"``.
+        Successful runs: the design's columns plus ``"output"`` (or, for a simulator
+        with several outputs, one column per output).
     failed : pandas.DataFrame
         Failed runs: the design's columns plus ``"error"``.
     inputs, parameters : tuple of str
@@ -87,6 +97,8 @@ class SimulatorRuns:
         Points read from the cache.
     seconds : float
         Wall time of the simulator tasks run in this call (summed over tasks).
+    outputs : tuple of str
+        The output columns of a simulator with several outputs (empty: one output).
 
     Examples
     --------
@@ -105,6 +117,24 @@ class SimulatorRuns:
     simulated: int = 0
     cached: int = 0
     seconds: float = 0.0
+    outputs: tuple[str, ...] = ()
+
+    def output(self, name: str) -> SimulatorRuns:
+        """One output of a simulator with several outputs, as single-output runs.
+
+        Examples
+        --------
+        >>> from kohpymc.examples import beam_multi_output as bm
+        >>> design = pd.DataFrame({"x": [250.0], "P": [6.0], "E": [200.0]})
+        >>> runs = run_design(bm.physics_model(), design)
+        >>> runs.output("u").y.round(6).tolist(), runs.simulated
+        ([600.0], 1)
+        """
+        if name not in self.outputs:
+            raise KeyError(f"no output {name!r} in these runs; outputs are {list(self.outputs)}")
+        columns = list(self.inputs + self.parameters)
+        points = self.points[[*columns, name]].rename(columns={name: "output"})
+        return replace(self, points=points.reset_index(drop=True), outputs=())
 
     def failure_summary(self) -> str:
         """``"3 of 40 simulator runs failed (first: ...)"``, or ``""`` when none failed.
@@ -130,14 +160,21 @@ class SimulatorRuns:
 
     @property
     def y(self) -> np.ndarray:
-        """``(n,)`` simulator outputs of the successful runs."""
+        """``(n,)`` simulator outputs of the successful runs (one output only)."""
+        if self.outputs:
+            raise ValueError(
+                f"these runs have outputs {list(self.outputs)}: take one with .output(name)"
+            )
         return self.points["output"].to_numpy(float)
 
 
 def _simulate(key: str, item: tuple[PhysicsModel, dict[str, list[float]], dict[str, float]]):
     """One task: the simulator at one θ over a set of input rows."""
     physics, inputs, params = item
-    return np.asarray(physics.evaluate(inputs, params), dtype=float).tolist()
+    value = physics.evaluate(inputs, params)
+    if isinstance(value, Mapping):  # several outputs from one run
+        return {k: np.asarray(v, dtype=float).tolist() for k, v in value.items()}
+    return np.asarray(value, dtype=float).tolist()
 
 
 def _write_record(path: Path, record: dict[str, Any]) -> None:
@@ -157,7 +194,7 @@ def _read_cache(path: Path) -> dict[str, Any] | None:
 
 
 def run_design(
-    physics: PhysicsModel,
+    physics: PhysicsModel | MultiOutputPhysics,
     design: pd.DataFrame,
     *,
     cache: str | Path | None = None,
@@ -171,8 +208,9 @@ def run_design(
 
     Parameters
     ----------
-    physics : PhysicsModel
-        The simulator: ``physics.evaluate(inputs, params)``.
+    physics : PhysicsModel or MultiOutputPhysics
+        The simulator: ``physics.evaluate(inputs, params)`` (one array, or a mapping
+        output -> array for several outputs).
     design : pandas.DataFrame
         One column per physics input and per parameter (e.g. from
         :func:`~kohpymc.emulator.design.space_filling_design`).
@@ -202,27 +240,33 @@ def run_design(
     """
     inputs, params = tuple(physics.inputs), tuple(physics.parameters)
     columns = list(inputs + params)
+    outputs = tuple(getattr(physics, "outputs", ()))  # several outputs: MultiOutputPhysics
     values = _design_values(physics, design, columns)
     simulator = simulator_identity(physics, simulator_label)
     folder = _cache_folder(cache)
     records, order, todo, cached = _plan_points(
-        values, columns, params, simulator, folder, retry_failed
+        values, columns, params, simulator, folder, retry_failed, outputs
     )
     items = _theta_tasks(physics, todo, records, inputs, params)
-    simulated, seconds = _run_theta_tasks(items, records, folder, workers, scheduler, progress)
-    ok, bad = _split_records(records, order, columns)
+    simulated, seconds = _run_theta_tasks(
+        items, records, folder, workers, scheduler, progress, outputs
+    )
+    ok, bad = _split_records(records, order, columns, outputs)
     return SimulatorRuns(
-        points=pd.DataFrame(ok, columns=[*columns, "output"]),
+        points=pd.DataFrame(ok, columns=[*columns, *(outputs or ("output",))]),
         failed=pd.DataFrame(bad, columns=[*columns, "error"]),
         inputs=inputs,
         parameters=params,
         simulated=simulated,
         cached=cached,
         seconds=seconds,
+        outputs=outputs,
     )
 
 
-def _design_values(physics: PhysicsModel, design: pd.DataFrame, columns: list[str]) -> np.ndarray:
+def _design_values(
+    physics: PhysicsModel | MultiOutputPhysics, design: pd.DataFrame, columns: list[str]
+) -> np.ndarray:
     """The design's ``columns`` as a finite float array (a missing column is a KeyError)."""
     missing = [k for k in columns if k not in design.columns]
     if missing:
@@ -251,11 +295,14 @@ def _plan_points(
     simulator: str,
     folder: Path | None,
     retry_failed: bool,
+    outputs: tuple[str, ...] = (),
 ) -> tuple[dict[str, dict[str, Any]], list[str], dict[tuple[float, ...], list[str]], int]:
     """Records of the design's points: cached ones read, the others grouped by θ to run.
 
-    Returns the records (key -> ``{"point", "output", "error", ...}``), the key of every
-    design row in order, the keys to run per θ, and the number of points read from cache.
+    Returns the records (key -> ``{"point", "output", "error", ...}``; ``"outputs"``,
+    a mapping, for several outputs), the key of every design row in order, the keys to
+    run per θ, and the number of points read from cache.  A cached point without one of
+    ``outputs`` runs again.
     """
     records: dict[str, dict[str, Any]] = {}  # key -> {"point", "output", "error"}
     order: list[str] = []
@@ -268,7 +315,7 @@ def _plan_points(
         if key in records or any(key in keys for keys in todo.values()):
             continue
         hit = None if folder is None else _read_cache(folder / f"{key}.json")
-        if hit is not None and (hit.get("error") is None or not retry_failed):
+        if hit is not None and _usable(hit, outputs, retry_failed):
             records[key] = hit
             cached += 1
             continue
@@ -278,8 +325,18 @@ def _plan_points(
     return records, order, todo, cached
 
 
+def _usable(hit: dict[str, Any], outputs: tuple[str, ...], retry_failed: bool) -> bool:
+    """Whether a cached record serves: a failure (unless retried) or every output wanted."""
+    if hit.get("error") is not None:
+        return not retry_failed
+    if not outputs:
+        return hit.get("output") is not None
+    values = hit.get("outputs")
+    return isinstance(values, dict) and all(k in values for k in outputs)
+
+
 def _theta_tasks(
-    physics: PhysicsModel,
+    physics: PhysicsModel | MultiOutputPhysics,
     todo: dict[tuple[float, ...], list[str]],
     records: dict[str, dict[str, Any]],
     inputs: tuple[str, ...],
@@ -301,6 +358,7 @@ def _run_theta_tasks(
     workers: int,
     scheduler: Any,
     progress: TaskDisplay | None,
+    outputs: tuple[str, ...] = (),
 ) -> tuple[int, float]:
     """Run the tasks, filling their points' records (and cache files); (points run, seconds)."""
     tasks = {name: item[:3] for name, item in items.items()}
@@ -314,7 +372,10 @@ def _run_theta_tasks(
         simulated += len(keys)
         for j, key in enumerate(keys):
             rec = records[key]
-            if outcome.error is None:
+            if outcome.error is None and outputs:
+                values = {k: float(outcome.value[k][j]) for k in outputs}
+                rec["outputs"], rec["error"] = values, None
+            elif outcome.error is None:
                 rec["output"], rec["error"] = float(outcome.value[j]), None
             else:
                 rec["output"], rec["error"] = None, outcome.error
@@ -324,14 +385,19 @@ def _run_theta_tasks(
 
 
 def _split_records(
-    records: dict[str, dict[str, Any]], order: list[str], columns: list[str]
+    records: dict[str, dict[str, Any]],
+    order: list[str],
+    columns: list[str],
+    outputs: tuple[str, ...] = (),
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Rows of the successful and of the failed points, in design order (once each)."""
     ok, bad = [], []
     for key in dict.fromkeys(order):
         rec = records[key]
         row = {k: rec["point"][k] for k in columns}
-        if rec.get("error") is None and rec.get("output") is not None:
+        if rec.get("error") is None and outputs:
+            ok.append({**row, **{k: float(rec["outputs"][k]) for k in outputs}})
+        elif rec.get("error") is None and rec.get("output") is not None:
             ok.append({**row, "output": float(rec["output"])})
         else:
             bad.append({**row, "error": str(rec.get("error"))})

@@ -55,7 +55,14 @@ from kohpymc.physics import PhysicsModel
 from kohpymc.study_files import write_atomic
 from kohpymc.warning_filters import warn_user
 
-__all__ = ["EmulatorSettings", "study_physics"]
+__all__ = [
+    "EmulatorSettings",
+    "study_physics",
+    "warn_if_extrapolating",
+    "write_check",
+    "write_emulator",
+    "write_settings",
+]
 
 #: the sequential rounds' key and final design (a rerun with the same key skips them)
 ROUNDS_RECORD = "rounds.json"
@@ -196,16 +203,24 @@ def study_physics(
                 scheduler=scheduler,
             )
             _write_rounds_record(folder, key, emulator)
-    settings_text = json.dumps(asdict(settings), indent=1)
-    write_atomic(folder / "settings.json", lambda tmp: tmp.write_text(settings_text))
-    _write_emulator(folder, emulator)
+    write_settings(folder, settings)
+    write_emulator(folder, emulator)
     if validation is not None:
-        _warn_if_extrapolating(emulator, validation, "validation")
+        warn_if_extrapolating(emulator, validation, "validation")
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
 
 
-def _warn_if_extrapolating(emulator: Emulator, data: CalibrationData, what: str) -> None:
-    """``EmulatorWarning`` naming the inputs of ``data`` beyond the design box (> 1 %)."""
+def warn_if_extrapolating(emulator: Emulator, data: CalibrationData, what: str) -> None:
+    """``EmulatorWarning`` naming the inputs of ``data`` beyond the design box (> 1 %).
+
+    ``what`` names the data in the message (``"validation"``).
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> warn_if_extrapolating(emulate(beam.physics_model(), data, runs=10), data, "calibration")
+    """
     outside = []
     for j, name in enumerate(emulator.columns[: emulator.n_inputs]):
         values = np.asarray(data.inputs[name], dtype=float)
@@ -248,7 +263,7 @@ def _first_emulator(
         workers=workers,
         scheduler=scheduler,
     )
-    _write_check(folder, check_emulator(emulator, data=calibration))
+    write_check(folder, check_emulator(emulator, data=calibration))
     return emulator
 
 
@@ -361,7 +376,7 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    _write_check(folder, check_emulator(result.emulator, data=calibration))
+    write_check(folder, check_emulator(result.emulator, data=calibration))
     return result.emulator
 
 
@@ -374,8 +389,34 @@ def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _write_emulator(folder: Path, emulator: Any) -> None:
-    """``emulator.json`` (hyperparameters) and ``runs.csv`` (every run, failures too)."""
+def write_settings(folder: Path, settings: EmulatorSettings) -> None:
+    """``settings.json``: the ``[emulator]`` table the emulator was built with.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> write_settings(folder, EmulatorSettings(runs=30))
+    >>> json.loads((folder / "settings.json").read_text())["runs"]
+    30
+    """
+    text = json.dumps(asdict(settings), indent=1)
+    write_atomic(folder / "settings.json", lambda tmp: tmp.write_text(text))
+
+
+def write_emulator(folder: Path, emulator: Any) -> None:
+    """``emulator.json`` (hyperparameters) and ``runs.csv`` (every run, failures too).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kohpymc.examples import beam
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> write_emulator(folder, emulate(beam.physics_model(), beam.generate_data(seed=1),
+    ...                                runs=10))
+    >>> sorted(p.name for p in folder.iterdir())
+    ['emulator.json', 'runs.csv']
+    """
     h = emulator.hyper
     record = {
         "emulator": repr(emulator),
@@ -397,7 +438,19 @@ def _write_emulator(folder: Path, emulator: Any) -> None:
     write_atomic(folder / "runs.csv", lambda tmp: table.to_csv(tmp, index=False))
 
 
-def _write_check(folder: Path, check: Any) -> None:
+def write_check(folder: Path, check: Any) -> None:
+    """``check.json`` (the scores of :func:`check_emulator`) and ``check.png`` (its figure).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kohpymc.examples import beam
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> em = emulate(beam.physics_model(), beam.generate_data(seed=1), runs=10)
+    >>> write_check(folder, check_emulator(em, warn=False))
+    >>> sorted(p.name for p in folder.iterdir())
+    ['check.json', 'check.png']
+    """
     text = json.dumps(check.to_dict(), indent=1)
 
     def write(tmp: Path) -> None:

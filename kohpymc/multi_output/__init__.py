@@ -11,6 +11,8 @@
 * :func:`output_loo`: LOO comparison per output and combined (pointwise values:
   :func:`~kohpymc.multi_output.loo.add_pointwise_log_likelihood`);
 * :func:`discover_outputs`: :func:`kohpymc.discover` on each output;
+* :func:`emulate_outputs` / :func:`emulated_outputs`: an expensive simulator through one
+  GP emulator per output (one design, every run giving all outputs);
 * :func:`load_multi_output_study` / :func:`run_multi_output_study`: the same from TOML.
 """
 
@@ -24,6 +26,7 @@ from kohpymc.multi_output.config import MultiOutputStudySpec, load_multi_output_
 from kohpymc.multi_output.coregionalized import Coregionalized
 from kohpymc.multi_output.data import MultiOutputData
 from kohpymc.multi_output.discovery import discover_outputs
+from kohpymc.multi_output.emulator import emulate_outputs, emulated_outputs
 from kohpymc.multi_output.loo import output_loo
 from kohpymc.multi_output.model import MultiOutputModel, compose_multi_output_model
 from kohpymc.multi_output.physics import MultiOutputPhysics
@@ -53,4 +56,6 @@ __all__ = [
     "MultiOutputStudyResult",
     "discover_outputs",
     "output_loo",
+    "emulate_outputs",
+    "emulated_outputs",
 ]

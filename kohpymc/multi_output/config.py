@@ -34,6 +34,12 @@ differences::
     ICM = { type = "coregionalized", inputs = ["x"], rank = 1 }   # joint multi-output GP
     # kernel = "Matern52" (or "Matern32", "Exponential"; default "ExpQuad") in that table
 
+    [emulator]                          # optional: an expensive simulator emulated, one
+    runs = 200                          # design, every run gives all outputs, one GP per
+    # design = "maximin-lhs"            # output (kohpymc.multi_output.emulator); keys as
+                                        # for one output except sequential (must be 0), and
+                                        # no coregionalized formulation beside it
+
     [execution]                         # as for one output: formulations as Dask tasks
     workers = 2                         # (or scheduler = "tcp://HOST:PORT")
     [output]
@@ -54,6 +60,7 @@ import pandas as pd
 
 from kohpymc.checks import check_positive_number, check_tolerance
 from kohpymc.config import (
+    _emulator_section,
     _err,
     _execution_section,
     _formulation,
@@ -104,6 +111,9 @@ class MultiOutputStudySpec:
     units : dict or None
         ``[data.units]`` per output: output -> {input: unit, "output": unit}, read by
         ``kohpymc discover`` (:func:`~kohpymc.multi_output.discover_outputs`).
+    emulator : EmulatorSettings or None
+        The ``[emulator]`` table: calibrate through one GP emulator per output
+        (:func:`~kohpymc.multi_output.emulator.study_outputs_physics`).
     """
 
     source: Path
@@ -117,6 +127,7 @@ class MultiOutputStudySpec:
     execution: dict[str, Any] = field(default_factory=dict)
     out_dir: Path = Path("study_results")
     units: dict[str, dict[str, str]] | None = None
+    emulator: Any = None
 
 
 def _outputs(path: Path, value: Any, inputs: list[str]) -> list[str]:
@@ -243,10 +254,7 @@ def _multi_formulation(path: Path, label: str, value: Any, inputs, outputs, time
 
 #: keys of a single-output study file that a multi-output study does not run (each was
 #: read and silently ignored: an [emulator] section left the slow simulator called directly)
-_SINGLE_OUTPUT_ONLY = (
-    ("emulator", None, "calibrate through an emulator"),
-    ("check", None, "run `kohpymc check`"),
-)
+_SINGLE_OUTPUT_ONLY = (("check", None, "run `kohpymc check`"),)
 
 
 def _unsupported(path: Path, doc: dict) -> None:
@@ -348,4 +356,27 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
         path, physics, calibration, validation, tolerance, formulations, sampling,
         weights, execution, _output_dir(path, base, doc),
         _per_output_units(path, data.get("units"), inputs, outputs),
+        _multi_emulator_section(path, doc, formulations),
     )  # fmt: skip
+
+
+def _multi_emulator_section(path: Path, doc: dict, formulations: dict[str, Any]) -> Any:
+    """``[emulator]`` as for one output, without sequential rounds or a joint GP beside it."""
+    settings = _emulator_section(path, doc, formulations)
+    if settings is None:
+        return None
+    if settings.sequential > 0:
+        raise _err(
+            path, "emulator.sequential",
+            f"is {settings.sequential}: sequential design rounds are for single-output "
+            "studies; a multi-output emulator takes its runs from one design (sequential = 0, "
+            "more runs = N instead)",
+        )  # fmt: skip
+    for label, formulation in formulations.items():
+        if isinstance(formulation, Coregionalized):
+            raise _err(
+                path, f"formulations.{label}",
+                "a coregionalized formulation does not carry the emulators' variance into "
+                "its joint likelihood; with [emulator] use per-output formulations",
+            )  # fmt: skip
+    return settings

@@ -9,6 +9,7 @@ the identifiability checks) works per output unchanged.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
 
@@ -38,6 +39,29 @@ class _Select:
                 f"the physics function returned outputs {sorted(result)}, not {self.output!r}"
             )
         return result[self.output]
+
+
+class _Once:
+    """``function(inputs, params)`` called on the first call only; later calls reuse it.
+
+    Every output of one evaluation reads the same result (one simulator run).
+    """
+
+    def __init__(self, function: Callable[..., Any]) -> None:
+        self.function = function
+        self.result: Any = None
+
+    def __call__(self, inputs: Any, params: Any) -> Any:
+        if self.result is None:
+            self.result = self.function(inputs, params)
+        return self.result
+
+
+def _reading(model: PhysicsModel, once: _Once, output: str) -> PhysicsModel:
+    """A copy of an output's model whose function reads ``output`` from ``once``."""
+    reader = copy.copy(model)
+    reader.function = _Select(once, output)
+    return reader
 
 
 class MultiOutputPhysics:
@@ -91,7 +115,8 @@ class MultiOutputPhysics:
             raise ValueError("a multi-output physics model needs at least one output name")
         if len(set(self.outputs)) != len(self.outputs):
             raise ValueError(f"output names repeat: {list(self.outputs)}")
-        self.function = function
+        #: the user function (``None`` for a model made of per-output models)
+        self.function: Callable[..., Any] | None = function
         self.name = name or getattr(function, "__name__", "physics")
         self.models: dict[str, PhysicsModel] = {}
         for out in self.outputs:
@@ -136,8 +161,67 @@ class MultiOutputPhysics:
             raise KeyError(f"no output {name!r}; outputs are {list(self.outputs)}") from None
 
     def evaluate(self, inputs: Mapping[str, Any], params: Any) -> dict[str, Any]:
-        """Every output at the rows ``inputs``: ``{output: array}`` (checked)."""
-        return {k: m.evaluate(inputs, params) for k, m in self.models.items()}
+        """Every output at the rows ``inputs``: ``{output: array}`` (checked).
+
+        A numpy function runs once for all outputs (an expensive simulator is not run
+        once per output); each output is checked as its own model checks it.
+
+        Examples
+        --------
+        >>> from kohpymc.examples import beam_multi_output as bm
+        >>> out = bm.physics_model().evaluate({"x": [250.0], "P": [6.0]}, {"E": 200.0})
+        >>> sorted(out), round(float(out["u"][0]), 6)
+        (['strain', 'u'], 600.0)
+        """
+        if self.function is None or not self._one_function():
+            return {k: m.evaluate(inputs, params) for k, m in self.models.items()}
+        once = _Once(self.function)
+        return {k: _reading(m, once, k).evaluate(inputs, params) for k, m in self.models.items()}
+
+    def _one_function(self) -> bool:
+        """Whether every output is read from one numpy function (then it can run once).
+
+        Not for a model made of per-output models (an emulator each), nor for one whose
+        outputs were replaced (discovery embeds an output's model with added effects).
+        """
+        return self.function is not None and all(
+            m.backend == "numpy"
+            and isinstance(m.function, _Select)
+            and m.function.function is self.function
+            for m in self.models.values()
+        )
+
+    @classmethod
+    def from_models(cls, models: Mapping[str, PhysicsModel], *, name: str) -> MultiOutputPhysics:
+        """Single-output models sharing θ and inputs as one model (e.g. an emulator each).
+
+        Examples
+        --------
+        >>> from kohpymc.examples import beam_multi_output as bm
+        >>> physics = bm.physics_model()
+        >>> same = MultiOutputPhysics.from_models(physics.models, name="copy")
+        >>> same.outputs, same.parameter_names
+        (('u', 'strain'), ('E',))
+        """
+        if not models:
+            raise ValueError("from_models needs at least one output model")
+        first = next(iter(models.values()))
+        shape = (tuple(first.parameters), tuple(first.inputs))
+        for key, model in models.items():
+            if (tuple(model.parameters), tuple(model.inputs)) != shape:
+                raise ValueError(
+                    f"output {key!r} has parameters {list(model.parameters)} and inputs "
+                    f"{list(model.inputs)}; the first output has {list(first.parameters)} "
+                    f"and {list(first.inputs)}"
+                )
+        new = object.__new__(cls)
+        new.outputs = tuple(str(k) for k in models)
+        new.function = None
+        new.name = name
+        new.models = dict(models)
+        new.parameters = first.parameters
+        new.inputs = first.inputs
+        return new
 
     def select(self, outputs: Sequence[str]) -> MultiOutputPhysics:
         """The same model restricted to some outputs (e.g. one output alone)."""

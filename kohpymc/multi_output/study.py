@@ -15,6 +15,13 @@ The formulations run in this process one after the other, or as tasks on a Dask
 cluster exactly as a single-output study's do (``workers``, ``scheduler`` or the file's
 ``[execution]``; :func:`kohpymc.execution.run_tasks`): a worker calibrates and predicts,
 the draws come back, and this process rebuilds the model, writes the file and scores it.
+
+**Reliability-weighted averaging** (paper Eqs. 23–24, as for one output): each finished
+formulation's weight is its combined row's μ_r over the sum of them
+(:func:`kohpymc.combination.reliability_weights`), and the weighted mixture of the
+posteriors of θ (:func:`kohpymc.combination.combine_posteriors`) is
+:attr:`MultiOutputStudyResult.combined`, written to ``combined.nc``; the weights are the
+table's ``weight`` column (on the combined rows) and ``weights`` in ``study.json``.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import arviz as az
 import pandas as pd
 
 from kohpymc.checks import check_execution
+from kohpymc.combination import combine_posteriors, reliability_weights
 from kohpymc.execution import run_tasks, runs_remotely
 from kohpymc.fingerprint import (
     data_fingerprint,
@@ -46,7 +54,7 @@ from kohpymc.multi_output.calibration import (
 from kohpymc.multi_output.config import MultiOutputStudySpec
 from kohpymc.multi_output.loo import output_loo
 from kohpymc.multi_output.model import compose_multi_output_model
-from kohpymc.multi_output.reliability import OutputReliability, output_reliability
+from kohpymc.multi_output.reliability import COMBINED, OutputReliability, output_reliability
 from kohpymc.progress import LineDisplay, TaskDisplay
 from kohpymc.study import _where
 from kohpymc.study_files import (
@@ -79,6 +87,12 @@ class MultiOutputStudyResult:
         LOO comparison on the calibration data per output and combined
         (:func:`~kohpymc.multi_output.loo.output_loo`; with two or more finished
         formulations), its columns also in :attr:`table`.
+    weights : dict of str to float
+        Reliability weights (Eq. 23) from each formulation's combined μ_r (empty when
+        every μ_r is 0).
+    combined : arviz.InferenceData or None
+        The weighted mixture of the posteriors of θ (Eq. 24), with a ``formulation``
+        coordinate on ``draw``.
     """
 
     calibrations: dict[str, MultiOutputCalibration]
@@ -87,10 +101,16 @@ class MultiOutputStudyResult:
     reused: list[str] = field(default_factory=list)
     predictions: dict[str, dict[str, az.InferenceData]] = field(default_factory=dict)
     loo: pd.DataFrame | None = None
+    weights: dict[str, float] = field(default_factory=dict)
+    combined: az.InferenceData | None = None
 
     @property
     def table(self) -> pd.DataFrame:
-        """μ_r per (formulation, output) and combined, θ means/sds and sampler problems."""
+        """μ_r per (formulation, output) and combined, θ means/sds and sampler problems.
+
+        With weights, a ``weight`` column holds each formulation's reliability weight on
+        its combined row.
+        """
         frames = []
         for label, rel in self.reliabilities.items():
             frame = rel.table[["n", "tolerance", "mu_r", "mu_r_mcse"]].copy()
@@ -103,6 +123,11 @@ class MultiOutputStudyResult:
         if not frames:
             raise ValueError(f"no formulation finished; failures: {self.failures}")
         table = pd.concat(frames).set_index(["formulation", "output"])
+        if self.weights:
+            rows = [(label, COMBINED) for label in self.weights]
+            table["weight"] = pd.Series(
+                list(self.weights.values()), index=pd.MultiIndex.from_tuples(rows)
+            )
         return table if self.loo is None else table.join(self.loo)
 
 
@@ -183,9 +208,28 @@ def run_multi_output_study(
     display.close()
     result = _in_study_order(result, list(spec.formulations))
     result.loo = _loo_comparison(result, spec, say)
+    result.weights, result.combined = _mixture(result, spec, job.seed)
     if folder is not None:
         _write_study_files(folder, result, spec, figures)
     return result
+
+
+def _mixture(
+    result: MultiOutputStudyResult, spec: MultiOutputStudySpec, seed: int | None
+) -> tuple[dict[str, float], az.InferenceData | None]:
+    """Weights from the combined rows' μ_r (Eq. 23) and the mixture of θ (Eq. 24)."""
+    mu_r = {
+        label: float(rel.table.loc[COMBINED, "mu_r"]) for label, rel in result.reliabilities.items()
+    }
+    if not mu_r or sum(mu_r.values()) <= 0:
+        return {}, None
+    weights = reliability_weights(mu_r)
+    idatas = {label: result.calibrations[label].idata for label in weights}
+    combined = combine_posteriors(
+        idatas, weights, var_names=list(spec.physics.parameter_names),
+        random_seed=derived_seed(seed, COMBINED, 2),
+    )  # fmt: skip
+    return weights, combined
 
 
 def _loo_comparison(
@@ -424,13 +468,19 @@ def _write_study_files(
     folder: StudyFolder, result: MultiOutputStudyResult, spec: MultiOutputStudySpec, figures: bool
 ) -> None:
     """The table and figures (when anything finished) and the manifest's final state."""
+    if result.combined is not None:
+        combined = result.combined
+        folder.write(f"{COMBINED}.nc", lambda path: combined.to_netcdf(str(path)))
     if result.reliabilities:
         write_table(folder, result.table)
         if figures:
             _write_figures(folder, result, spec)
     status = "failed" if not result.reliabilities else "done"
     loo = {} if result.loo is None else _loo_weights(result.loo)
-    folder.update(status=status, failures=result.failures, reused=result.reused, loo_weights=loo)
+    folder.update(
+        status=status, failures=result.failures, reused=result.reused, loo_weights=loo,
+        weights=result.weights,
+    )  # fmt: skip
 
 
 def _loo_weights(loo: pd.DataFrame) -> dict[str, dict[str, float]]:

@@ -171,3 +171,25 @@ def test_a_key_the_model_lacks_is_named_with_what_it_has(body, named):
     physics = PhysicsModel(body, {"k": Uniform(1, 2), "damping": Uniform(0, 1)}, inputs=["t"])
     with pytest.raises(PhysicsModelError, match=re.escape(named)):
         physics.evaluate({"t": np.array([0.1, 0.2])}, {"k": 1.5, "damping": 0.5})
+
+
+def test_a_function_changing_its_inputs_in_place_changes_neither_the_data_nor_later_calls():
+    """``v *= 1000`` inside the function (a unit conversion in place) compounded at every
+    call and rewrote the data before; now each call gets its own copy."""
+
+    def in_place(inputs, params):
+        v = inputs["t"]
+        v *= 1000.0
+        return params["a"] * v
+
+    physics = PhysicsModel(in_place, PRIORS, inputs=["t", "x"])
+    data = {"t": T.copy(), "x": X.copy()}
+    first = physics.evaluate(data, THETA)
+    np.testing.assert_array_equal(physics.evaluate(data, THETA), first)
+    np.testing.assert_array_equal(first, THETA[0] * 1000.0 * T)
+    np.testing.assert_array_equal(data["t"], T)
+    f = pytensor.function(
+        [], physics.tensor(pt.as_tensor(THETA), pt.as_tensor(np.column_stack([T, X])))
+    )
+    np.testing.assert_array_equal(f(), first)
+    np.testing.assert_array_equal(f(), first)

@@ -48,7 +48,7 @@ def call_function(
     """
     model.n_calls += 1
     try:
-        out = model.function(dict(arrays), dict(params))
+        out = model.function(own_copies(arrays), dict(params))
     except Exception as err:
         raise PhysicsModelError(
             f"physics function {model.name!r} raised {type(err).__name__}: {err} "
@@ -63,6 +63,22 @@ def call_function(
             f"(one value per data row) at parameters {format_params(params)}"
         )
     return out
+
+
+def own_copies(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The input columns as fresh copies, for one call of a user's function.
+
+    A function that converts units in place (``v = inputs["v"]; v *= 1e-3``) would
+    otherwise change the data themselves, again at every call.
+
+    Examples
+    --------
+    >>> data = {"v": np.array([1.0, 2.0])}
+    >>> own_copies(data)["v"] *= 10
+    >>> data["v"]
+    array([1., 2.])
+    """
+    return {k: np.array(v, copy=True) for k, v in arrays.items()}
 
 
 def _real_values(model: PhysicsModel, out: Any, params: dict[str, float]) -> np.ndarray:
@@ -219,7 +235,7 @@ class NumpyBackend(Backend):
                 relative_step=model.fd_relative_step,
             )
         try:
-            jac: Any = model.jacobian(dict(arrays), dict(params))
+            jac: Any = model.jacobian(own_copies(arrays), dict(params))
         except Exception as err:
             raise PhysicsModelError(
                 f"jacobian of {model.name!r} raised {type(err).__name__}: {err} "

@@ -15,7 +15,7 @@ becomes ``Σ_g (n_g - 1)``, which reduces to ``n_1 (n_2 - 1)`` for a balanced de
 from __future__ import annotations
 
 import csv
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from os import PathLike
 from typing import Any
 
@@ -148,7 +148,7 @@ def row_words(rows: Sequence[int]) -> str:
     return f"data rows {data} (file lines {lines} under a header)"
 
 
-def _file_rows(values: Any, positions: Sequence[int]) -> list[int]:
+def _file_rows(values: Any, positions: Iterable[int]) -> list[int]:
     """The file's data-row positions of ``positions``: a pandas column keeps its rows' labels."""
     index = values.index if isinstance(values, pd.Series | pd.DataFrame) else None
     if index is None or isinstance(index, pd.RangeIndex) or index.dtype.kind not in "iu":

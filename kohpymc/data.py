@@ -15,7 +15,7 @@ becomes ``Σ_g (n_g - 1)``, which reduces to ``n_1 (n_2 - 1)`` for a balanced de
 from __future__ import annotations
 
 import csv
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from os import PathLike
 from typing import Any
 
@@ -26,6 +26,7 @@ __all__ = [
     "CalibrationData",
     "NoReplicatesError",
     "non_numeric_entry",
+    "row_words",
     "pooled_replicate_sd",
     "read_csv_table",
 ]
@@ -117,6 +118,44 @@ def pooled_replicate_sd(values: Sequence[float], groups: Sequence[Any]) -> float
     return float(np.sqrt(ss / dof))
 
 
+def row_words(rows: Sequence[int]) -> str:
+    """Name data rows, given as 0-based positions after the header, the way a user counts them.
+
+    Parameters
+    ----------
+    rows : sequence of int
+        0-based positions of the rows among the data rows (the header is not a row).
+
+    Returns
+    -------
+    str
+        ``"data row 3 (file line 4 under a header)"``, or for several rows
+        ``"data rows 3, 8 (file lines 4, 9 under a header)"``; rows count from 1 after
+        the header, as in :func:`non_numeric_entry`.
+
+    Examples
+    --------
+    >>> row_words([2])
+    'data row 3 (file line 4 under a header)'
+    >>> row_words([0, 5])
+    'data rows 1, 6 (file lines 2, 7 under a header)'
+    """
+    rows = [int(r) for r in rows]
+    if len(rows) == 1:
+        return f"data row {rows[0] + 1} (file line {rows[0] + 2} under a header)"
+    data = ", ".join(str(r + 1) for r in rows)
+    lines = ", ".join(str(r + 2) for r in rows)
+    return f"data rows {data} (file lines {lines} under a header)"
+
+
+def _file_rows(values: Any, positions: Iterable[int]) -> list[int]:
+    """The file's data-row positions of ``positions``: a pandas column keeps its rows' labels."""
+    index = values.index if isinstance(values, pd.Series | pd.DataFrame) else None
+    if index is None or isinstance(index, pd.RangeIndex) or index.dtype.kind not in "iu":
+        return [int(p) for p in positions]
+    return [int(index[p]) for p in positions]
+
+
 def non_numeric_entry(values: Any) -> str:
     """Describe the first entry of a column that is not a number, for an error message.
 
@@ -142,7 +181,7 @@ def non_numeric_entry(values: Any) -> str:
     if not bad.size:
         return "(not found row by row)"
     row = int(bad[0])
-    return f"{column.iloc[row]!r} in data row {row + 1} (file line {row + 2} under a header)"
+    return f"{column.iloc[row]!r} in {row_words(_file_rows(values, [row]))}"
 
 
 class CalibrationData:
@@ -193,9 +232,9 @@ class CalibrationData:
                         f"output column {output!r} not found{where}; columns: {list(frame.columns)}"
                     )
                 output_name = output_name or output
-                output = frame[output].to_numpy()
+                output = frame[output]
                 frame = frame.drop(columns=[output_name])
-            columns = {str(c): frame[c].to_numpy() for c in frame.columns}
+            columns = {str(c): frame[c] for c in frame.columns}  # a Series keeps its file rows
         elif isinstance(inputs, Mapping):
             columns = {str(k): v for k, v in inputs.items()}
         else:
@@ -255,14 +294,15 @@ class CalibrationData:
             raise ValueError(f"column {name!r}{where} must be 1-D, got shape {arr.shape}")
         bad = ~np.isfinite(arr)
         if bad.any():
-            rows = np.flatnonzero(bad)[:5].tolist()
+            rows = row_words(_file_rows(values, np.flatnonzero(bad)[:5]))
             raise ValueError(
-                f"column {name!r}{where} has {int(bad.sum())} NaN/inf value(s) (rows {rows})"
+                f"column {name!r}{where} has {int(bad.sum())} NaN/inf value(s) ({rows})"
             )
         if arr.size and np.max(np.abs(arr)) > MAX_ABS_VALUE:
             row = int(np.argmax(np.abs(arr)))
             raise ValueError(
-                f"column {name!r}{where} has a value of {arr[row]:.3g} (row {row}): values "
+                f"column {name!r}{where} has a value of {arr[row]:.3g} "
+                f"({row_words(_file_rows(values, [row]))}): values "
                 f"beyond ±{MAX_ABS_VALUE:.0e} overflow when squared; change the column's units"
             )
         return arr
@@ -330,7 +370,7 @@ class CalibrationData:
         labels = frame[replicates].to_numpy() if replicates not in (None, "inputs") else replicates
         return cls(
             frame[list(inputs)],
-            frame[output].to_numpy(),
+            frame[output],
             noise_sd=noise_sd,
             replicates=labels,
             output_name=output,

@@ -6,10 +6,38 @@ from kohpymc.data import CalibrationData, pooled_replicate_sd
 
 
 def test_nan_and_inf_named():
-    with pytest.raises(ValueError, match="'x'.*NaN/inf.*rows \\[1\\]"):
+    with pytest.raises(ValueError, match="'x'.*NaN/inf.*data row 2 "):
         CalibrationData({"x": [1.0, np.nan]}, [1.0, 2.0])
     with pytest.raises(ValueError, match="'y'.*NaN/inf"):
         CalibrationData({"x": [1.0, 2.0]}, [1.0, np.inf])
+
+
+def _line_of(text: str, word: str) -> int:
+    """1-based line number of the first line of ``text`` containing ``word``."""
+    return next(i for i, line in enumerate(text.splitlines(), 1) if word in line)
+
+
+@pytest.mark.parametrize("bad", ["inf", "nan", "-inf", "1e200"])
+def test_bad_value_in_a_csv_named_by_its_file_line(tmp_path, bad):
+    text = "x,T,y\n1,20,2\n2,21,4\n3,22,6\n4,23," + bad + "\n5,24,10\n"
+    path = tmp_path / "d.csv"
+    path.write_text(text)
+    line = _line_of(text, "," + bad)
+    with pytest.raises(ValueError, match=f"'y'.*data row {line - 1} \\(file line {line} "):
+        CalibrationData.from_csv(path, inputs=["x", "T"], output="y")
+
+
+def test_bad_input_of_a_multi_output_file_named_by_its_file_line(tmp_path):
+    from kohpymc.multi_output.data import MultiOutputData
+
+    # 'v' is measured on rows 1-3 only; the bad input sits on a row where 'v' is present
+    text = "x,u,v\n1,2,7\n2,4,8\n3,6,\n4,8,\n5,10,\n6,inf,9\n"
+    text = text.replace("6,inf,9", "inf,12,9")
+    path = tmp_path / "d.csv"
+    path.write_text(text)
+    line = _line_of(text, "inf")
+    with pytest.raises(ValueError, match=f"'x'.*\\(file line {line} "):
+        MultiOutputData.from_csv(path, inputs=["x"], outputs=["u", "v"])
 
 
 def test_mismatched_lengths_named():

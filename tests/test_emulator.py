@@ -732,3 +732,25 @@ def test_study_physics_reuses_its_sequential_rounds_on_a_rerun(tmp_path, monkeyp
             EmulatorSettings(runs=16, sequential=1, new_runs=12, seed=3, tolerance=0.05),
             physics, data, tmp_path, sampling=sampling,
         )  # fmt: skip
+
+
+def test_check_at_data_flags_an_emulator_wrong_where_the_data_are(tmp_path):
+    """8 runs: the emulator's error at the data (at its best-fit θ) is several noise sds, so
+    the check says so; 100 runs: no problem.  The simulated values are the simulator's own
+    at the reported θ (computed here directly), and a rerun with the cache runs nothing."""
+    from kohpymc.emulator import EmulatorWarning
+    from kohpymc.emulator.checking import check_at_data
+
+    poor, physics, data, _ = _emulator(8)
+    with pytest.warns(EmulatorWarning, match="not fit for this calibration.*misfit to the data"):
+        check = check_at_data(poor, data, cache=tmp_path)
+    np.testing.assert_allclose(check.simulated, _smooth({"x": _X_OBS}, check.point), rtol=1e-12)
+    error = np.sqrt(np.mean((check.simulated - check.mean) ** 2))
+    misfit = np.sqrt(np.mean((data.y - check.simulated) ** 2))
+    assert error > misfit
+    calls = physics.n_calls
+    again = check_at_data(poor, data, cache=tmp_path, warn=False)
+    assert physics.n_calls == calls
+    np.testing.assert_array_equal(again.simulated, check.simulated)
+    good, _, data, _ = _emulator(100)
+    assert check_at_data(good, data, warn=False).problems == []

@@ -106,6 +106,30 @@ def test_error_on_nan_and_wrong_shape():
         short.evaluate({"t": T, "x": X}, THETA)
 
 
+@pytest.mark.parametrize(
+    ("body", "words"),
+    [
+        (lambda i, p: np.round(p["a"] * i["t"]).astype(int), r"returned integers \(int64\)"),
+        (lambda i, p: p["a"] * i["t"] > 1.0, r"returned booleans"),
+        (lambda i, p: np.emath.sqrt(p["c"] - 1.0) + i["t"], r"complex values \(imaginary part"),
+        (lambda i, p: {"y": i["t"]}, r"returned dict, not an array of numbers"),
+        (lambda i, p: [i["t"][:2], i["t"]], r"returned list, not an array of numbers"),
+    ],
+    ids=["int", "bool", "complex", "dict", "ragged"],
+)
+def test_output_a_cast_to_float_would_change_is_refused(body, words):
+    """Rounded, boolean or complex outputs were cast to float silently (a rounded output
+    then made every parameter look "without effect"); now one error names the function."""
+    physics = PhysicsModel(body, PRIORS, inputs=["t", "x"])
+    with pytest.raises(PhysicsModelError, match=words + r".*a=2"):
+        physics.evaluate({"t": T, "x": X}, THETA)
+
+
+def test_complex_output_with_zero_imaginary_part_is_its_real_part():
+    physics = PhysicsModel(lambda i, p: p["a"] * i["t"] + 0j, PRIORS, inputs=["t", "x"])
+    np.testing.assert_array_equal(physics.evaluate({"t": T, "x": X}, THETA), THETA[0] * T)
+
+
 def test_nan_inside_graph_raises_with_values():
     physics = PhysicsModel(lambda i, p: np.log(p["c"]) + i["t"], PRIORS, inputs=["t", "x"])
     f = pytensor.function([], physics.tensor(pt.as_tensor([2.0, 0.7, -0.5]), XMAT))
@@ -147,3 +171,25 @@ def test_a_key_the_model_lacks_is_named_with_what_it_has(body, named):
     physics = PhysicsModel(body, {"k": Uniform(1, 2), "damping": Uniform(0, 1)}, inputs=["t"])
     with pytest.raises(PhysicsModelError, match=re.escape(named)):
         physics.evaluate({"t": np.array([0.1, 0.2])}, {"k": 1.5, "damping": 0.5})
+
+
+def test_a_function_changing_its_inputs_in_place_changes_neither_the_data_nor_later_calls():
+    """``v *= 1000`` inside the function (a unit conversion in place) compounded at every
+    call and rewrote the data before; now each call gets its own copy."""
+
+    def in_place(inputs, params):
+        v = inputs["t"]
+        v *= 1000.0
+        return params["a"] * v
+
+    physics = PhysicsModel(in_place, PRIORS, inputs=["t", "x"])
+    data = {"t": T.copy(), "x": X.copy()}
+    first = physics.evaluate(data, THETA)
+    np.testing.assert_array_equal(physics.evaluate(data, THETA), first)
+    np.testing.assert_array_equal(first, THETA[0] * 1000.0 * T)
+    np.testing.assert_array_equal(data["t"], T)
+    f = pytensor.function(
+        [], physics.tensor(pt.as_tensor(THETA), pt.as_tensor(np.column_stack([T, X])))
+    )
+    np.testing.assert_array_equal(f(), first)
+    np.testing.assert_array_equal(f(), first)

@@ -14,7 +14,7 @@
   :func:`sequential_design` (add runs at posterior draws until the posterior settles).
 """
 
-from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_emulator
+from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_at_data, check_emulator
 from kohpymc.emulator.design import (
     design_box,
     extend_design,
@@ -40,6 +40,7 @@ from kohpymc.emulator.sequential import (
 __all__ = [
     "EmulatorCheck",
     "EmulatorWarning",
+    "check_at_data",
     "check_emulator",
     "Emulator",
     "EmulatedPhysics",

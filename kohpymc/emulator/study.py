@@ -16,14 +16,15 @@
     # seed = 0
 
 With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
-runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses
-them), the validation of the emulator goes to ``<output>/emulator/check.json`` and
-``check.png``, the sequential rounds to ``rounds.csv``, the fitted hyperparameters to
-``emulator.json`` and every run (failures with their error) to ``runs.csv``.  The rounds'
-final design goes to ``rounds.json`` with a key of the settings, simulator, data,
-formulation and sampler settings: a rerun with the same key refits the final emulator
-from the cached runs instead of calibrating the rounds again.  Every file is written
-under a temporary name and renamed.
+runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses them),
+the validation of the emulator goes to ``<output>/emulator/check.json`` and ``check.png``
+(over the design, with the predicted posterior widening at the data) and
+``check_at_data.json`` (one simulator run at the emulator's best fit to the data), the
+sequential rounds to ``rounds.csv``, the fitted hyperparameters to ``emulator.json`` and
+every run (failures with their error) to ``runs.csv``. The rounds' final design goes to
+``rounds.json`` with a key of the settings, simulator, data, formulation and sampler
+settings: a rerun with the same key refits the final emulator from the cached runs instead
+of calibrating the rounds again. Every file is written under a temporary name and renamed.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ import pandas as pd
 
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
-from kohpymc.emulator.checking import check_emulator
+from kohpymc.emulator.checking import check_at_data, check_emulator
 from kohpymc.emulator.design import DESIGNS
 from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator, EmulatorWarning
 from kohpymc.emulator.runs import run_design
@@ -263,7 +264,7 @@ def _first_emulator(
         workers=workers,
         scheduler=scheduler,
     )
-    write_check(folder, check_emulator(emulator, data=calibration))
+    _write_checks(folder, emulator, calibration)
     return emulator
 
 
@@ -376,8 +377,21 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    write_check(folder, check_emulator(result.emulator, data=calibration))
+    _write_checks(folder, result.emulator, calibration)
     return result.emulator
+
+
+def _write_checks(folder: Path, emulator: Emulator, calibration: CalibrationData) -> None:
+    """``check.json``/``.png`` over the design, and ``check_at_data.json`` at the data.
+
+    The second runs the simulator once, at the emulator's best fit to the calibration
+    rows (cached in ``folder/runs`` like the design), since leave-one-out over the prior
+    box can pass an emulator that is many noise sds off where the data are.
+    """
+    write_check(folder, check_emulator(emulator, data=calibration))
+    at_data = check_at_data(emulator, calibration, cache=folder / "runs")
+    text = json.dumps(at_data.to_dict(), indent=1)
+    write_atomic(folder / "check_at_data.json", lambda tmp: tmp.write_text(text))
 
 
 def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:

@@ -137,6 +137,8 @@ class IdentifiabilityReport:
                     text += f", consistent with their entering only as {' or '.join(forms)}" + (
                         " (indistinguishable at this point)" if len(forms) > 1 else ""
                     )
+            if len(names) > 2 or (len(names) == 2 and "consistent with" not in text):
+                text += _power_laws(direction, self.point)
             out.append(text)
         return out
 
@@ -223,6 +225,43 @@ class IdentifiabilityReport:
                 else "  deficit disappears on a denser design: practical (more data needed)"
             )
         return "\n".join(lines)
+
+
+def _power_laws(direction: Mapping[str, float], point: Mapping[str, float]) -> str:
+    """The power laws left unchanged along a null direction of positive parameters, in words.
+
+    A multiplicative confounding (the output depends on ``a·c^0.7`` and ``b·c`` only) shows
+    as a null direction with ``Δln a : Δln b : Δln c = 0.7 : 1 : -1``.  Along it every
+    product ``x_i · x_j^k_i`` with ``k_i = -Δln x_i / Δln x_j`` is constant to first
+    order; ``x_j`` (the pivot) is the one parameter moving against all the others when
+    there is one, else the one moving most in relative terms.  Empty unless every
+    parameter of the direction is positive at ``point`` and none is on a log scale by
+    name (a discrepancy's ``delta_logvar``: its sign carries no meaning).
+    """
+    names = list(direction)
+    if any("log" in n or float(point.get(n, 0.0)) <= 0 for n in names):
+        return ""
+    logs = np.array([direction[n] / float(point[n]) for n in names])
+    logs = logs / np.max(np.abs(logs)) * (1.0 if logs[0] >= 0 else -1.0)
+    signs = np.sign(logs)
+    lonely = [i for i in range(len(names)) if np.sum(signs == signs[i]) == 1]
+    pivot = lonely[0] if len(lonely) == 1 and len(names) > 2 else int(np.argmax(np.abs(logs)))
+    laws = []
+    for i, name in enumerate(names):
+        if i == pivot or logs[i] == 0:
+            continue
+        k = -logs[i] / logs[pivot]
+        if np.isclose(k, 1.0, rtol=1e-3):
+            laws.append(f"{name}·{names[pivot]}")
+        elif np.isclose(k, -1.0, rtol=1e-3):
+            laws.append(f"{name}/{names[pivot]}")
+        else:
+            laws.append(f"{name}·{names[pivot]}^{k:.3g}")
+    relative = " : ".join(f"Δln {n}" for n in names)
+    return (
+        f"; in relative terms {relative} = {' : '.join(_number(c) for c in logs)}, "
+        f"consistent with their entering only through {' and '.join(laws)}"
+    )
 
 
 def _combination(coefs: Mapping[str, float]) -> str:

@@ -48,13 +48,13 @@ def call_function(
     """
     model.n_calls += 1
     try:
-        out = model.function(dict(arrays), dict(params))
+        out = model.function(own_copies(arrays), dict(params))
     except Exception as err:
         raise PhysicsModelError(
             f"physics function {model.name!r} raised {type(err).__name__}: {err} "
             f"at parameters {format_params(params)}{unknown_key_hint(err, arrays, params)}"
         ) from err
-    out = np.asarray(out, dtype=float)
+    out = _real_values(model, out, params)
     if out.ndim == 0 and n == 1:
         out = out.reshape(1)
     if out.shape != (n,):
@@ -63,6 +63,63 @@ def call_function(
             f"(one value per data row) at parameters {format_params(params)}"
         )
     return out
+
+
+def own_copies(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The input columns as fresh copies, for one call of a user's function.
+
+    A function that converts units in place (``v = inputs["v"]; v *= 1e-3``) would
+    otherwise change the data themselves, again at every call.
+
+    Examples
+    --------
+    >>> data = {"v": np.array([1.0, 2.0])}
+    >>> own_copies(data)["v"] *= 10
+    >>> data["v"]
+    array([1., 2.])
+    """
+    return {k: np.array(v, copy=True) for k, v in arrays.items()}
+
+
+def _real_values(model: PhysicsModel, out: Any, params: dict[str, float]) -> np.ndarray:
+    """``out`` as floats, refusing what a cast would silently change.
+
+    Booleans and integers are steps in θ (no gradient, an identifiability check that
+    finds the parameters without effect); a complex value with a nonzero imaginary part
+    (``np.emath.sqrt`` of a negative number) would lose it in the cast; a dict, ``None``
+    or text is not a column of numbers.
+    """
+    where = f"at parameters {format_params(params)}"
+    try:
+        raw = np.asarray(out)
+    except ValueError as err:  # ragged nested lists
+        raise PhysicsModelError(
+            f"physics function {model.name!r} returned {type(out).__name__}, not an array of "
+            f"numbers {where}: {err}"
+        ) from err
+    kind = raw.dtype.kind
+    if kind in "biu":
+        what = "booleans" if kind == "b" else f"integers ({raw.dtype})"
+        raise PhysicsModelError(
+            f"physics function {model.name!r} returned {what} {where}: an output that moves in "
+            "whole steps does not vary smoothly with the parameters, so they cannot be "
+            "calibrated; return floats (e.g. no rounding or astype(int))"
+        )
+    if kind == "c":
+        imag = float(np.max(np.abs(raw.imag))) if raw.size else 0.0
+        if imag > 0:
+            raise PhysicsModelError(
+                f"physics function {model.name!r} returned complex values (imaginary part up "
+                f"to {imag:.3g}) {where}; a calibrated output must be real"
+            )
+        return np.asarray(raw.real, dtype=float)
+    try:
+        return np.asarray(raw, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise PhysicsModelError(
+            f"physics function {model.name!r} returned {type(out).__name__}, not an array of "
+            f"numbers {where}: {err}"
+        ) from err
 
 
 def unknown_key_hint(err: Exception, arrays: Mapping, params: Mapping) -> str:
@@ -178,7 +235,7 @@ class NumpyBackend(Backend):
                 relative_step=model.fd_relative_step,
             )
         try:
-            jac: Any = model.jacobian(dict(arrays), dict(params))
+            jac: Any = model.jacobian(own_copies(arrays), dict(params))
         except Exception as err:
             raise PhysicsModelError(
                 f"jacobian of {model.name!r} raised {type(err).__name__}: {err} "

@@ -529,10 +529,13 @@ def test_study_physics_reuses_cached_runs(tmp_path):
     first = study_physics(settings, physics, data, tmp_path)
     rows = counter.rows
     again = study_physics(settings, physics, data, tmp_path)
-    assert rows == 20 and counter.rows == 20  # the second build ran nothing
+    # 20 design runs and one run at the emulator's best fit on the 5 calibration rows
+    # (check_at_data); the second build ran nothing
+    assert rows == 20 + 5 and counter.rows == 25
     np.testing.assert_allclose(first.emulator.hyper.lengthscales, again.emulator.hyper.lengthscales)
     assert (tmp_path / "emulator" / "check.json").is_file()
     assert (tmp_path / "emulator" / "check.png").is_file()
+    assert (tmp_path / "emulator" / "check_at_data.json").is_file()
     table = pd.read_csv(tmp_path / "emulator" / "runs.csv")
     assert len(table) == 20 and {"x", "a", "b", "output", "error"} <= set(table.columns)
     assert (tmp_path / "emulator" / "emulator.json").is_file()

@@ -6,6 +6,7 @@ worker processes are counted here without trusting the library's own bookkeeping
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -112,8 +113,11 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     runs = [c for c in calls if c[0] != here]
     assert len(runs) == 150 == len(pd.read_csv(out / "emulator" / "runs.csv"))
     # the only calls in this process: the pre-flight check that each formulation builds
-    # (compose_model evaluates the physics at the prior centre)
-    assert {(a, t) for pid, a, t in calls if pid == here} <= {(5.5, 100.0)}
+    # (compose_model evaluates the physics at the prior centre) and the check at the data
+    # (one run at the emulator's best fit, check_at_data.json)
+    fit = json.loads((out / "emulator" / "check_at_data.json").read_text())["point"]
+    allowed = {(5.5, 100.0), (fit["alpha"], fit["Ts"])}
+    assert {(a, t) for pid, a, t in calls if pid == here} <= allowed
     post = az.from_netcdf(out / "M0.nc").posterior
     for name, truth in (("alpha", example.TRUE_ALPHA), ("Ts", example.TRUE_TS)):
         low, high = np.quantile(post[name].values, [0.005, 0.995])
@@ -125,4 +129,4 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     assert "M0: reused" in printed and "M1: reused" in printed
     after = _calls(log)[before:]
     assert [c for c in after if c[0] != here] == []  # no simulator run: all 150 cached
-    assert {(a, t) for _, a, t in after} <= {(5.5, 100.0)}
+    assert {(a, t) for _, a, t in after} <= {(5.5, 100.0)}  # the check at the data: cached

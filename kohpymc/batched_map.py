@@ -20,6 +20,7 @@ import pytensor.tensor as pt
 from pytensor.graph.basic import Apply
 from pytensor.graph.op import Op
 from pytensor.graph.rewriting.basic import node_rewriter
+from pytensor.tensor.blockwise import Blockwise
 from pytensor.tensor.elemwise import Elemwise
 
 __all__ = ["rows_function"]
@@ -84,21 +85,22 @@ class _Stacked(Op):
         self.core_op = core_op
 
     def make_node(self, *inputs: Any) -> Apply:  # the Blockwise node's output type
-        raise NotImplementedError("built from a Blockwise node by _stacked_replacement")
+        raise NotImplementedError("built from a Blockwise node by _stacked_linalg")
 
     def perform(self, node: Apply, inputs: Sequence[Any], outputs: Any) -> None:
         result = _STACKED[type(self.core_op).__name__](self.core_op, *inputs)
         outputs[0][0] = np.asarray(result, dtype=node.outputs[0].type.dtype)
 
 
-def _stacked_replacement(node: Apply) -> Any:
-    """The output of ``node`` (a Blockwise) by :class:`_Stacked`, or ``None``."""
-    core = getattr(node.op, "core_op", None)
-    if core is None or type(core).__name__ not in _STACKED or len(node.outputs) != 1:
+@node_rewriter([Blockwise])
+def _stacked_linalg(fgraph: Any, node: Apply) -> list[Any] | None:
+    """A Blockwise linear-algebra node as :class:`_Stacked` (numpy's stacked routines)."""
+    core = node.op.core_op
+    if type(core).__name__ not in _STACKED or len(node.outputs) != 1:
         return None
     if type(core).__name__ == "Cholesky" and getattr(core, "on_error", "nan") == "raise":
         return None
-    return Apply(_Stacked(core), list(node.inputs), [node.outputs[0].type()]).outputs[0]
+    return [Apply(_Stacked(core), list(node.inputs), [node.outputs[0].type()]).outputs[0]]
 
 
 @node_rewriter([Elemwise])
@@ -146,26 +148,17 @@ def rows_function(flat: Any, outputs: Sequence[Any]) -> Callable[..., list[np.nd
     """
     from pymc.pytensorf import compile as compile_function
     from pytensor.compile.mode import Mode
-    from pytensor.graph.fg import FunctionGraph
     from pytensor.graph.replace import vectorize_graph
     from pytensor.graph.rewriting.basic import in2out
-    from pytensor.tensor.blockwise import Blockwise
 
     rows = pt.matrix("rows")
     try:
         batched = vectorize_graph(list(outputs), {flat: rows})
     except NotImplementedError:
         return None
-    graph = FunctionGraph([rows], batched, clone=True)
-    for node in graph.toposort():
-        replacement = _stacked_replacement(node) if isinstance(node.op, Blockwise) else None
-        if replacement is not None:
-            graph.replace(node.outputs[0], replacement, import_missing=True)
-    batched = list(graph.outputs)
-    batched_rows = graph.inputs[0]
-    numpy_calls = (in2out(_numpy_elemwise, name="kohpymc_numpy_elemwise"), 49.2)
+    numpy_calls = (in2out(_numpy_elemwise, _stacked_linalg, name="kohpymc_numpy_calls"), 49.2)
     mode = Mode(linker="py", optimizer="fast_run").excluding("fusion").register(numpy_calls)
-    function = compile_function([batched_rows], batched, on_unused_input="ignore", mode=mode)
+    function = compile_function([rows], batched, on_unused_input="ignore", mode=mode)
     if any(_per_row(node.op) for node in function.maker.fgraph.apply_nodes):
         return None
     per_row = [b.type.ndim > o.type.ndim for b, o in zip(batched, outputs, strict=True)]
@@ -184,12 +177,11 @@ def rows_function(flat: Any, outputs: Sequence[Any]) -> Callable[..., list[np.nd
 def _per_row(op: Any) -> bool:
     """Whether the Python linker runs ``op`` row by row (a Blockwise without gufunc)."""
     from pytensor.compile.ops import ViewOp
-    from pytensor.tensor.blockwise import Blockwise
 
     if not isinstance(op, Blockwise):
         return False
     return (
         op.gufunc_spec is None
         and getattr(op.core_op, "gufunc_spec", None) is None
-        and (not isinstance(op.core_op, ViewOp))
+        and not isinstance(op.core_op, ViewOp)
     )

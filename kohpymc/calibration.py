@@ -35,7 +35,7 @@ from kohpymc.identifiability import (
     IdentifiabilityWarning,
     model_taylor_check,
 )
-from kohpymc.loo import pointwise_log_likelihood
+from kohpymc.loo import compute_log_likelihood, pointwise_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
 from kohpymc.presampling import SLOW_SAMPLING_S, PreSampling
@@ -196,7 +196,7 @@ def _add_log_likelihood(idata: az.InferenceData, built, plain) -> None:
         or record.covariance is not None
     )
     if not replaced:
-        pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
+        idata.add_groups(log_likelihood=compute_log_likelihood(idata, built.model))
     pointwise = pointwise_log_likelihood(idata, built, plain)
     if pointwise is not None:
         idata.extend(az.InferenceData(log_likelihood=pointwise), join="right")

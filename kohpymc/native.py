@@ -60,6 +60,8 @@ PYTENSOR = ArrayMath(
 
 #: prefix of the helper variables ``z`` and ``θ`` (never a user's name)
 _PREFIX = "__kohpymc_native_"
+#: name of the sampling coordinates ``z`` in nutpie's draws, before :func:`expand_draws`
+KEPT_DRAWS = f"{_PREFIX}z"
 
 
 def python_only_ops(graphs: Sequence[Any]) -> list[str]:
@@ -280,7 +282,7 @@ def native_model(
             logp_c = _logp_cfunc(function.vm.jit_fn, space.ndim, int(theta.type.shape[0]))
         user_data = parameters(mapping, shared)
     n = space.ndim
-    z_name = f"{_PREFIX}z"
+    z_name = KEPT_DRAWS
     return ncp.CompiledPyMCModel(
         _n_dim=n,
         dims={},
@@ -506,18 +508,19 @@ def expand_draws(
 ) -> Any:
     """``idata`` with its posterior of ``z`` replaced by the user's parameters (in place).
 
-    Each draw goes through ``mapping.to_value`` and ``space.expand``, as the Python
-    callback path's expand function does; dims and coords as there.
+    Each draw goes through ``mapping.to_value`` and ``space.expand`` (all draws at once:
+    :meth:`ValueSpace.expand_rows`), as the Python callback path's expand function does;
+    dims and coords as there.
     """
     import xarray as xr
 
-    name = f"{_PREFIX}z"
-    z = idata.posterior[name].values
+    z = idata.posterior[KEPT_DRAWS].values
     chains, draws = z.shape[:2]
-    values = [space.expand(mapping.to_value(point)) for point in z.reshape(chains * draws, -1)]
+    rows = np.array([mapping.to_value(point) for point in z.reshape(chains * draws, -1)])
+    values = space.expand_rows(rows)
     variables = {}
     for key, shape in zip(space.expanded_names, space.expanded_shapes, strict=True):
-        array = np.stack([value[key] for value in values]).reshape(chains, draws, *shape)
+        array = values[key].reshape(chains, draws, *shape)
         var_dims = dims.get(key) or tuple(f"{key}_dim_{i}" for i in range(len(shape)))
         variables[key] = (("chain", "draw", *var_dims), array)
     used = {d for _, (var_dims, _) in variables.items() for d in var_dims}

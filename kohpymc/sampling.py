@@ -430,8 +430,6 @@ def _run_nutpie(
             save_warmup=False,
             **kwargs,
         )
-    if report.nutpie_backend != "numba-native":
-        return idata
     begin = time.perf_counter()
     idata = expand_draws(idata, space, mapping, coords, dims)
     report.timings["expand"] = time.perf_counter() - begin
@@ -497,8 +495,14 @@ def _nutpie_model(
     failures: list[str],
     initial_point: Callable[[int], np.ndarray],
 ):
-    """Nutpie's model of ``z`` through Python: log density, expansion, starts."""
+    """Nutpie's model of ``z`` through Python: log density and starts; it keeps ``z``.
+
+    The kept draws are mapped to the user's parameters after sampling, all at once
+    (:func:`kohpymc.native.expand_draws`), as on the native path.
+    """
     from nutpie.compiled_pyfunc import from_pyfunc
+
+    from kohpymc.native import KEPT_DRAWS
 
     # Chains run in threads that take the GIL for every call anyway; one lock keeps the
     # compiled PyTensor functions (and the OpFromGraph functions inside them, which
@@ -519,22 +523,17 @@ def _nutpie_model(
 
     def make_expand(seed1, seed2, chain):
         def expand(z, **_):
-            with lock:
-                values = space.expand(mapping.to_value(z))
-            return {k: np.asarray(v, order="C") for k, v in values.items()}
+            return {KEPT_DRAWS: np.array(z, dtype=float)}
 
         return expand
 
-    coords, dims = _coords_and_dims(space)
     return from_pyfunc(
         space.ndim,
         make_logp,
         make_expand,
-        [np.dtype("float64")] * len(space.expanded_names),
-        list(space.expanded_shapes),
-        list(space.expanded_names),
-        coords=coords,
-        dims=dims,
+        [np.dtype("float64")],
+        [(space.ndim,)],
+        [KEPT_DRAWS],
         make_initial_point_fn=initial_point,
     )
 

@@ -15,6 +15,7 @@ log scale for positive bounded parameters.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -29,6 +30,8 @@ from pymc.logprob.basic import transformed_conditional_logp
 from pymc.logprob.transforms import IntervalTransform, LogTransform
 from pymc.logprob.utils import replace_rvs_by_values
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
+
+from kohpymc.batched_map import rows_function
 
 __all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_logp", "value_space"]
 
@@ -64,6 +67,7 @@ class ValueSpace:
     expanded_shapes: tuple[tuple[int, ...], ...]
     _logp_dlogp: Callable[..., Any]
     _expand: Callable[..., Any]
+    _expand_rows: Callable[..., Any] | None = None
 
     @property
     def ndim(self) -> int:
@@ -95,6 +99,35 @@ class ValueSpace:
             for name, value, shape in zip(
                 self.expanded_names, values, self.expanded_shapes, strict=True
             )
+        }
+
+    def expand_rows(self, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`expand` of every row of ``rows`` (shape ``(n, ndim)``), stacked.
+
+        One call of a map vectorised over the rows when the model allows it (see
+        :func:`value_space`), else :meth:`expand` row by row.
+
+        Examples
+        --------
+        >>> with pm.Model() as model:
+        ...     s = pm.HalfNormal("s", 1.0)
+        ...     _ = pm.Deterministic("s2", 2 * s)
+        >>> space = value_space(model, mode="NUMBA")  # batched map: numpy, no compile
+        >>> np.round(space.expand_rows(np.log([[1.0], [3.0]]))["s2"], 12).tolist()
+        [2.0, 6.0]
+        """
+        rows = np.asarray(rows, dtype=float).reshape(-1, self.ndim)
+        shapes = self.expanded_shapes
+        if self._expand_rows is None:
+            points = [self.expand(row) for row in rows]
+            return {
+                name: np.stack([p[name] for p in points]).reshape(len(rows), *shape)
+                for name, shape in zip(self.expanded_names, shapes, strict=True)
+            }
+        values = self._expand_rows(rows)
+        return {
+            name: np.asarray(value, dtype=float).reshape(len(rows), *shape)
+            for name, value, shape in zip(self.expanded_names, values, shapes, strict=True)
         }
 
     def split(self, x: np.ndarray) -> dict[str, np.ndarray]:
@@ -427,14 +460,18 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     expand_outputs, flat_e = join_nonshared_inputs(
         point=point, outputs=expanded_graphs, inputs=value_vars, make_inputs_shared=False
     )
-    expand_mode = _expand_mode(mode, expand_outputs)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Numba will use object mode")
-        expand = pm.pytensorf.compile(
-            [flat_e], expand_outputs, on_unused_input="ignore",
-            **({} if expand_mode is None else {"mode": expand_mode}),
-        )  # fmt: skip
     initial = np.concatenate([np.ravel(point[n]) for n in names]).astype(float)
+    rows_map = rows_function(flat_e, expand_outputs) if mode == "NUMBA" else None
+    if rows_map is not None:
+        expand = functools.partial(_first_row, rows_map)
+    else:
+        expand_mode = _expand_mode(mode, expand_outputs)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Numba will use object mode")
+            expand = pm.pytensorf.compile(
+                [flat_e], expand_outputs, on_unused_input="ignore",
+                **({} if expand_mode is None else {"mode": expand_mode}),
+            )  # fmt: skip
     expanded_shapes = tuple(tuple(np.shape(v)) for v in expand(initial))
     return ValueSpace(
         model=model,
@@ -448,4 +485,10 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         expanded_shapes=expanded_shapes,
         _logp_dlogp=logp_dlogp,
         _expand=expand,
+        _expand_rows=rows_map,
     )
+
+
+def _first_row(rows_map: Callable[..., Any], x: np.ndarray) -> list[np.ndarray]:
+    """``rows_map`` of the single flat vector ``x``."""
+    return [value[0] for value in rows_map(np.asarray(x)[None])]

@@ -104,3 +104,25 @@ def test_transformed_value_in_numpy_equals_pymcs_transform():
         transform = model.rvs_to_transforms[rv]
         expected = transform.forward(np.asarray(values), *rv.owner.inputs).eval()
         np.testing.assert_allclose(transformed_value(model, rv, values), expected, rtol=1e-14)
+
+
+def test_expand_rows_of_a_numba_space_match_the_c_backends_expand_row_by_row():
+    """The batched map (numpy, no compile) of a model whose deterministic needs a Cholesky
+    factor and solves, as the marginalised formulations' coefficients do."""
+    with pm.Model() as model:
+        a = pm.Uniform("a", 50.0, 300.0)
+        s = pm.HalfNormal("s", 1.0)
+        w = pm.Normal("w", 0.0, 1.0, shape=2)
+        cov = pt.stack([[1.0 + s, 0.3 * s], [0.3 * s, 2.0]])
+        pm.Deterministic("coef", pt.linalg.solve_triangular(pt.linalg.cholesky(cov), w))
+        pm.Deterministic("ratio", a / (1.0 + s) + s + w[0])
+        pm.Normal("y", a / 100.0 + w[1], s, observed=[1.0, 1.5, 2.0])
+    numba, c = value_space(model, mode="NUMBA"), value_space(model, mode="FAST_RUN")
+    assert numba._expand_rows is not None
+    rows = np.random.default_rng(5).normal(size=(50, numba.ndim))
+    got = numba.expand_rows(rows)
+    assert set(got) == set(c.expanded_names)
+    for r, row in enumerate(rows):
+        for name, value in c.expand(row).items():
+            np.testing.assert_allclose(got[name][r], value, rtol=1e-12)
+            np.testing.assert_allclose(numba.expand(row)[name], value, rtol=1e-12)

@@ -96,6 +96,22 @@ class EmulatorSettings:
     log_output: bool | Literal["auto"] = "auto"
     seed: int = 0
 
+    def design_options(self) -> dict[str, Any]:
+        """The keywords of :func:`~kohpymc.emulator.emulate` these settings fix.
+
+        Examples
+        --------
+        >>> EmulatorSettings(runs=50).design_options()["runs"]
+        50
+        """
+        return {
+            "runs": self.runs,
+            "design": self.design,
+            "kernel": self.kernel,
+            "log_output": self.log_output,
+            "seed": self.seed,
+        }
+
     @classmethod
     def from_table(cls, table: Mapping[str, Any]) -> EmulatorSettings:
         """Check a TOML table; a bad value raises ``KeyError(key)`` with ``.note``.
@@ -255,14 +271,10 @@ def _first_emulator(
     emulator = emulate(
         physics,
         calibration,
-        runs=settings.runs,
-        design=settings.design,  # type: ignore[arg-type]
-        kernel=settings.kernel,  # type: ignore[arg-type]
-        log_output=settings.log_output,
         cache=folder / "runs",
-        seed=settings.seed,
         workers=workers,
         scheduler=scheduler,
+        **settings.design_options(),
     )
     _write_checks(folder, emulator, calibration)
     return emulator

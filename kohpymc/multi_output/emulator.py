@@ -221,14 +221,10 @@ def study_outputs_physics(
     emulators = emulate_outputs(
         physics,
         calibration,
-        runs=settings.runs,
-        design=settings.design,  # type: ignore[arg-type]
-        kernel=settings.kernel,  # type: ignore[arg-type]
-        log_output=settings.log_output,
         cache=folder / "runs",
-        seed=settings.seed,
         workers=workers,
         scheduler=scheduler,
+        **settings.design_options(),
     )
     write_settings(folder, settings)
     for name, emulator in emulators.items():

@@ -81,6 +81,10 @@ _BOX_RIDGE_SCORE = 1.0
 #: ridge: dielectric M0's ε_∞–E_A axis drops 4.9 at ±1.5 sd, 1.125 for a Gaussian)
 _BEND_SCORE = 0.25
 
+#: Gaussian score above which a plan that no parabola improves has its worst axes followed
+#: along the others' conditional modes (:func:`kohpymc.bends.follow_plan`)
+_FOLLOW_SCORE = 5.0
+
 
 def _np_put(out: np.ndarray, index: Any, value: Any) -> np.ndarray:
     out[index] = value
@@ -1068,6 +1072,14 @@ def plan(
         along.append(segment)
     bent = _bent(space, best)
     if not along:
+        # no map along a ridge to compete with: a ridge that bends too fast for a parabola
+        # is followed along its conditional modes (dielectric M3: score 22.5 -> 0.26)
+        if bent is None or bent.gaussian_score > _FOLLOW_SCORE:
+            followed = _followed(space, best)
+            if followed is not None and (
+                bent is None or followed.gaussian_score < bent.gaussian_score
+            ):
+                bent = followed
         if bent is None and not _needs_whitening(best):
             return _unwhitened_plan(space, pymc_coords, mode, best, shares, shared, seed)
         white = _whitened_plan(space, mode, best, shared, seed)
@@ -1099,6 +1111,19 @@ def _bent(space: ValueSpace, best: Reparameterization) -> Any:
     from kohpymc.bends import bend_plan
 
     return bend_plan(space, best)
+
+
+def _followed(space: ValueSpace, best: Reparameterization) -> Any:
+    """``best`` with its worst axes followed along the ridge (:func:`kohpymc.bends.follow_plan`).
+
+    Tried when no parabola helped and ``best`` fits badly on average (score above
+    ``_FOLLOW_SCORE``); None otherwise.
+    """
+    if type(best) is not Reparameterization or not best.gaussian_score > _FOLLOW_SCORE:
+        return None
+    from kohpymc.bends import follow_plan
+
+    return follow_plan(space, best)
 
 
 def _bound_ridge_plan(

@@ -1,5 +1,7 @@
 """A long straight ridge cut off by a face of the prior box: exact map, draws against quadrature."""
 
+from dataclasses import replace
+
 import arviz as az
 import numpy as np
 import pymc as pm
@@ -114,3 +116,23 @@ def test_draws_along_a_ridge_cut_by_a_face_match_quadrature():
         x = np.asarray(draws[name]).ravel()
         assert abs(x.mean() - mean) < 4 * sd / np.sqrt(ess), name
         assert abs(x.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess), name
+
+
+def test_no_segment_along_a_ridge_flatter_than_the_hessian_resolves():
+    """All twenty temperatures within 0.01 K: E is informed only through a ridge whose
+    unit-diagonal Laplace precision has its smallest eigenvalue at ~8·10⁻⁹ of the largest,
+    below what central differences at 10⁻³ sd resolve (~10⁻⁶).  Before, segment_plan built
+    a segment on it (dielectric M4's plan flipped with the sign of such an eigenvalue);
+    now it declines, for the mode and for the mode moved by 10⁻¹³ alike."""
+    temps = 300.0 + np.linspace(0.0, 0.01, 20)
+    rng = np.random.default_rng(SEED)
+    y = 1e3 * 1e-4 * np.exp(2.0e4 / (GAS * temps)) + rng.normal(0.0, NOISE, temps.size)
+    with pm.Model() as model:
+        a = LogUniform(*A_BOX).create("A")
+        e = Uniform(*E_BOX).create("E")
+        pm.Normal("y", 1e3 * a * pm.math.exp(e / (GAS * temps)), NOISE, observed=y)
+    space = value_space(model)
+    mode = find_mode(space, seed=SEED)
+    for shift in (0.0, 1e-13, -1e-13):
+        moved = replace(mode, value=mode.value * (1.0 + shift))
+        assert segment_plan(space, moved, seed=SEED) is None

@@ -151,6 +151,8 @@ def rows_function(flat: Any, outputs: Sequence[Any]) -> Callable[..., list[np.nd
     from pytensor.graph.replace import vectorize_graph
     from pytensor.graph.rewriting.basic import in2out
 
+    if _slow_to_vectorize(outputs):
+        return None
     rows = pt.matrix("rows")
     try:
         batched = vectorize_graph(list(outputs), {flat: rows})
@@ -172,6 +174,30 @@ def rows_function(flat: Any, outputs: Sequence[Any]) -> Callable[..., list[np.nd
         ]
 
     return evaluate
+
+
+def _slow_to_vectorize(outputs: Sequence[Any]) -> bool:
+    """Whether the graph has more ``Shape`` nodes than vectorising can afford.
+
+    PyTensor vectorises a ``Shape`` node through ``broadcast_to`` and re-infers static
+    shapes each time, rewriting the shape graph: a GridGP calibration's expand map, with
+    25 ``Shape`` nodes over a Kronecker structure, took 598 s to vectorise, against 44 s
+    for the whole calibration before (the compiled per-draw map is used instead).
+    """
+    from pytensor.graph.traversal import ancestors
+    from pytensor.tensor.shape import Shape, Shape_i
+
+    shapes = sum(
+        1
+        for v in ancestors(outputs)
+        if v.owner is not None and isinstance(v.owner.op, Shape | Shape_i)
+    )
+    return shapes > _MAX_SHAPES
+
+
+#: ``Shape`` nodes above which a graph is not vectorised (see :func:`_slow_to_vectorize`):
+#: the beam's and a dense GP's expand maps have none, GridGP's 25
+_MAX_SHAPES = 4
 
 
 def _per_row(op: Any) -> bool:

@@ -80,3 +80,17 @@ def test_a_non_positive_definite_matrix_gives_nan_in_its_row_only():
     out = f(np.array([[1.0, 4.0], [1.0, -4.0]]))[0]
     np.testing.assert_allclose(out[0], np.diag([1.0, 2.0]))
     assert np.isnan(out[1]).all()
+
+
+def test_a_graph_with_many_shape_nodes_is_left_to_the_compiled_map():
+    """Vectorising ``Shape`` nodes re-infers shapes each time (a GridGP expand map with 25 of
+    them took 598 s): such a graph gets None, the compiled per-draw path; none is fine."""
+    import pytensor.tensor as pt
+
+    from kohpymc.batched_map import rows_function
+
+    x = pt.vector("x")
+    many = sum(pt.cast(pt.arange(k + 1).shape[0], "float64") * x[0] for k in range(6))
+    plain = pt.exp(x[0]) * x[1]
+    assert rows_function(x, [many]) is None
+    assert rows_function(x, [plain]) is not None

@@ -402,8 +402,7 @@ def _write_checks(folder: Path, emulator: Emulator, calibration: CalibrationData
     """
     write_check(folder, check_emulator(emulator, data=calibration))
     at_data = check_at_data(emulator, calibration, cache=folder / "runs")
-    text = json.dumps(at_data.to_dict(), indent=1)
-    write_atomic(folder / "check_at_data.json", lambda tmp: tmp.write_text(text))
+    _write_json(folder / "check_at_data.json", at_data.to_dict())
 
 
 def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:
@@ -426,8 +425,7 @@ def write_settings(folder: Path, settings: EmulatorSettings) -> None:
     >>> json.loads((folder / "settings.json").read_text())["runs"]
     30
     """
-    text = json.dumps(asdict(settings), indent=1)
-    write_atomic(folder / "settings.json", lambda tmp: tmp.write_text(text))
+    _write_json(folder / "settings.json", asdict(settings))
 
 
 def write_emulator(folder: Path, emulator: Any) -> None:
@@ -455,8 +453,7 @@ def write_emulator(folder: Path, emulator: Any) -> None:
         "runs": emulator.n_runs,
         "failed_runs": int(len(emulator.runs.failed)),
     }
-    text = json.dumps(record, indent=1)
-    write_atomic(folder / "emulator.json", lambda tmp: tmp.write_text(text))
+    _write_json(folder / "emulator.json", record)
     runs = emulator.runs
     table = runs.points.assign(error="")
     if len(runs.failed):
@@ -477,14 +474,15 @@ def write_check(folder: Path, check: Any) -> None:
     >>> sorted(p.name for p in folder.iterdir())
     ['check.json', 'check.png']
     """
-    text = json.dumps(check.to_dict(), indent=1)
-
-    def write(tmp: Path) -> None:
-        tmp.write_text(text)
-
-    write_atomic(folder / "check.json", write)
+    _write_json(folder / "check.json", check.to_dict())
     import matplotlib.pyplot as plt
 
     fig = check.figure()
     write_atomic(folder / "check.png", lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
+
+
+def _write_json(path: Path, record: Any) -> None:
+    """``record`` as indented JSON at ``path``, written under a temporary name and renamed."""
+    text = json.dumps(record, indent=1)
+    write_atomic(path, lambda tmp: tmp.write_text(text))

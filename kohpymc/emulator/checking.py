@@ -276,7 +276,8 @@ def posterior_widening(emulator: Emulator, data: CalibrationData) -> dict[str, f
 
     Linearised at the least-squares θ̂ through the emulator's mean (as
     :func:`check_at_data`'s), with a flat prior:
-    ``J`` the emulator mean's Jacobian at the data's inputs (central differences), the
+    ``J`` the emulator mean's Jacobian at the data's inputs (the emulated physics'
+    finite differences), the
     posterior covariance ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ = σ² I`` (simulator) and
     ``Σ = σ² I + Σ_η(θ̂)`` (emulator, its full covariance between the rows).  σ is the
     data's noise sd (known or pooled from replicates), else the residual sd of the fit
@@ -302,27 +303,11 @@ def posterior_widening(emulator: Emulator, data: CalibrationData) -> dict[str, f
     noise = data.noise_sd
     if noise is None:
         noise = float(np.sqrt(np.mean((np.asarray(data.y, float) - mean) ** 2)))
-    J = _mean_jacobian(emulator, inputs, point)
+    J = emulator.physics_model().jacobian_matrix(inputs, theta)  # finite differences
     plain = np.diag(np.linalg.pinv(J.T @ J / noise**2))
     through = np.diag(np.linalg.pinv(J.T @ np.linalg.solve(noise**2 * np.eye(len(mean)) + cov, J)))
     ratio = np.sqrt(np.maximum(through, 0.0) / np.maximum(plain, np.finfo(float).tiny))
     return {k: float(r) for k, r in zip(names, ratio, strict=True)}
-
-
-def _mean_jacobian(emulator: Emulator, inputs: dict, point: np.ndarray) -> np.ndarray:
-    """Central differences of the emulator mean in θ (step 1e-4 of its box width)."""
-    steps = 1e-4 * emulator.width[emulator.n_inputs :]
-    columns = []
-    for j, step in enumerate(steps):
-        theta = point.copy()
-        log = emulator.log_columns[emulator.n_inputs + j]
-        h = step * abs(point[j]) if log else step  # the box is ln θ for a log column
-        theta[j] = point[j] + h
-        up, _ = emulator.predict(inputs, theta)
-        theta[j] = point[j] - h
-        down, _ = emulator.predict(inputs, theta)
-        columns.append((up - down) / (2.0 * h))
-    return np.column_stack(columns)
 
 
 def check_at_data(

@@ -42,6 +42,18 @@ def _header(path: str | PathLike[str]) -> list[str]:
         return next(csv.reader(handle), [])
 
 
+def _refuse_other_separator(source: str, header: list[str]) -> None:
+    """``ValueError`` when a one-field header holds ``;``, tab or ``|``: not a comma CSV."""
+    if len(header) != 1:
+        return
+    for separator, name in ((";", "';'"), ("\t", "tabs"), ("|", "'|'")):
+        if separator in header[0]:
+            raise ValueError(
+                f"{source}: the header {header[0]!r} looks separated by {name}, not commas; "
+                "save the file as comma-separated CSV with '.' as the decimal point"
+            )
+
+
 def read_csv_table(path: str | PathLike[str]) -> pd.DataFrame:
     r"""A CSV data file as a DataFrame; every problem is a ``ValueError`` naming the file.
 
@@ -72,6 +84,7 @@ def read_csv_table(path: str | PathLike[str]) -> pd.DataFrame:
         raise ValueError(f"{source}: the file is empty (no header row)") from err
     except (pd.errors.ParserError, csv.Error, OSError) as err:
         raise ValueError(f"{source}: cannot be read as CSV: {err}") from err
+    _refuse_other_separator(source, header)
     names = [name.strip() for name in header]
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:

@@ -147,6 +147,9 @@ class Prior:
 def _finite(name: str, **values: float) -> dict[str, float]:
     out = {}
     for key, val in values.items():
+        if isinstance(val, str | bytes | bool):
+            kind = "true/false" if isinstance(val, bool) else "text"
+            raise TypeError(f"{name} prior: {key}={val!r} is {kind}, not a number (unquote it)")
         try:
             fval = float(val)
         except (TypeError, ValueError) as err:

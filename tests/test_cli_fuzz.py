@@ -622,6 +622,13 @@ REGRESSIONS = {
         lambda doc, files: doc["physics"]["parameters"].update(
             rate=doc["physics"]["parameters"].pop("k")),
         r"\[data\.calibration\]", "'k' is neither a parameter (A, rate) nor an input (t)"),
+    # a bound written as text ("0.1", a spreadsheet export) was taken as a number silently
+    "prior bound quoted": (_tweak(("physics", "parameters", "k"),
+                                  {"prior": "uniform", "lower": "0.1", "upper": 2.0}),
+                           r"\[physics\.parameters\.k\]", "is text, not a number (unquote it)"),
+    # a ;-separated file (a European spreadsheet) was read as one column: "columns not found"
+    "csv semicolons": (_file("calib.csv", _calib_with("t;signal;w", "0;1,5;1", "1;2,5;1")),
+                       r"calib\.csv", "separated by ';'"),
 }  # fmt: skip
 
 

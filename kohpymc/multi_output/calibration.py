@@ -31,6 +31,7 @@ from kohpymc.identifiability.model_check import (
     _one_shot_mode,
 )
 from kohpymc.identifiability.rank import RTOL, analyse_matrix
+from kohpymc.loo import compute_log_likelihood
 from kohpymc.model import PRED_DIM, new_input_matrix
 from kohpymc.multi_output.data import MultiOutputData
 from kohpymc.multi_output.loo import add_pointwise_log_likelihood
@@ -319,7 +320,7 @@ def _annotate(
     sampling: SamplingReport,
 ) -> list[str]:
     """Add log-likelihoods, input coordinates and attributes to ``idata``; return problems."""
-    pm.compute_log_likelihood(idata, model=built.model, progressbar=False)
+    idata.add_groups(log_likelihood=compute_log_likelihood(idata, built.model))
     add_pointwise_log_likelihood(idata, built)  # LOO conditionals where rows are dependent
     for name in data.outputs:  # every output's rows: coordinates <output>::<input>
         coords = {variable(name, k): v for k, v in data[name].inputs.items()}

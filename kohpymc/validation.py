@@ -272,6 +272,23 @@ def _measurement_model(
     return validation.y.copy(), sd
 
 
+def _mcse_of_mean(per_draw: np.ndarray) -> float:
+    """Monte Carlo standard error of the mean of ``(chain, draw)`` values.
+
+    NaN with three draws per chain or fewer; 0 when every draw has the same value.  The
+    values are centred first: the MCSE of a mean does not depend on a shift, and ArviZ's
+    variance of values such as 1 - 1e-11 ± 1e-12 loses every digit (it came out negative:
+    a NaN and a numpy warning).
+    """
+    if per_draw.shape[1] <= 3:
+        return float("nan")
+    centred = per_draw - per_draw.mean()
+    if not centred.any():
+        return 0.0
+    with single_chain_notes_hidden():
+        return float(np.ravel(az.mcse(centred))[0])
+
+
 def reliability(
     predictions: Calibration | az.InferenceData | xr.DataArray,
     validation: CalibrationData,
@@ -335,8 +352,7 @@ def reliability(
     prob = ndtr((ym + tolerance - mean) / sd) - ndtr((ym - tolerance - mean) / sd)
     per_draw = prob @ row_weights(weights, validation.n)  # (chain, draw)
     mu_r = float(per_draw.mean())
-    with single_chain_notes_hidden():
-        mcse = float(np.ravel(az.mcse(per_draw))[0]) if per_draw.shape[1] > 3 else float("nan")
+    mcse = _mcse_of_mean(per_draw)
     pointwise = xr.DataArray(
         prob.mean(axis=(0, 1)),
         dims=("pred",),

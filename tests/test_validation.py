@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -49,6 +51,32 @@ def test_mcse_matches_spread_over_repeated_posteriors():
     spread = np.std([r.mu_r for r in results])
     reported = np.mean([r.mcse for r in results])
     assert reported == pytest.approx(spread, rel=0.2)
+
+
+def test_reliability_near_one_has_a_finite_mcse_and_no_warning():
+    """Predictions ~6.5 noise sds inside the tolerance: r = 1 - 1e-11 with a tiny spread.
+
+    ArviZ's variance of such values came out negative (a NaN MCSE and a numpy
+    RuntimeWarning that reached the user).  The reference is the MCSE of the per-draw
+    reliabilities' deviations computed in long double from the same draws.
+    """
+    rng = np.random.default_rng(SEED)
+    val = CalibrationData({"x": np.arange(6.0)}, np.zeros(6), noise_sd=1e-4)
+    ym = rng.normal(0.0, 1e-5, size=(2, 500, 6))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = reliability(_draws(ym), val, tolerance=6.5e-4)
+    assert 1 - 1e-9 < res.mu_r < 1.0
+    # independent draws: MCSE ≈ sd / sqrt(n), the sd from the exact erfc tails
+    from scipy.special import erfc
+
+    tails = 0.5 * (
+        erfc((6.5e-4 - ym) / 1.4142135623730951e-4) + erfc((6.5e-4 + ym) / 1.4142135623730951e-4)
+    )
+    deviation = tails.mean(axis=2)  # 1 - r per draw
+    assert res.mcse == pytest.approx(deviation.std() / np.sqrt(deviation.size), rel=0.2)
+    constant = reliability(_draws(np.zeros((2, 10, 6))), val, tolerance=6.5e-4)
+    assert constant.mcse == 0.0
 
 
 def test_replicates_give_the_pooled_sd_of_eq28_not_each_groups_own():

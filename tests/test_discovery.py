@@ -177,6 +177,26 @@ def test_drag_is_named_as_a_negative_power_of_the_mass_without_the_noise_sd():
     assert sel.subsets[0][1] > 0.5
 
 
+def test_an_input_that_varies_little_is_not_named_for_an_effect_without_it():
+    """A 1/t effect on a grid where T spans only 800-900 K (an unseen creep study).
+
+    Every ``T^a/t`` fits about as well as ``1/t``; with one prior unit per term the 36
+    terms on (T, t) outweighed the 10 on t, and one of them, better by chance, named T
+    at 3 of 6 seeds (2 of 6 even after preferring the plainest of near ties).
+    """
+    grid = np.meshgrid([50.0, 80.0, 120.0], [800.0, 850.0, 900.0], [10.0, 50, 100, 200, 400])
+    inputs = dict(zip(("s", "T", "t"), (np.ravel(g) for g in grid), strict=True))
+    terms = candidate_library(inputs)
+    named = []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        r = 0.02 / inputs["t"] + rng.normal(0, 2e-4, inputs["t"].size)
+        sel = select_terms(r, np.c_[inputs["t"]], terms, inputs=inputs, noise_sd=None,
+                           null_draws=0)  # fmt: skip
+        named.append(sel.inputs_of(sel.plainest()))
+    assert named == [{"t"}] * 6
+
+
 @pytest.mark.parametrize("problem", sorted(PROBLEMS))
 def test_selection_is_quiet_on_data_from_the_model_itself(problem):
     make_physics, make_data, _, _ = PROBLEMS[problem]

@@ -129,6 +129,43 @@ class TermSelection:
     log_bayes_factors: dict = field(default_factory=dict)
     constant: bool = True
 
+    def plainest(self, factor: float = 3.0) -> tuple[str, ...]:
+        """The explanation to name: the most probable one, unless a plainer one is as good.
+
+        Among the non-empty explanations whose probability is within ``factor`` of the most
+        probable one (a Bayes factor below 3 is "not worth more than a bare mention", Kass
+        and Raftery 1995) and that have as many terms, the one on the fewest inputs; ties go
+        to the more probable.  When an input varies little in the data, ``1/t`` and
+        ``sqrt(T)/t`` fit alike, and the variants on ``T`` share the probability among
+        themselves; naming ``T`` would claim an effect the data do not show.  Terms whose
+        inputs are unknown (plain columns) count no inputs.
+
+        Examples
+        --------
+        >>> from kohpymc.candidates import CandidateTerm
+        >>> terms = {"T/t": CandidateTerm("T/t", ("T", "t"), lambda d: d["T"] / d["t"]),
+        ...          "1/t": CandidateTerm("1/t", ("t",), lambda d: 1 / d["t"])}
+        >>> sel = TermSelection(("T/t",), 0.0, {}, [(("T/t",), 0.5), (("1/t",), 0.45)],
+        ...                     terms=terms)
+        >>> sel.plainest()
+        ('1/t',)
+        """
+        named = [(subset, p) for subset, p in self.subsets if subset]
+        if not named:
+            return ()
+        top, p_top = named[0]
+        size = len([n for n in top if n != "1"])
+        near = [
+            (len(self.inputs_of(subset)), -p, subset)
+            for subset, p in named
+            if p * factor >= p_top and len([n for n in subset if n != "1"]) == size
+        ]
+        return min(near)[2]
+
+    def inputs_of(self, subset: tuple[str, ...]) -> set[str]:
+        """The inputs the terms of ``subset`` depend on (unknown for plain columns)."""
+        return {i for n in subset if n != "1" for i in getattr(self.terms.get(n), "inputs", ())}
+
     @property
     def significant(self) -> bool:
         """Whether something is missing at the calibrated false-alarm rate.

@@ -22,15 +22,21 @@ Every explanation with terms includes the constant (with centred columns, ``c·x
 means ``c·x + d``); "a constant offset" alone is one explanation and "nothing missing"
 another.  Prior: ½ on nothing missing; the other ½ split equally over the explanation
 sizes (the constant alone, 1, 2, ... terms) and within a size over all subsets of the
-admissible candidates, which pays for the number of candidates tried.  Explanations
-the search does not reach are taken to have negligible probability.
+admissible candidates, which pays for the number of candidates tried.  Within a size a
+subset's weight is the product of its terms' weights, each term weighing one over the
+number of candidates on the same inputs: every set of inputs gets the same share, however
+many exponents its monomials combine (36 terms on ``(T, t)`` would otherwise outweigh 10
+on ``t`` six to one, and when ``T`` varies little, one of its variants of ``1/t`` fits a
+little better by chance and names ``T``).  Columns without known inputs weigh 1 each (all
+subsets of a size alike).  Explanations the search does not reach are taken to have
+negligible probability.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from math import comb, log
+from math import log
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -366,15 +372,51 @@ def _scores(design: Design, r: np.ndarray, max_terms: int, screen: int, partners
     return _Scores(names, keys, np.maximum(rss, 0.0), k, float(r0 @ r0), rss_c, fitted)
 
 
+def _input_set_weights(design: Design, names: list[str]) -> np.ndarray:
+    """Each column's prior weight: one over the number of columns on the same inputs.
+
+    ``names`` are the fixed columns (``design.names``) followed by the shaped terms.
+    """
+    fixed = len(design.names)
+    families: list[object] = []
+    for j, name in enumerate(names):
+        term = design.terms.get(name) if j < fixed else design.shaped[j - fixed].term
+        families.append(frozenset(term.inputs) if term is not None else ("column", j))
+    counts = {f: families.count(f) for f in set(families)}
+    return np.array([1.0 / counts[f] for f in families])
+
+
+def _log_elementary_symmetric(log_weight: np.ndarray, order: int) -> np.ndarray:
+    """``log e_m(w)`` for m = 0..order: the log sum over m-subsets of their weights' products.
+
+    With all weights 1, ``e_m = comb(len(w), m)`` (the uniform prior over subsets).
+
+    Examples
+    --------
+    >>> np.exp(_log_elementary_symmetric(np.log([1.0, 1.0, 1.0, 1.0]), 3)).round(6).tolist()
+    [1.0, 4.0, 6.0, 4.0]
+    """
+    scale = float(log_weight.max(initial=0.0))
+    w = np.exp(log_weight - scale)
+    e = np.zeros(order + 1)
+    e[0] = 1.0
+    for wj in w:
+        e[1:] = e[1:] + wj * e[:-1]
+    with np.errstate(divide="ignore"):
+        return np.log(e) + scale * np.arange(order + 1)
+
+
 def _weighed(design: Design, sc: _Scores, noise_sd, max_terms, g):
     """Log Bayes factors and log priors: "nothing", "constant", then the subsets."""
     const = design.u is not None
     sizes = max_terms + int(const)
-    total = len(sc.names)
     bf = log_bayes_factor(sc.rss0, sc.rss, design.n, design.p, sc.k, noise_sd=noise_sd, g=g)
     size = np.array([len(s) for s in sc.keys])
-    log_comb = {m: log(comb(total, m)) for m in set(size.tolist())}
-    prior = log(0.5 / sizes) - np.array([log_comb[m] for m in size.tolist()])
+    log_weight = np.log(_input_set_weights(design, sc.names))
+    log_total = _log_elementary_symmetric(log_weight, int(size.max(initial=0)))
+    prior = log(0.5 / sizes) + np.array(
+        [log_weight[list(s)].sum() - log_total[len(s)] for s in sc.keys]
+    )
     head_bf = [0.0]
     head_prior = [log(0.5)]
     if const:

@@ -285,6 +285,21 @@ def _dimensionless_candidates(units, calibration, exponents, pool: list, generat
     return parsed, groups
 
 
+def _closed_form_line(selection, best: tuple[str, ...], chosen: list) -> str:
+    """The chosen closed form, and the more probable one it was preferred to, if any."""
+    probability = dict(selection.subsets)
+    line = (f"most probable closed form: {_effect_text(chosen, selection.constant)} "
+            f"(P = {probability[best]:.2g}; {_p(selection)})")  # fmt: skip
+    top = next(subset for subset, _ in selection.subsets if subset)
+    if top == best:
+        return line
+    extra = sorted(selection.inputs_of(top) - selection.inputs_of(best))
+    return (f"closed form on the fewest inputs: {_effect_text(chosen, selection.constant)} "
+            f"(P = {probability[best]:.2g}; {_p(selection)}); {' + '.join(top)} "
+            f"(P = {probability[top]:.2g}) also uses {_and(extra)}, which the data do not "
+            "tell apart (within a Bayes factor of 3)")  # fmt: skip
+
+
 def _conclude(
     physics, calibration, validation, fit, selection, jacobian, common, run, say,
     *, threshold, gp_level, region_level, seed,
@@ -304,10 +319,9 @@ def _conclude(
             return _gp_fallback(physics, calibration, validation, fb, fit, run, say, common)
         say(f"nothing missing ({_p(selection)} under the model as given)")
         return _nothing_missing_report(physics, calibration, fit, common)
-    best = next(subset for subset, _ in selection.subsets if subset)
+    best = selection.plainest()
     chosen = [selection.terms[n] for n in best if n != "1"]
-    say(f"most probable closed form: {_effect_text(chosen, selection.constant)} "
-        f"(P = {dict(selection.subsets)[best]:.2g}; {_p(selection)})")  # fmt: skip
+    say(_closed_form_line(selection, best, chosen))
     closed = (np.column_stack([t(calibration.inputs) for t in chosen]) if chosen
               else np.zeros((calibration.n, 0)))  # fmt: skip
     check = check_closed_form(calibration.inputs, fit.resid, jacobian, closed,

@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytensor.tensor as pt
 import pytest
 
 from kohpymc import CalibrationData, PhysicsModel, Uniform
-from kohpymc.emulator import FunctionalEmulator, run_curves, space_filling_design
+from kohpymc.emulator import (
+    EmulatorWarning,
+    FunctionalEmulator,
+    run_curves,
+    space_filling_design,
+)
 
 # y(x, t) = a exp(-k t) + c x: scalar input x, functional input t
 _PRIORS = {"a": Uniform(0.5, 3.0), "k": Uniform(0.2, 2.0), "c": Uniform(-1.0, 1.0)}
@@ -98,9 +105,23 @@ def test_pca_basis_matches_an_svd_by_hand():
 def test_held_out_bands_cover_about_90_percent():
     em, physics = _emulator(40)
     test = run_curves(physics, space_filling_design(_BOX, 32, method="sobol", seed=5), _GRID)
-    score = em.held_out(test)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a fit emulator gives no EmulatorWarning
+        score = em.held_out(test)
     assert 0.85 <= score["coverage"] <= 0.95, score
     assert score["rmse_sd"] < 0.1
+
+
+def test_a_poor_emulator_warns_on_its_held_out_curves():
+    """8 curves over a 4-d box: the held-out scores fail check_emulator's limits."""
+    em, physics = _emulator(8)
+    test = run_curves(physics, space_filling_design(_BOX, 32, method="sobol", seed=5), _GRID)
+    with pytest.warns(EmulatorWarning, match="decay_curve.*8 curves.*not fit") as caught:
+        score = em.held_out(test)
+    message = str(caught[0].message)
+    assert (score["coverage"] < 0.85) == ("coverage" in message), (score, message)
+    assert (score["rmse_sd"] > 0.1) == ("RMSE" in message), (score, message)
+    assert em.held_out(test, warn=False) == score
 
 
 def test_curves_at_once_are_the_covariance_diagonal_row_by_row():

@@ -177,6 +177,51 @@ class EmulatorCheck:
         return fig
 
 
+def fit_problems(
+    kind: str,
+    coverage: float,
+    relative_rmse: float,
+    n: int,
+    *,
+    level: float = 0.9,
+    coverage_tolerance: float | None = None,
+    max_relative_rmse: float = 0.1,
+) -> list[str]:
+    """What makes an emulator unfit, from its scores on ``n`` values it did not see.
+
+    The coverage of the ``level`` bands must lie within ``coverage_tolerance`` of
+    ``level`` (default the larger of 0.05 and three binomial sds), and the RMSE be at most
+    ``max_relative_rmse`` of the values' sd.
+
+    Examples
+    --------
+    >>> fit_problems("held-out", 0.78, 0.05, 930)  # doctest: +ELLIPSIS
+    ["held-out coverage of the 90% bands is 0.78 (< 0.85): ... overconfident"]
+    """
+    tol = coverage_tolerance
+    if tol is None:
+        tol = max(0.05, 3.0 * np.sqrt(level * (1.0 - level) / n))
+    problems = []
+    if coverage < level - tol:
+        problems.append(
+            f"{kind} coverage of the {level:.0%} bands is {coverage:.2f} (< "
+            f"{level - tol:.2f}): the emulator's variance is too small, a calibration "
+            "through it would be overconfident"
+        )
+    elif coverage > level + tol:
+        problems.append(
+            f"{kind} coverage of the {level:.0%} bands is {coverage:.2f} (> "
+            f"{level + tol:.2f}): the emulator's variance is too large, the posterior "
+            "would be wider than needed"
+        )
+    if relative_rmse > max_relative_rmse:
+        problems.append(
+            f"{kind} RMSE is {relative_rmse:.3f} of the outputs' sd (> "
+            f"{max_relative_rmse}): add runs (see kohpymc.emulator.sequential_design)"
+        )
+    return problems
+
+
 def check_emulator(
     emulator: Emulator,
     held_out: SimulatorRuns | None = None,
@@ -231,27 +276,10 @@ def check_emulator(
         mean, var = emulator.predict_matrix(held_out.X)
         simulated, kind = held_out.y, "held-out"
     check = EmulatorCheck(kind, np.asarray(simulated, float), mean, np.sqrt(var), level)
-    n = simulated.size
-    tol = coverage_tolerance
-    if tol is None:
-        tol = max(0.05, 3.0 * np.sqrt(level * (1.0 - level) / n))
-    if check.coverage < level - tol:
-        check.problems.append(
-            f"{kind} coverage of the {level:.0%} bands is {check.coverage:.2f} (< "
-            f"{level - tol:.2f}): the emulator's variance is too small, a calibration "
-            "through it would be overconfident"
-        )
-    elif check.coverage > level + tol:
-        check.problems.append(
-            f"{kind} coverage of the {level:.0%} bands is {check.coverage:.2f} (> "
-            f"{level + tol:.2f}): the emulator's variance is too large, the posterior "
-            "would be wider than needed"
-        )
-    if check.relative_rmse > max_relative_rmse:
-        check.problems.append(
-            f"{kind} RMSE is {check.relative_rmse:.3f} of the outputs' sd (> "
-            f"{max_relative_rmse}): add runs (see kohpymc.emulator.sequential_design)"
-        )
+    check.problems += fit_problems(
+        kind, check.coverage, check.relative_rmse, simulated.size, level=level,
+        coverage_tolerance=coverage_tolerance, max_relative_rmse=max_relative_rmse,
+    )  # fmt: skip
     if data is not None:
         check.widening = posterior_widening(emulator, data)
         wide = {k: v for k, v in check.widening.items() if v > max_widening}

@@ -63,10 +63,12 @@ from pytensor.graph.basic import Constant
 from pytensor.graph.traversal import graph_inputs
 from scipy import linalg, stats
 
+from kohpymc.emulator.checking import fit_problems
 from kohpymc.emulator.design import log_scaled
 from kohpymc.emulator.gp import (
     KERNELS,
     EmulatedPhysics,
+    EmulatorWarning,
     GPHyperparameters,
     SharedTrainingData,
     _fit_hyperparameters,
@@ -85,6 +87,7 @@ from kohpymc.emulator.runs import (
 from kohpymc.execution import run_tasks
 from kohpymc.gaussian import low_rank_covariance, low_rank_parts
 from kohpymc.physics import PhysicsModel
+from kohpymc.warning_filters import warn_user
 
 __all__ = [
     "FunctionalEmulatedPhysics",
@@ -747,13 +750,17 @@ class FunctionalEmulator(SharedTrainingData):
         var = s**2 * (variances @ (self.basis**2).T + self.truncation_variance)
         return mean, np.sqrt(np.maximum(var, 0.0))
 
-    def held_out(self, runs: FunctionalRuns, level: float = 0.9) -> dict[str, float]:
+    def held_out(
+        self, runs: FunctionalRuns, level: float = 0.9, *, warn: bool = True
+    ) -> dict[str, float]:
         """Scores on held-out curves: band coverage, RMSE over sd, mean squared z.
 
         ``coverage``: share of the held-out grid values inside the central ``level``
         predictive band (in the latent scale, the same band in output units);
         ``rmse_sd``: RMSE of the predictive mean over the sd of the held-out values;
         ``mean_z2``: mean of the squared standardised errors (about 1 when calibrated).
+        With ``warn``, an :class:`EmulatorWarning` when the coverage or the RMSE fail the
+        limits of :func:`kohpymc.emulator.check_emulator` (over the held-out values).
 
         Examples
         --------
@@ -773,12 +780,22 @@ class FunctionalEmulator(SharedTrainingData):
         truth = np.log(runs.curves) if self.log_output else np.asarray(runs.curves, float)
         z = (truth - mean) / np.maximum(sd, 1e-300)
         half = stats.norm.ppf(0.5 + level / 2.0)
-        return {
+        scores = {
             "coverage": float(np.mean(np.abs(z) <= half)),
             "rmse_sd": float(np.sqrt(np.mean((truth - mean) ** 2)) / max(np.std(truth), 1e-300)),
             "mean_z2": float(np.mean(z**2)),
             "n_curves": float(len(truth)),
         }
+        problems = fit_problems(
+            "held-out", scores["coverage"], scores["rmse_sd"], z.size, level=level
+        )
+        if warn and problems:
+            warn_user(
+                f"emulator of {self.physics.name!r} ({len(self.runs.design)} curves) is not "
+                "fit for calibration: " + "; ".join(problems),
+                EmulatorWarning,
+            )
+        return scores
 
     # ----------------------------------------------------------------- pytensor
     #: evaluate the weight GPs' ``k`` and ``kᵀ K⁻¹ k`` by one compiled op,

@@ -1055,7 +1055,7 @@ def plan(
     if not plans:
         return _flat_plan(space, pymc_coords, mode, shared)
     best = min(plans, key=lambda p: p.gaussian_score)
-    box = box_ridge_plan(space, mode) if shares is None else None
+    box = box_ridge_plan(space, mode, shares=shares)
     # a flat ridge ending on the box goes along its segment whenever that fits: even from
     # corner to corner, where a Laplace map fits near the mode (k·c = 100, k and c
     # log-uniform over 1e-8..1e-6 and 1e8..1e10: score 0.19 against the segment's 0.27),
@@ -1385,7 +1385,8 @@ class BoxRidgePlan(Reparameterization):
     squeezed between the box faces the line through ``ℓ₀ + B y`` meets, so every ``t`` is
     inside the box and a flat ridge is a logistic density in ``t``.  The Jacobian is
     ``(s_hi − s_lo)·expit'(t)`` times a constant; the elementwise map ``ℓ → v`` is the
-    log scale with walls (:class:`Coordinates`).
+    log scale with walls (:class:`Coordinates`), preceded by the variance shares (if any)
+    on the other coordinates of ``ℓ``.
 
     Examples
     --------
@@ -1441,7 +1442,7 @@ class BoxRidgePlan(Reparameterization):
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
-        return self.coordinates.to_value(self._position(z)[3])[0]
+        return self.coordinates.to_value(self._unshared(self._position(z)[3]))[0]
 
     def from_value(self, v: np.ndarray) -> np.ndarray:
         """Sampling coordinates of a value-space vector (ends of the ridge clipped)."""
@@ -1462,11 +1463,11 @@ class BoxRidgePlan(Reparameterization):
         y, t, sig, ell, width, d_lo, d_hi = self._position(z)
         if not width > 0:
             return -np.inf, np.zeros(self.ndim)
-        v, dv, dlogjac, logjac = self.coordinates.to_value(ell)
+        v, dv, dlogjac, logjac = self.coordinates.to_value(self._unshared(ell))
         if not np.isfinite(logjac):
             return -np.inf, np.zeros(self.ndim)
         logp, grad_v = space.logp_dlogp_or_nan(v) if safe else space.logp_dlogp(v)
-        g = grad_v * dv + dlogjac
+        g = self._pull_back(ell, grad_v * dv + dlogjac)
         along = float(self.direction @ g)
         grad_y = self.basis.T @ g + along * ((1 - sig) * d_lo + sig * d_hi) + (d_hi - d_lo) / width
         grad_t = along * width * sig * (1 - sig) + 1.0 - 2.0 * sig
@@ -1474,17 +1475,21 @@ class BoxRidgePlan(Reparameterization):
         return logp + logjac + np.log(width) + log_sig, np.append(grad_y, grad_t)
 
 
-def box_ridge_plan(space: ValueSpace, mode: Mode, flat: float = 1e-6) -> BoxRidgePlan | None:
+def box_ridge_plan(
+    space: ValueSpace, mode: Mode, flat: float = 1e-6, shares: VarianceShare | None = None
+) -> BoxRidgePlan | None:
     """A :class:`BoxRidgePlan` for a flat direction in the log of bounded parameters.
 
     None unless the posterior at ``mode`` has one.  Flat: the smallest eigenvalue of the
     Hessian of ``−log p`` in ``ℓ`` is below ``flat`` times the largest; the direction
     lies (99 % of its weight) in bounded positive parameters; every other eigenvalue is
-    positive.
+    positive.  ``shares`` (variance shares, :class:`VarianceShare`) act on the other
+    coordinates of ``ℓ`` as in every other plan.
     """
     coords = log_coordinates(space, walls=True)
     if coords is None or coords.log_scale.sum() < 2:
         return None
+    coords = coords.with_shares(shares)
     ell0 = coords.from_value(mode.value)
     identity = Reparameterization("none", ell0, np.eye(ell0.size), coords, "")
     with np.errstate(all="ignore"):

@@ -200,8 +200,7 @@ class SegmentPlan(BoxRidgePlan):
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
-        ell = self._position(self._t(z))[3]
-        return self.coordinates.to_value(self._unshared(ell))[0]
+        return super().to_value(self._t(z))
 
     def from_value(self, v: np.ndarray) -> np.ndarray:
         """Sampling coordinates of a value-space vector (ends of the segment clipped)."""
@@ -218,23 +217,9 @@ class SegmentPlan(BoxRidgePlan):
         self, space: ValueSpace, z: np.ndarray, *, safe: bool = False
     ) -> tuple[float, np.ndarray]:
         """Log density of ``z`` (exact up to a constant) and its gradient."""
-        y, t, sig, ell, width, d_lo, d_hi = self._position(self._t(z))
-        if not width > 0:
-            return -np.inf, np.zeros(self.ndim)
-        w = self._unshared(ell)
-        v, dv, dlogjac, logjac = self.coordinates.to_value(w)
-        if not np.isfinite(logjac):
-            return -np.inf, np.zeros(self.ndim)
-        logp, grad_v = space.logp_dlogp_or_nan(v) if safe else space.logp_dlogp(v)
-        g = self._pull_back(ell, grad_v * dv + dlogjac)
-        along = float(self.direction @ g)
-        grad_y = self.basis.T @ g + along * ((1 - sig) * d_lo + sig * d_hi) + (d_hi - d_lo) / width
-        grad_t = along * width * sig * (1 - sig) + 1.0 - 2.0 * sig
-        log_sig = -np.logaddexp(0.0, -t) - np.logaddexp(0.0, t)
-        return (
-            logp + logjac + np.log(width) + log_sig,
-            np.append(grad_y, self.scale * grad_t),
-        )
+        logp, grad = super().logp_dlogp(space, self._t(z), safe=safe)
+        grad[-1] *= self.scale
+        return logp, grad
 
 
 def _resolved(chol: np.ndarray) -> bool:

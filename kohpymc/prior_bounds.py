@@ -20,7 +20,8 @@ trajectories, divergences).  :func:`against_bounds` is the one check, on the bou
   :func:`kohpymc.sampling.sample_posterior`): at least :data:`DRAW_SHARE` of the draws
   lie within :data:`NEAR_FRACTION` of the prior width of a bound (1 % of them would be
   there under a flat posterior over the whole box), and their outermost percentile on that
-  side is within :data:`EDGE_FRACTION` of their own 1–99 % range from it (so a posterior
+  side is within :data:`EDGE_FRACTION` of their own 1–99 % range from it, but not on both
+  sides (draws that reach both bounds are the prior's spread, as at the mode) (so a posterior
   near a bound in the box's units but clear of it on its own scale — τ ≈ 10⁻³ under
   ``LogUniform(1e-6, 1)`` — is not reported).  For a positive parameter whose box spans
   :data:`LOG_SCALE_RATIO` or more, the posterior's own scale is the log: a posterior spread
@@ -202,7 +203,10 @@ def against_bounds(
             (q01 - own_lower) / spread < EDGE_FRACTION,
             (own_upper - q99) / spread < EDGE_FRACTION,
         ]
-        near = [(m >= DRAW_SHARE) & r for (m, _), r in zip(measures, reach, strict=True)]
+        # draws that reach both bounds are the prior's spread (the data do not inform the
+        # parameter), not a pile-up at one side: as at the mode
+        one_side = ~(reach[0] & reach[1])
+        near = [(m >= DRAW_SHARE) & r & one_side for (m, _), r in zip(measures, reach, strict=True)]
     hits = []
     for (measure, bound), close, side in zip(measures, near, ("lower", "upper"), strict=True):
         for i in np.flatnonzero(close & np.isfinite(bound) & np.isfinite(measure)):

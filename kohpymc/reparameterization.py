@@ -213,10 +213,14 @@ class Coordinates:
         a, b = self.lower[m], self.upper[m]
         if self.walls:
             return self._log_with_walls(w, v, dv, dlogjac, a, b)
-        v[m], g, (s, x, above, below, c, ds) = _log_logit(w[m], a, b)
-        dv[m] = g
-        dlogjac[m] = (2 * x - a - b) / (above * below) * x * c * ds + c * ds + 1.0 - 2.0 * s
-        return v, dv, dlogjac, float(np.sum(np.log(g)))
+        # far out (a planner's probe at ±1.5 sd of a box spanning decades) expit(w) rounds
+        # to 0 or 1: x sits on a bound, the Jacobian is 0 and the log density -inf, which
+        # the callers handle; numpy's divide/log warnings would only reach the user
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v[m], g, (s, x, above, below, c, ds) = _log_logit(w[m], a, b)
+            dv[m] = g
+            dlogjac[m] = (2 * x - a - b) / (above * below) * x * c * ds + c * ds + 1.0 - 2.0 * s
+            return v, dv, dlogjac, float(np.sum(np.log(g)))
 
     def value_and_log_jacobian(self, w: Any, xp: ArrayMath = NUMPY) -> tuple[Any, Any]:
         """``v(w)`` and ``Σ log|dv/dw|`` of the elementwise map, over ``xp``.

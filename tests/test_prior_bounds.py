@@ -118,6 +118,21 @@ def test_a_posterior_over_decades_under_a_wide_log_box_is_judged_on_the_log_scal
     assert [(h.parameter, h.side, h.bound) for h in hits] == [("tau", "lower", 1e-6)]
 
 
+def test_draws_over_the_whole_box_are_not_against_either_bound():
+    """A replicate of an unseen creep study's simulation check: data of pure noise leave
+    A ~ LogUniform(1e-2, 1e8) at its prior (quantiles 0.04 ... 4.7e7, median 370).  84 % of
+    the draws lie within 1 % of the box's width (1e6) of 0.01 and both tails reach a
+    bound, so it was reported against the lower one; it is the prior's spread.  A
+    posterior cut off by one bound only is still found."""
+    rng = np.random.default_rng(SEED)
+    lower, upper = np.array([1e-2]), np.array([1e8])
+    prior = np.exp(rng.uniform(np.log(1e-2), np.log(1e8), 4000))[:, None]
+    assert against_bounds(["A"], lower, upper, draws=prior, evidence="draws") == []
+    lower_half = np.exp(rng.uniform(np.log(1e-2), np.log(1e3), 4000))[:, None]
+    hits = against_bounds(["A"], lower, upper, draws=lower_half, evidence="draws")
+    assert [(h.side, h.bound) for h in hits] == [("lower", 1e-2)]
+
+
 def test_a_mode_decades_above_a_wide_log_box_bound_is_judged_on_the_log_scale():
     """Arrhenius prefactor A ~ LogUniform(1e-9, 1e-3), mode 5.8e-5 with a linearised Laplace
     sd of 1.1e-4 (an unseen viscosity study): 0.5 sd from 1e-9 in A's units, so it was

@@ -565,6 +565,36 @@ def test_study_physics_warns_when_validation_inputs_leave_the_design_box(tmp_pat
     assert not [w for w in seen if "design box" in str(w.message)]
 
 
+def test_an_input_the_output_does_not_depend_on_is_not_extrapolated(tmp_path):
+    """A recorded batch number (an unseen creep study): validation batches 4-6, runs over
+    1-3.  The fit gives it a length scale of many box widths, so leaving the box there
+    changes no prediction; the warning named it.  x beyond its box is still named."""
+    import warnings
+
+    from kohpymc import CalibrationData
+    from kohpymc.emulator import EmulatorWarning
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    physics = PhysicsModel(
+        lambda d, p: p["a"] * np.exp(-p["b"] * np.asarray(d["x"], float)),
+        {"a": Uniform(0.5, 2.0), "b": Uniform(0.1, 1.0)}, inputs=["x", "batch"], name="decay",
+    )  # fmt: skip
+    x = np.linspace(0, 1, 9)
+    data = CalibrationData({"x": x, "batch": 1.0 + x * 2}, np.exp(-0.5 * x), noise_sd=0.01)
+    settings = EmulatorSettings(runs=30)
+    other = CalibrationData({"x": [0.3, 0.7], "batch": [4.0, 6.0]}, [0.9, 0.7], noise_sd=0.01)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        emulator_physics = study_physics(settings, physics, data, tmp_path, validation=other)
+    assert not [w for w in seen if "design box" in str(w.message)], [str(w.message) for w in seen]
+    columns = list(emulator_physics.emulator.columns)
+    assert emulator_physics.emulator.hyper.lengthscales[columns.index("batch")] > 30
+    later = CalibrationData({"x": [0.5, 1.8], "batch": [2.0, 2.0]}, [0.8, 0.4], noise_sd=0.01)
+    with pytest.warns(EmulatorWarning, match=r"x in \[0.5, 1.8\]") as caught:
+        study_physics(settings, physics, data, tmp_path, validation=later)
+    assert "batch" not in str(caught[0].message)
+
+
 def test_a_refitted_emulator_has_another_fingerprint_so_a_study_does_not_reuse_old_results():
     from kohpymc.fingerprint import physics_fingerprint
 

@@ -468,6 +468,25 @@ def test_posterior_design_runs_posterior_draws_at_the_calibration_inputs():
         posterior_design(draws[["a"]], data, physics, 10)
 
 
+def test_a_refit_on_the_emulators_box_keeps_a_log_scaled_parameter_on_its_log_scale():
+    """The rounds refit with ``emulator_box(em)``: the refit must predict as the first fit
+    (same runs, same hyperparameters), also for a LogUniform parameter over three decades."""
+    from kohpymc import LogUniform
+    from kohpymc.emulator import Emulator
+    from kohpymc.emulator.sequential import emulator_box
+
+    rate = PhysicsModel(
+        lambda i, p: np.exp(-p["k"] * i["t"]), {"k": LogUniform(1e-3, 1.0)}, inputs=["t"]
+    )
+    box = {"t": (0.0, 10.0), "k": (1e-3, 1.0)}
+    em = Emulator(run_design(rate, space_filling_design(box, 30)), rate, box=box)
+    refit = Emulator(em.runs, rate, box=emulator_box(em), hyperparameters=em.hyper)
+    assert refit.log_columns.tolist() == [False, True]
+    rows = np.array([[1.0, 0.002], [5.0, 0.05], [9.0, 0.5]])
+    for new, old in zip(refit.predict_matrix(rows), em.predict_matrix(rows), strict=True):
+        np.testing.assert_allclose(new, old, rtol=1e-9)
+
+
 @pytest.mark.slow
 def test_sequential_design_moves_a_poor_emulator_to_the_direct_posterior(direct_posterior):
     from kohpymc.emulator import sequential_design

@@ -359,11 +359,30 @@ def _design_rounds(
 
 
 def emulator_box(emulator: Emulator) -> dict[str, tuple[float, float]]:
-    """The emulator's unit box as column -> ``(lower, upper)`` (kept by every refit)."""
-    return {
-        k: (float(lo), float(lo + w))
-        for k, lo, w in zip(emulator.columns, emulator.lower, emulator.width, strict=True)
-    }
+    """The emulator's box as column -> ``(lower, upper)`` in the columns' own units.
+
+    Every refit keeps it; a log-scaled column's ends are given back on its natural scale
+    (``exp`` of the unit box's ends), so the refit scales it by ln again.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kohpymc import LogUniform, PhysicsModel
+    >>> from kohpymc.emulator import Emulator, run_design, space_filling_design
+    >>> rate = PhysicsModel(lambda i, p: np.exp(-p["k"] * i["t"]),
+    ...                     {"k": LogUniform(1e-3, 1.0)}, inputs=["t"])
+    >>> box = {"t": (0.0, 10.0), "k": (1e-3, 1.0)}
+    >>> em = Emulator(run_design(rate, space_filling_design(box, 10)), rate, box=box)
+    >>> {k: tuple(round(v, 6) for v in ends) for k, ends in emulator_box(em).items()}
+    {'t': (0.0, 10.0), 'k': (0.001, 1.0)}
+    """
+    ends = {}
+    for k, lo, w, log in zip(
+        emulator.columns, emulator.lower, emulator.width, emulator.log_columns, strict=True
+    ):
+        lower, upper = (np.exp(lo), np.exp(lo + w)) if log else (lo, lo + w)
+        ends[k] = (float(lower), float(upper))
+    return ends
 
 
 def _round_record(

@@ -888,6 +888,10 @@ def test_a_study_whose_refinement_cannot_pass_keeps_the_warning_and_says_so(tmp_
         study_physics(settings, physics, data, tmp_path)
     record = json.loads((tmp_path / "emulator" / "refine_at_data.json").read_text())
     assert not record["passed"] and record["stopped"] == "max_runs"
+    calls = physics.n_calls
+    with pytest.warns(EmulatorWarning, match="recorded in check_at_data.json"):
+        study_physics(settings, physics, data, tmp_path)  # a rerun warns again, runs nothing
+    assert physics.n_calls == calls
     off = EmulatorSettings(runs=8, seed=1, refine_at_data=0)
     with pytest.warns(EmulatorWarning, match="refine_at_data"):  # the advice names it
         em = study_physics(off, physics, data, tmp_path / "off").emulator
@@ -910,3 +914,20 @@ def test_a_refined_emulator_gives_the_direct_posterior(direct_posterior):
     for name, (mean, sd) in direct_posterior.items():
         assert abs(fine[name][0] - mean) < 0.25 * sd, (name, fine[name], mean, sd)
         assert 0.8 < fine[name][1] / sd < 1.25, (name, fine[name], sd)
+
+
+def test_the_study_report_says_what_the_refinement_did(tmp_path, capsys):
+    import json
+
+    from kohpymc.cli import _say_refinement
+    from kohpymc.emulator.study import EmulatorSettings
+
+    check = {"rmse": 0.0024, "misfit": 0.0113, "problems": ["n moved"]}
+    record = {"passed": False, "added_runs": 240, "rounds": [{}, {}, {"check": check}]}
+    (tmp_path / "refine_at_data.json").write_text(json.dumps(record))
+    _say_refinement(EmulatorSettings(), tmp_path)
+    line = capsys.readouterr().out
+    assert "2 refinement round(s) added 240 runs" in line and "STILL FAILS" in line
+    assert "rms 0.0024 against the simulator's misfit 0.0113" in line
+    _say_refinement(EmulatorSettings(refine_at_data=0), tmp_path)  # off: nothing said
+    assert capsys.readouterr().out == ""

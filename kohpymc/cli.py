@@ -149,7 +149,28 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
         validation=kwargs["validation"],
     )
     print(f"emulator: {physics.emulator!r} (checks in {out}/emulator/)")
+    _say_refinement(spec.emulator, out / "emulator")
     return physics
+
+
+def _say_refinement(settings: Any, folder: Path) -> None:
+    """One line on the refinement rounds at the data (``refine_at_data.json``), if any ran."""
+    import json
+
+    from kohpymc.emulator.study import REFINEMENT_RECORD
+
+    path = folder / REFINEMENT_RECORD
+    if settings.refine_at_data == 0 or not path.is_file():
+        return
+    record = json.loads(path.read_text())
+    last = record["rounds"][-1]["check"]
+    outcome = "passes" if record["passed"] else "STILL FAILS (see the warning above)"
+    print(
+        f"emulator check at the data: {len(record['rounds']) - 1} refinement round(s) added "
+        f"{record['added_runs']} runs; at the best fit the emulator's error is rms "
+        f"{last['rmse']:.3g} against the simulator's misfit {last['misfit']:.3g}: {outcome} "
+        f"({folder}/{REFINEMENT_RECORD})"
+    )
 
 
 def _emulated_outputs(spec: Any, execution: dict, out: Path) -> Any:

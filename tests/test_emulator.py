@@ -468,6 +468,25 @@ def test_posterior_design_runs_posterior_draws_at_the_calibration_inputs():
         posterior_design(draws[["a"]], data, physics, 10)
 
 
+def test_a_refit_on_the_emulators_box_keeps_a_log_scaled_parameter_on_its_log_scale():
+    """The rounds refit with ``emulator_box(em)``: the refit must predict as the first fit
+    (same runs, same hyperparameters), also for a LogUniform parameter over three decades."""
+    from kohpymc import LogUniform
+    from kohpymc.emulator import Emulator
+    from kohpymc.emulator.sequential import emulator_box
+
+    rate = PhysicsModel(
+        lambda i, p: np.exp(-p["k"] * i["t"]), {"k": LogUniform(1e-3, 1.0)}, inputs=["t"]
+    )
+    box = {"t": (0.0, 10.0), "k": (1e-3, 1.0)}
+    em = Emulator(run_design(rate, space_filling_design(box, 30)), rate, box=box)
+    refit = Emulator(em.runs, rate, box=emulator_box(em), hyperparameters=em.hyper)
+    assert refit.log_columns.tolist() == [False, True]
+    rows = np.array([[1.0, 0.002], [5.0, 0.05], [9.0, 0.5]])
+    for new, old in zip(refit.predict_matrix(rows), em.predict_matrix(rows), strict=True):
+        np.testing.assert_allclose(new, old, rtol=1e-9)
+
+
 @pytest.mark.slow
 def test_sequential_design_moves_a_poor_emulator_to_the_direct_posterior(direct_posterior):
     from kohpymc.emulator import sequential_design
@@ -525,7 +544,7 @@ def test_study_physics_reuses_cached_runs(tmp_path):
 
     data = CalibrationData({"x": np.linspace(0, 1, 5)}, np.zeros(5), noise_sd=0.1)
     physics.parameters["a"] = Uniform(0.2, 2.0)  # no failing runs here
-    settings = EmulatorSettings(runs=20)
+    settings = EmulatorSettings(runs=20, refine_at_data=0)  # refinement: its own test
     first = study_physics(settings, physics, data, tmp_path)
     rows = counter.rows
     again = study_physics(settings, physics, data, tmp_path)
@@ -787,3 +806,158 @@ def test_check_at_data_flags_an_emulator_wrong_where_the_data_are(tmp_path):
     np.testing.assert_array_equal(again.simulated, check.simulated)
     good, _, data, _ = _emulator(100)
     assert check_at_data(good, data, warn=False).problems == []
+
+
+# ------------------------------------------------------------ refinement at the data
+
+
+def _least_squares(data):
+    """The simulator's own least-squares θ and its sds (scipy, not the emulator's code)."""
+    from scipy.optimize import curve_fit
+
+    def model(x, a, k):
+        return _smooth({"x": x}, {"a": a, "k": k})
+
+    popt, pcov = curve_fit(
+        model, _X_OBS, data.y, p0=[1.5, 1.0], sigma=np.full(_X_OBS.size, _NOISE),
+        absolute_sigma=True,
+    )  # fmt: skip
+    return popt, np.sqrt(np.diag(pcov))
+
+
+def test_a_prediction_without_a_run_is_that_runs_leave_one_out():
+    em, *_ = _emulator(25)
+    mean, var = em.leave_one_out()
+    for i in (0, 7, 24):
+        without = np.zeros(em.n_runs, dtype=bool)
+        without[i] = True
+        m, v = em.predict_matrix(em.runs.X[i : i + 1], without=without)
+        np.testing.assert_allclose([m[0], v[0]], [mean[i], var[i]], rtol=1e-6)
+
+
+def test_check_at_data_predicts_how_far_the_emulator_moves_the_least_squares_fit():
+    """The linearised move of θ reported by the check against the simulator's own
+    least-squares fit (curve_fit), in its sds: 60 runs, a move of about 0.2 sd."""
+    from kohpymc.emulator.checking import check_at_data
+
+    em, _, data, _ = _emulator(60)
+    check = check_at_data(em, data, warn=False)
+    popt, sd = _least_squares(data)
+    actual = (popt - np.array([check.point["a"], check.point["k"]])) / sd
+    predicted = np.array([check.shift["a"], check.shift["k"]])
+    assert np.max(np.abs(actual)) > 0.1  # something to predict
+    np.testing.assert_allclose(predicted, actual, atol=0.1)
+    assert check.to_dict()["shift"] == check.shift and check.misfit > 0
+
+
+def test_refinement_moves_a_coarse_emulators_best_fit_onto_the_simulators():
+    """8 runs over the prior box: the emulator's best fit lies > 5 sds from the simulator's
+    least-squares fit and the check fails; one round of runs around it (θ̂ and 3 θ at the
+    20 data rows) brings it within 0.25 sd, and the rounds stop there."""
+    from kohpymc.emulator.refinement import refine_at_data
+
+    em, physics, data, _ = _emulator(8)
+    popt, sd = _least_squares(data)
+    result = refine_at_data(em, data, rounds=4)
+    first, last = result.checks[0], result.checks[-1]
+    before = (np.array([first.point["a"], first.point["k"]]) - popt) / sd
+    after = (np.array([last.point["a"], last.point["k"]]) - popt) / sd
+    assert not first.fit and np.max(np.abs(before)) > 5.0, before
+    assert last.fit and np.max(np.abs(after)) < 0.25, after
+    assert result.passed and result.stopped == "passed" and len(result.added) < 4
+    assert all(n % data.n == 0 for n in result.added)  # whole θ at every data row
+    assert result.emulator.n_runs == 8 + sum(result.added)
+    record = result.to_dict()
+    assert [r["round"] for r in record["rounds"]] == list(range(len(result.added) + 1))
+    assert record["rounds"][0]["check"]["problems"] and record["passed"]
+    good, *_ = _emulator(100)
+    untouched = refine_at_data(good, data)  # passes at once: nothing added
+    assert untouched.added == [] and untouched.emulator is good
+
+
+@pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")
+def test_a_study_refines_a_coarse_emulator_and_a_rerun_reuses_the_rounds(tmp_path, monkeypatch):
+    import json
+
+    import kohpymc.emulator.study as emulator_study
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    physics, data, _ = _decay_setup()
+    settings = EmulatorSettings(runs=8, seed=1)  # refine_at_data = 2 by default
+    first = study_physics(settings, physics, data, tmp_path)
+    calls = physics.n_calls
+    folder = tmp_path / "emulator"
+    record = json.loads((folder / "refine_at_data.json").read_text())
+    assert record["passed"] and record["added_runs"] > 0
+    assert first.emulator.n_runs == 8 + record["added_runs"]
+    assert json.loads((folder / "check_at_data.json").read_text())["problems"] == []
+
+    def no_rounds(*args, **kwargs):
+        raise AssertionError("the refinement ran again")
+
+    monkeypatch.setattr(emulator_study, "refine_at_data", no_rounds)
+    again = study_physics(settings, physics, data, tmp_path)
+    assert physics.n_calls == calls  # every run from the cache
+    assert again.emulator.n_runs == first.emulator.n_runs
+    z = np.array([[0.5, 1.7, 0.8], [2.0, 1.2, 1.5]])
+    for new, old in zip(
+        again.emulator.predict_matrix(z), first.emulator.predict_matrix(z), strict=True
+    ):
+        np.testing.assert_allclose(new, old, rtol=1e-10)
+
+
+def test_a_study_whose_refinement_cannot_pass_keeps_the_warning_and_says_so(tmp_path):
+    import json
+
+    from kohpymc.emulator import EmulatorWarning
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    physics, data, _ = _decay_setup()
+    settings = EmulatorSettings(runs=8, seed=1, refine_runs=20)  # no room: θ̂ + 1 θ = 40 runs
+    with pytest.warns(EmulatorWarning, match="still so after 0 refinement round.*max_runs"):
+        study_physics(settings, physics, data, tmp_path)
+    record = json.loads((tmp_path / "emulator" / "refine_at_data.json").read_text())
+    assert not record["passed"] and record["stopped"] == "max_runs"
+    calls = physics.n_calls
+    with pytest.warns(EmulatorWarning, match="recorded in check_at_data.json"):
+        study_physics(settings, physics, data, tmp_path)  # a rerun warns again, runs nothing
+    assert physics.n_calls == calls
+    off = EmulatorSettings(runs=8, seed=1, refine_at_data=0)
+    with pytest.warns(EmulatorWarning, match="refine_at_data"):  # the advice names it
+        em = study_physics(off, physics, data, tmp_path / "off").emulator
+    assert em.n_runs == 8
+
+
+@pytest.mark.slow
+def test_a_refined_emulator_gives_the_direct_posterior(direct_posterior):
+    """8 runs: the emulated posterior lies several direct sds off; after the refinement
+    rounds at the data, within 0.25 direct sd, its sds within 25 %."""
+    import kohpymc as kp
+    from kohpymc.emulator.refinement import refine_at_data
+
+    em, _, data, _ = _emulator(8)
+    coarse = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING, warn=False))
+    refined = refine_at_data(em, data).emulator
+    fine = _posterior(kp.calibrate(refined.physics_model(), data, **_SAMPLING, warn=False))
+    shifts = {k: abs(coarse[k][0] - m) / sd for k, (m, sd) in direct_posterior.items()}
+    assert max(shifts.values()) > 1.0, shifts  # the coarse emulator misses
+    for name, (mean, sd) in direct_posterior.items():
+        assert abs(fine[name][0] - mean) < 0.25 * sd, (name, fine[name], mean, sd)
+        assert 0.8 < fine[name][1] / sd < 1.25, (name, fine[name], sd)
+
+
+def test_the_study_report_says_what_the_refinement_did(tmp_path, capsys):
+    import json
+
+    from kohpymc.cli import _say_refinement
+    from kohpymc.emulator.study import EmulatorSettings
+
+    check = {"rmse": 0.0024, "misfit": 0.0113, "problems": ["n moved"]}
+    record = {"passed": False, "added_runs": 240, "rounds": [{}, {}, {"check": check}]}
+    (tmp_path / "refine_at_data.json").write_text(json.dumps(record))
+    _say_refinement(EmulatorSettings(), tmp_path)
+    line = capsys.readouterr().out
+    assert "2 refinement round(s) added 240 runs" in line and "STILL FAILS" in line
+    assert "rms 0.0024 against the simulator's misfit 0.0113" in line
+    _say_refinement(EmulatorSettings(refine_at_data=0), tmp_path)  # off: nothing said
+    assert capsys.readouterr().out == ""

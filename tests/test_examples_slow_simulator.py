@@ -97,8 +97,9 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     tmp_path, capsys, dask_cluster
 ):
     """The shipped study (150 runs, M0 and M1; 2 × 500 draws here) with a 0.05 s simulator
-    on the 2-worker LocalCluster: 150 simulator calls in the workers, a posterior that
-    covers the truth, and a rerun that runs the simulator nowhere."""
+    on the 2-worker LocalCluster: every θ simulated once, in the workers (the 150 design
+    runs, the refinement rounds' runs and each check's run at the best fit), a posterior
+    that covers the truth, and a rerun that runs the simulator nowhere."""
     log = tmp_path / "calls.log"
     path = example.write_study(
         tmp_path, seconds=SLEEP, log=log, sampling={"draws": 500, "tune": 500}
@@ -110,14 +111,16 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     capsys.readouterr()
     calls = _calls(log)
     here = os.getpid()
-    runs = [c for c in calls if c[0] != here]
-    assert len(runs) == 150 == len(pd.read_csv(out / "emulator" / "runs.csv"))
+    runs = [(a, t) for pid, a, t in calls if pid != here]
+    table = pd.read_csv(out / "emulator" / "runs.csv")
+    refined = json.loads((out / "emulator" / "refine_at_data.json").read_text())
+    assert len(table) == 150 + refined["added_runs"]
+    fits = {(r["check"]["point"]["alpha"], r["check"]["point"]["Ts"]) for r in refined["rounds"]}
+    assert len(runs) == len(set(runs))  # no θ simulated twice
+    assert set(runs) == set(zip(table["alpha"], table["Ts"], strict=True)) | fits
     # the only calls in this process: the pre-flight check that each formulation builds
-    # (compose_model evaluates the physics at the prior centre) and the check at the data
-    # (one run at the emulator's best fit, check_at_data.json)
-    fit = json.loads((out / "emulator" / "check_at_data.json").read_text())["point"]
-    allowed = {(5.5, 100.0), (fit["alpha"], fit["Ts"])}
-    assert {(a, t) for pid, a, t in calls if pid == here} <= allowed
+    # (compose_model evaluates the physics at the prior centre)
+    assert {(a, t) for pid, a, t in calls if pid == here} <= {(5.5, 100.0)}
     post = az.from_netcdf(out / "M0.nc").posterior
     for name, truth in (("alpha", example.TRUE_ALPHA), ("Ts", example.TRUE_TS)):
         low, high = np.quantile(post[name].values, [0.005, 0.995])
@@ -128,5 +131,5 @@ def test_emulated_study_on_a_local_cluster_covers_the_truth_and_reruns_from_cach
     printed = capsys.readouterr().out
     assert "M0: reused" in printed and "M1: reused" in printed
     after = _calls(log)[before:]
-    assert [c for c in after if c[0] != here] == []  # no simulator run: all 150 cached
-    assert {(a, t) for _, a, t in after} <= {(5.5, 100.0)}  # the check at the data: cached
+    assert [c for c in after if c[0] != here] == []  # no simulator run: all cached
+    assert {(a, t) for _, a, t in after} <= {(5.5, 100.0)}  # the pre-flight calls only

@@ -11,7 +11,9 @@
 * :mod:`~kohpymc.emulator.checking`: leave-one-out or held-out scores, a figure and an
   :class:`EmulatorWarning` when the emulator is not fit for calibration;
 * :mod:`~kohpymc.emulator.sequential`: :func:`emulate` (design, run, fit) and
-  :func:`sequential_design` (add runs at posterior draws until the posterior settles).
+  :func:`sequential_design` (add runs at posterior draws until the posterior settles);
+* :mod:`~kohpymc.emulator.refinement`: :func:`refine_at_data` (add runs around the
+  emulator's best fit until :func:`check_at_data` passes; no sampling).
 """
 
 from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_at_data, check_emulator
@@ -28,6 +30,7 @@ from kohpymc.emulator.functional import (
     run_curves,
 )
 from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
+from kohpymc.emulator.refinement import Refinement, local_design, refine_at_data
 from kohpymc.emulator.runs import SimulatorRuns, run_design
 from kohpymc.emulator.sequential import (
     SequentialDesign,
@@ -60,4 +63,7 @@ __all__ = [
     "fit_emulator",
     "posterior_design",
     "sequential_design",
+    "Refinement",
+    "local_design",
+    "refine_at_data",
 ]

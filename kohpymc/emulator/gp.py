@@ -383,11 +383,15 @@ class Emulator(SharedTrainingData):
         cols += [np.full(n, theta[k]) for k in self.physics.parameters]
         return np.column_stack(cols)
 
-    def predict_matrix(self, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict_matrix(
+        self, Z: np.ndarray, without: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean and variance at rows ``Z`` (columns: inputs, then parameters).
 
         The variance is that of a new simulator output (latent variance plus nugget),
-        in output units squared.
+        in output units squared.  ``without`` (a boolean mask over the runs) conditions
+        on the other runs only, with the same hyperparameters and scaling: what the
+        emulator would predict had those runs not been made.
 
         Examples
         --------
@@ -403,13 +407,25 @@ class Emulator(SharedTrainingData):
         if Z.shape[1] != len(self.columns):
             raise ValueError(f"predict_matrix: rows need columns {list(self.columns)}")
         h = self.hyper
+        U, alpha, chol_inv = self.U, self._alpha, self._chol_inv
+        if without is not None and np.any(without):
+            U, alpha, chol_inv = self._conditioned_on(~np.asarray(without, dtype=bool))
         Us = (self._transform(Z) - self.lower) / self.width
-        Ks, _ = _kernel_numpy(self.kernel, Us, self.U, h.lengthscales, h.amplitude)
-        mean = Ks @ self._alpha
-        V = self._chol_inv @ Ks.T
+        Ks, _ = _kernel_numpy(self.kernel, Us, U, h.lengthscales, h.amplitude)
+        mean = Ks @ alpha
+        V = chol_inv @ Ks.T
         var = h.amplitude + h.nugget - np.sum(V**2, axis=0)
         var = np.maximum(var, h.nugget)
         return self._output_moments(mean, var)
+
+    def _conditioned_on(self, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``U``, ``K⁻¹z`` and ``L⁻¹`` of the runs in ``keep`` (hyperparameters kept)."""
+        h = self.hyper
+        U = self.U[keep]
+        R, _ = _kernel_numpy(self.kernel, U, U, h.lengthscales, h.amplitude)
+        chol = linalg.cholesky(R + (h.nugget + 1e-10) * np.eye(len(U)), lower=True)
+        alpha = linalg.cho_solve((chol, True), self.z[keep])
+        return U, alpha, linalg.solve_triangular(chol, np.eye(len(U)), lower=True)
 
     def predict(
         self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float] | np.ndarray

@@ -25,7 +25,14 @@ from kohpymc.emulator.gp import Emulator
 from kohpymc.emulator.runs import SimulatorRuns, run_design
 from kohpymc.physics import PhysicsModel
 
-__all__ = ["SequentialDesign", "emulate", "fit_emulator", "posterior_design", "sequential_design"]
+__all__ = [
+    "SequentialDesign",
+    "emulate",
+    "fit_emulator",
+    "posterior_design",
+    "refit",
+    "sequential_design",
+]
 
 
 def emulate(
@@ -334,11 +341,9 @@ def _design_rounds(
     from kohpymc.calibration import calibrate
 
     params = list(physics.parameters)
-    box = emulator_box(emulator)
     result: SequentialDesign | None = None
     previous: dict[str, float] | None = None
     history: list[dict[str, Any]] = []
-    all_runs = emulator.runs
     for round_ in range(rounds + 1):
         cal = calibrate(emulator.physics_model(), data, discrepancy, **calibrate_kwargs)
         draws = _draws(cal, params)
@@ -349,21 +354,55 @@ def _design_rounds(
             break
         previous = record["means"]
         points = posterior_design(draws, data, physics, add, seed=seed + round_ + 1)
-        all_runs = _merged(all_runs, run(points))
-        emulator = Emulator(
-            all_runs, physics, box=box, kernel=emulator.kernel, seed=seed,
-            log_output=emulator.log_output,
-        )  # fmt: skip
+        emulator = refit(emulator, run(points), seed=seed)
     assert result is not None
     return result
 
 
+def refit(emulator: Emulator, new: SimulatorRuns, *, seed: int = 0) -> Emulator:
+    """The emulator refitted to its runs and ``new`` ones (box, kernel, output scale kept).
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+    >>> em = emulate(physics, data, runs=10)
+    >>> more = run_design(physics, posterior_design(pd.DataFrame({"E": [200.0]}), data,
+    ...                                             physics, data.n))
+    >>> refit(em, more).n_runs == 10 + data.n
+    True
+    """
+    return Emulator(
+        _merged(emulator.runs, new), emulator.physics, box=emulator_box(emulator),
+        kernel=emulator.kernel, seed=seed, log_output=emulator.log_output,
+    )  # fmt: skip
+
+
 def emulator_box(emulator: Emulator) -> dict[str, tuple[float, float]]:
-    """The emulator's unit box as column -> ``(lower, upper)`` (kept by every refit)."""
-    return {
-        k: (float(lo), float(lo + w))
-        for k, lo, w in zip(emulator.columns, emulator.lower, emulator.width, strict=True)
-    }
+    """The emulator's box as column -> ``(lower, upper)`` in the columns' own units.
+
+    Every refit keeps it; a log-scaled column's ends are given back on its natural scale
+    (``exp`` of the unit box's ends), so the refit scales it by ln again.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kohpymc import LogUniform, PhysicsModel
+    >>> from kohpymc.emulator import Emulator, run_design, space_filling_design
+    >>> rate = PhysicsModel(lambda i, p: np.exp(-p["k"] * i["t"]),
+    ...                     {"k": LogUniform(1e-3, 1.0)}, inputs=["t"])
+    >>> box = {"t": (0.0, 10.0), "k": (1e-3, 1.0)}
+    >>> em = Emulator(run_design(rate, space_filling_design(box, 10)), rate, box=box)
+    >>> {k: tuple(round(v, 6) for v in ends) for k, ends in emulator_box(em).items()}
+    {'t': (0.0, 10.0), 'k': (0.001, 1.0)}
+    """
+    ends = {}
+    for k, lo, w, log in zip(
+        emulator.columns, emulator.lower, emulator.width, emulator.log_columns, strict=True
+    ):
+        lower, upper = (np.exp(lo), np.exp(lo + w)) if log else (lo, lo + w)
+        ends[k] = (float(lower), float(upper))
+    return ends
 
 
 def _round_record(

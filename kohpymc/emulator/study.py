@@ -6,6 +6,10 @@
     runs = 200                  # initial design size
     design = "maximin-lhs"      # or "lhs", "sobol"
     sequential = 2              # rounds of runs added at posterior draws (0: none)
+    # refine_at_data = 2        # rounds of runs added around the emulator's best fit
+    #                           # while its check at the data fails (0: none)
+    # refine_runs = 300         # most runs those rounds add (default: room for every
+    #                           # round, each θ̂ and p + 1 θ around it at the data's rows)
     # kernel = "matern52"       # or "se"
     # new_runs = 100            # runs added per round (default runs // 2)
     # tolerance = 0.1           # stop when posterior means move less (in posterior sds)
@@ -19,12 +23,18 @@ With it, :func:`study_physics` replaces the study's physics by the emulator: sim
 runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses them),
 the validation of the emulator goes to ``<output>/emulator/check.json`` and ``check.png``
 (over the design, with the predicted posterior widening at the data) and
-``check_at_data.json`` (one simulator run at the emulator's best fit to the data), the
+``check_at_data.json`` (one simulator run at the emulator's best fit to the data).  When
+that check fails, up to ``refine_at_data`` rounds add runs around the best fit
+(:func:`~kohpymc.emulator.refinement.refine_at_data`; no sampling), refit and check again;
+``refine_at_data.json`` has every round's check, and the ``EmulatorWarning`` stays, saying
+so, when the last check still fails.  These rounds come before the sequential ones; the
 sequential rounds to ``rounds.csv``, the fitted hyperparameters to ``emulator.json`` and
 every run (failures with their error) to ``runs.csv``. The rounds' final design goes to
-``rounds.json`` with a key of the settings, simulator, data, formulation and sampler
-settings: a rerun with the same key refits the final emulator from the cached runs instead
-of calibrating the rounds again. Every file is written under a temporary name and renamed.
+``rounds.json`` (also after refinement rounds alone) with a key of the settings,
+simulator, data (and, with sequential rounds, formulation and sampler settings): a rerun
+with the same key refits the final emulator from the cached runs instead of running the
+rounds again.  Multi-output studies do not refine yet.  Every file is written under a
+temporary name and renamed.
 """
 
 from __future__ import annotations
@@ -40,9 +50,10 @@ import pandas as pd
 
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
-from kohpymc.emulator.checking import check_at_data, check_emulator
+from kohpymc.emulator.checking import EmulatorCheck, check_at_data, check_emulator, warn_at_data
 from kohpymc.emulator.design import DESIGNS
 from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator, EmulatorWarning
+from kohpymc.emulator.refinement import Refinement, refine_at_data
 from kohpymc.emulator.runs import run_design
 from kohpymc.emulator.sequential import emulate, emulator_box, fit_emulator, sequential_design
 from kohpymc.fingerprint import (
@@ -65,8 +76,10 @@ __all__ = [
     "write_settings",
 ]
 
-#: the sequential rounds' key and final design (a rerun with the same key skips them)
+#: the rounds' key and final design (a rerun with the same key skips them)
 ROUNDS_RECORD = "rounds.json"
+#: the refinement rounds at the data: each round's runs and check
+REFINEMENT_RECORD = "refine_at_data.json"
 
 
 @dataclass(frozen=True)
@@ -95,6 +108,8 @@ class EmulatorSettings:
     covariance: str = "full"
     log_output: bool | Literal["auto"] = "auto"
     seed: int = 0
+    refine_at_data: int = 2
+    refine_runs: int | None = None
 
     def design_options(self) -> dict[str, Any]:
         """The keywords of :func:`~kohpymc.emulator.emulate` these settings fix.
@@ -124,7 +139,11 @@ class EmulatorSettings:
         if unknown:
             raise _bad(unknown[0], f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
         values = dict(table)
-        for key, minimum in (("runs", 2), ("sequential", 0), ("new_runs", 1), ("seed", 0)):
+        minimums = (
+            ("runs", 2), ("sequential", 0), ("new_runs", 1), ("seed", 0),
+            ("refine_at_data", 0), ("refine_runs", 1),
+        )  # fmt: skip
+        for key, minimum in minimums:
             if key in values:
                 v = values[key]
                 if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
@@ -192,8 +211,9 @@ def study_physics(
     --------
     >>> import tempfile
     >>> from kohpymc.examples import beam
-    >>> physics = study_physics(EmulatorSettings(runs=30), beam.physics_model(),
-    ...                         beam.generate_data(seed=1), tempfile.mkdtemp())
+    >>> physics = study_physics(EmulatorSettings(runs=30, refine_at_data=0),
+    ...                         beam.physics_model(), beam.generate_data(seed=1),
+    ...                         tempfile.mkdtemp())
     >>> physics.emulator.n_runs
     30
     """
@@ -201,12 +221,15 @@ def study_physics(
     folder.mkdir(parents=True, exist_ok=True)
     key = (
         _rounds_key(settings, physics, calibration, formulations, sampling)
-        if settings.sequential > 0
+        if settings.sequential > 0 or settings.refine_at_data > 0
         else ""
     )
     emulator = _restored_rounds(folder, key, settings, physics, workers, scheduler)
     if emulator is None:
-        emulator = _first_emulator(settings, physics, calibration, folder, workers, scheduler)
+        emulator, at_data = _first_emulator(
+            settings, physics, calibration, folder, workers, scheduler
+        )
+        emulator = _refined(settings, calibration, emulator, at_data, folder, workers, scheduler)
         if settings.sequential > 0:
             emulator = _sequential_rounds(
                 settings,
@@ -219,6 +242,7 @@ def study_physics(
                 workers=workers,
                 scheduler=scheduler,
             )
+        if key:
             _write_rounds_record(folder, key, emulator)
     write_settings(folder, settings)
     write_emulator(folder, emulator)
@@ -278,8 +302,11 @@ def _first_emulator(
     folder: Path,
     workers: int,
     scheduler: Any,
-) -> Emulator:
-    """The initial design, run (cached in ``folder/runs``) and fitted; its check written."""
+) -> tuple[Emulator, EmulatorCheck]:
+    """The initial design, run (cached in ``folder/runs``) and fitted; its checks written.
+
+    The check at the data warns here only without refinement rounds (else after them).
+    """
     emulator = emulate(
         physics,
         calibration,
@@ -288,8 +315,58 @@ def _first_emulator(
         scheduler=scheduler,
         **settings.design_options(),
     )
-    _write_checks(folder, emulator, calibration)
-    return emulator
+    at_data = _write_checks(
+        folder, emulator, calibration, warn=settings.refine_at_data == 0,
+        workers=workers, scheduler=scheduler,
+    )  # fmt: skip
+    return emulator, at_data
+
+
+def _refined(
+    settings: EmulatorSettings,
+    calibration: CalibrationData,
+    emulator: Emulator,
+    at_data: EmulatorCheck,
+    folder: Path,
+    workers: int,
+    scheduler: Any,
+) -> Emulator:
+    """The refinement rounds at the data (if any and if the check failed); files and warning.
+
+    ``refine_at_data.json`` records every round; with runs added, ``check.json`` and
+    ``check_at_data.json`` are rewritten for the refitted emulator.
+    """
+    if settings.refine_at_data == 0:
+        return emulator
+    result = refine_at_data(
+        emulator,
+        calibration,
+        rounds=settings.refine_at_data,
+        new_runs=settings.new_runs,
+        max_runs=settings.refine_runs,
+        first=at_data,
+        cache=folder / "runs",
+        seed=settings.seed,
+        workers=workers,
+        scheduler=scheduler,
+    )
+    _write_json(folder / REFINEMENT_RECORD, result.to_dict())
+    if result.added:
+        write_check(folder, check_emulator(result.emulator, data=calibration))
+        _write_json(folder / "check_at_data.json", result.checks[-1].to_dict())
+    warn_at_data(result.emulator, result.checks[-1], _refinement_advice(settings, result))
+    return result.emulator
+
+
+def _refinement_advice(settings: EmulatorSettings, result: Refinement) -> str:
+    """What the warning after failed refinement rounds says they did and what to try."""
+    cap = "" if settings.refine_runs is None else f", refine_runs = {settings.refine_runs}"
+    return (
+        f"still so after {len(result.added)} refinement round(s) that added "
+        f"{sum(result.added)} runs around the best fit ([emulator] refine_at_data = "
+        f"{settings.refine_at_data}{cap}; stopped: {result.stopped}); raise them, or "
+        "runs, or use sequential rounds"
+    )
 
 
 def _rounds_key(
@@ -299,17 +376,21 @@ def _rounds_key(
     formulations: Mapping[str, Discrepancy] | None,
     sampling: Mapping[str, Any] | None,
 ) -> str:
-    """What the sequential rounds' result depends on: settings, simulator, data, sampler."""
-    return digest(
-        {
-            "settings": asdict(settings),
-            "physics": physics_fingerprint(physics),
-            "data": data_fingerprint(calibration),
-            "formulation": formulation_fingerprint(_round_formulation(settings, formulations)),
-            "sampling": _calibrate_settings(sampling or {}),
-            "version": kohpymc_version(),
-        }
-    )
+    """What the rounds' result depends on: settings, simulator, data (sequential: sampler).
+
+    Refinement rounds alone do not sample, so the formulation and the sampler settings
+    enter the key only with sequential rounds.
+    """
+    parts: dict[str, Any] = {
+        "settings": asdict(settings),
+        "physics": physics_fingerprint(physics),
+        "data": data_fingerprint(calibration),
+        "version": kohpymc_version(),
+    }
+    if settings.sequential > 0:
+        parts["formulation"] = formulation_fingerprint(_round_formulation(settings, formulations))
+        parts["sampling"] = _calibrate_settings(sampling or {})
+    return digest(parts)
 
 
 def _write_rounds_record(folder: Path, key: str, emulator: Emulator) -> None:
@@ -321,6 +402,7 @@ def _write_rounds_record(folder: Path, key: str, emulator: Emulator) -> None:
         "columns": columns,
         "design": runs.points[columns].to_numpy(dtype=float).tolist(),
         "box": emulator_box(emulator),
+        "log_output": emulator.log_output,
     }
     text = json.dumps(record)
     write_atomic(folder / ROUNDS_RECORD, lambda tmp: tmp.write_text(text))
@@ -336,11 +418,12 @@ def _restored_rounds(
 ) -> Emulator | None:
     """The final emulator of earlier rounds with the same ``key``, refitted from the cache.
 
-    None without sequential rounds, without a record, or when the record's key differs
-    (then the rounds run again; their simulator runs still come from the cache).
+    None without rounds (empty ``key``), without a record, or when the record's key
+    differs (then the rounds run again; their simulator runs still come from the cache).
+    A failed last check at the data (in ``check_at_data.json``) warns again.
     """
     path = folder / ROUNDS_RECORD
-    if settings.sequential == 0 or not path.is_file():
+    if not key or not path.is_file():
         return None
     try:
         record = json.loads(path.read_text())
@@ -351,11 +434,25 @@ def _restored_rounds(
     design = pd.DataFrame(record["design"], columns=record["columns"])
     runs = run_design(physics, design, cache=folder / "runs", workers=workers, scheduler=scheduler)
     box = {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}
-    return fit_emulator(
+    emulator = fit_emulator(
         runs, physics, box=box, kernel=settings.kernel,
         seed=settings.seed,
-        log_output=settings.log_output,  # type: ignore[arg-type]
+        log_output=record.get("log_output", settings.log_output),
     )  # fmt: skip
+    _warn_again(folder, emulator)
+    return emulator
+
+
+def _warn_again(folder: Path, emulator: Emulator) -> None:
+    """The warning of a failed check at the data recorded when the rounds ran."""
+    try:
+        problems = json.loads((folder / "check_at_data.json").read_text())["problems"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    if problems:
+        empty = np.empty(0)
+        recorded = EmulatorCheck("at the calibration data", empty, empty, empty, problems=problems)
+        warn_at_data(emulator, recorded, "(recorded in check_at_data.json when the rounds ran)")
 
 
 def _round_formulation(
@@ -401,20 +498,32 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    _write_checks(folder, result.emulator, calibration)
+    _write_checks(folder, result.emulator, calibration, workers=workers, scheduler=scheduler)
     return result.emulator
 
 
-def _write_checks(folder: Path, emulator: Emulator, calibration: CalibrationData) -> None:
+def _write_checks(
+    folder: Path,
+    emulator: Emulator,
+    calibration: CalibrationData,
+    *,
+    warn: bool = True,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> EmulatorCheck:
     """``check.json``/``.png`` over the design, and ``check_at_data.json`` at the data.
 
     The second runs the simulator once, at the emulator's best fit to the calibration
     rows (cached in ``folder/runs`` like the design), since leave-one-out over the prior
-    box can pass an emulator that is many noise sds off where the data are.
+    box can pass an emulator that is many noise sds off where the data are.  Returns it.
     """
     write_check(folder, check_emulator(emulator, data=calibration))
-    at_data = check_at_data(emulator, calibration, cache=folder / "runs")
+    at_data = check_at_data(
+        emulator, calibration, cache=folder / "runs", warn=warn, workers=workers,
+        scheduler=scheduler,
+    )  # fmt: skip
     _write_json(folder / "check_at_data.json", at_data.to_dict())
+    return at_data
 
 
 def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:

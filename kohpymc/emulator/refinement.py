@@ -1,0 +1,236 @@
+"""Add simulator runs where the posterior will be, until the emulator passes its check there.
+
+Leave-one-out over the prior box can pass an emulator that is many noise sds wrong at the
+parameters that fit the data (:func:`~kohpymc.emulator.checking.check_at_data`).
+:func:`refine_at_data` answers a failed check without sampling: around the emulator's best
+fit ``θ̂`` it adds a small space-filling design of θ, spread over ``spread`` sds of the
+linearised posterior through the emulator (:func:`local_design`), plus ``θ̂`` itself, each
+θ at every calibration input row (as the sequential rounds'
+:func:`~kohpymc.emulator.posterior_design` does); it refits, checks again, and stops when
+the check passes, after ``rounds`` rounds, or when ``max_runs`` runs have been added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from kohpymc.data import CalibrationData
+from kohpymc.emulator.checking import EmulatorCheck, check_at_data, linearisation
+from kohpymc.emulator.design import space_filling_design
+from kohpymc.emulator.gp import Emulator
+from kohpymc.emulator.runs import run_design
+from kohpymc.emulator.sequential import posterior_design, refit
+
+__all__ = ["Refinement", "local_design", "refine_at_data"]
+
+
+@dataclass
+class Refinement:
+    """The rounds of :func:`refine_at_data`.
+
+    Attributes
+    ----------
+    emulator : Emulator
+        The last emulator.
+    checks : list of EmulatorCheck
+        The check at the data before the first round and after each round.
+    added : list of int
+        Runs added in each round.
+    stopped : str
+        Why the rounds ended: ``"passed"``, ``"rounds"`` (the last round was run) or
+        ``"max_runs"`` (no room left for another round).
+    """
+
+    emulator: Emulator
+    checks: list[EmulatorCheck] = field(default_factory=list)
+    added: list[int] = field(default_factory=list)
+    stopped: str = "passed"
+
+    @property
+    def passed(self) -> bool:
+        """Whether the last check at the data passed."""
+        return self.checks[-1].fit
+
+    def to_dict(self) -> dict[str, Any]:
+        """Per round its runs and check (``check_at_data.json``'s fields); how it ended."""
+        rounds = []
+        for i, check in enumerate(self.checks):
+            added = self.added[i - 1] if i else 0
+            rounds.append({"round": i, "added_runs": added, "check": check.to_dict()})
+        return {
+            "passed": self.passed,
+            "stopped": self.stopped,
+            "added_runs": int(sum(self.added)),
+            "runs": self.emulator.n_runs,
+            "rounds": rounds,
+        }
+
+    def summary(self) -> str:
+        """One line: how many rounds and runs, and whether the check passes now."""
+        n = len(self.added)
+        if n == 0:
+            return "passed at the first check" if self.passed else "failed (no rounds run)"
+        outcome = "passes" if self.passed else "still fails"
+        return (
+            f"{n} round(s) added {sum(self.added)} runs at the data; the check there "
+            f"{outcome} ({self.emulator.n_runs} runs)"
+        )
+
+
+def local_design(
+    emulator: Emulator,
+    data: CalibrationData,
+    theta: dict[str, float],
+    n: int,
+    *,
+    spread: float = 3.0,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """``n`` space-filling θ within ``spread`` linearised posterior sds of ``theta``.
+
+    The emulator is linearised at ``theta`` in the coordinates of its unit box (ln θ
+    for log-scaled parameters; :func:`~kohpymc.emulator.checking.linearisation`,
+    its own covariance added to the noise, so a poor emulator gets a wider design); a
+    maximin Latin hypercube on ``[-1, 1]^p`` is mapped along the eigenvectors of that
+    posterior's precision, each axis scaled by ``spread`` sds (at most the box's
+    width, for a direction the data do not inform) and clipped to the box.
+
+    Parameters
+    ----------
+    emulator : Emulator
+    data : CalibrationData
+        The calibration data.
+    theta : dict
+        The centre (the emulator's best fit, :attr:`EmulatorCheck.point`).
+    n : int
+        Number of θ points.
+    spread : float
+        Half-width of the design in posterior sds.
+    seed : int
+        Seed of the Latin hypercube.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``n`` rows, one column per parameter.
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import emulate
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> em = emulate(beam.physics_model(), data, runs=20)
+    >>> d = local_design(em, data, {"E": 200.0}, 5)
+    >>> len(d), bool(d["E"].between(190.0, 210.0).all())
+    (5, True)
+    """
+    names = list(emulator.runs.parameters)
+    cols = [emulator.columns.index(k) for k in names]
+    logs, lower, width = emulator.log_columns[cols], emulator.lower[cols], emulator.width[cols]
+    centre = np.array([theta[k] for k in names], dtype=float)
+    J, noise, cov = linearisation(emulator, data, theta)
+    Ju = J * (width * np.where(logs, centre, 1.0))  # d mean / d unit coordinate
+    precision = Ju.T @ np.linalg.solve(noise**2 * np.eye(len(J)) + cov, Ju)
+    eigenvalues, vectors = np.linalg.eigh(precision)
+    with np.errstate(divide="ignore"):
+        sds = np.minimum(1.0 / np.sqrt(np.maximum(eigenvalues, 0.0)), 1.0)
+    box = {f"z{i}": (-1.0, 1.0) for i in range(len(names))}
+    z = space_filling_design(box, n, seed=seed).to_numpy(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        unit = (np.where(logs, np.log(centre), centre) - lower) / width
+    points = np.clip(unit + (spread * z * sds) @ vectors.T, 0.0, 1.0)
+    scaled = lower + points * width
+    return pd.DataFrame(np.where(logs, np.exp(scaled), scaled), columns=names)
+
+
+def refine_at_data(
+    emulator: Emulator,
+    data: CalibrationData,
+    *,
+    rounds: int = 2,
+    new_runs: int | None = None,
+    max_runs: int | None = None,
+    first: EmulatorCheck | None = None,
+    spread: float = 3.0,
+    cache: str | Path | None = None,
+    seed: int = 0,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> Refinement:
+    """Check the emulator at the data; while it fails, add runs around its best fit.
+
+    Each round runs θ̂ (the check's own point) and ``max(p + 1, round(new_runs / m))``
+    θ of :func:`local_design` at the ``m`` distinct calibration input rows, refits
+    (:func:`~kohpymc.emulator.sequential.refit`) and checks again.  No warning is
+    issued; the caller warns on a failed last check
+    (:func:`~kohpymc.emulator.checking.warn_at_data`).
+
+    Parameters
+    ----------
+    emulator : Emulator
+    data : CalibrationData
+    rounds : int
+        Most rounds (0: just the check).
+    new_runs : int, optional
+        About how many runs a round adds (default half the emulator's runs).
+    max_runs : int, optional
+        Most runs added over all rounds (default: room for every round); a round that
+        would pass it runs fewer θ, or none.
+    first : EmulatorCheck, optional
+        The check of ``emulator`` already made (else made here).
+    spread : float
+        Half-width of the local designs in linearised posterior sds.
+    cache, seed, workers, scheduler :
+        As for :func:`~kohpymc.emulator.emulate`; every run is cached.
+
+    Returns
+    -------
+    Refinement
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import emulate
+    >>> from kohpymc.examples import beam
+    >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+    >>> result = refine_at_data(emulate(physics, data, runs=12), data, max_runs=100)
+    >>> result.checks[0].fit, result.passed, result.added  # 3 θ at the 20 data rows
+    (False, True, [60])
+    """
+    if rounds < 0:
+        raise ValueError(f"rounds must be >= 0, got {rounds}")
+    check = first or check_at_data(
+        emulator, data, cache=cache, warn=False, workers=workers, scheduler=scheduler
+    )
+    result = Refinement(emulator, [check])
+    physics = emulator.physics
+    m = len(np.unique(data.matrix(tuple(physics.inputs)), axis=0))
+    per_round = new_runs if new_runs is not None else max(1, emulator.n_runs // 2)
+    n_local = max(len(physics.parameters) + 1, int(round(per_round / m)))
+    budget = max_runs if max_runs is not None else rounds * (n_local + 1) * m
+    for round_ in range(1, rounds + 1):
+        if check.fit:
+            return result
+        room = (budget - sum(result.added)) // m - 1  # θ̂ takes one of them
+        if room < 1:
+            result.stopped = "max_runs"
+            return result
+        local = local_design(
+            result.emulator, data, check.point, min(n_local, room), spread=spread,
+            seed=seed + round_,
+        )  # fmt: skip
+        thetas = pd.concat([pd.DataFrame([check.point]), local], ignore_index=True)
+        points = posterior_design(thetas, data, physics, len(thetas) * m)
+        runs = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
+        result.emulator = refit(result.emulator, runs, seed=seed)
+        result.added.append(len(runs.points))
+        check = check_at_data(
+            result.emulator, data, cache=cache, warn=False, workers=workers, scheduler=scheduler
+        )
+        result.checks.append(check)
+    result.stopped = "passed" if check.fit else "rounds"
+    return result

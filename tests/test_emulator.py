@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kohpymc import PhysicsModel, Uniform
+from kohpymc import LogUniform, PhysicsModel, Uniform
 from kohpymc.emulator import (
     design_box,
     extend_design,
@@ -873,6 +873,30 @@ def test_refinement_moves_a_coarse_emulators_best_fit_onto_the_simulators():
     good, *_ = _emulator(100)
     untouched = refine_at_data(good, data)  # passes at once: nothing added
     assert untouched.added == [] and untouched.emulator is good
+
+
+def test_a_local_design_in_natural_units_stays_in_the_box_without_overflow():
+    """An activation energy Q ~ Uniform(1e5, 4e5) J/mol (linear: the box spans < 10x) beside a
+    rate spanning decades (log): exp was taken of every column, Q's included (an unseen
+    creep study printed "overflow encountered in exp")."""
+    import warnings
+
+    from kohpymc import CalibrationData
+    from kohpymc.emulator import emulate
+    from kohpymc.emulator.refinement import local_design
+
+    physics = PhysicsModel(
+        lambda d, p: p["A"] * np.exp(-p["Q"] / (8.314 * np.asarray(d["T"], float))),
+        {"A": LogUniform(1e8, 1e14), "Q": Uniform(1e5, 4e5)}, inputs=["T"], name="rate",
+    )  # fmt: skip
+    T = np.linspace(800.0, 900.0, 6)
+    data = CalibrationData({"T": T}, 1e11 * np.exp(-2.5e5 / (8.314 * T)), noise_sd=1e-3)
+    em = emulate(physics, data, runs=20)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        design = local_design(em, data, {"A": 1e11, "Q": 2.5e5}, 6)
+    assert design["Q"].between(1e5, 4e5).all()
+    assert design["A"].between(1e8 * (1 - 1e-12), 1e14 * (1 + 1e-12)).all()  # exp(ln b) ≈ b
 
 
 @pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")

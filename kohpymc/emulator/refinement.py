@@ -145,7 +145,8 @@ def local_design(
         unit = (np.where(logs, np.log(centre), centre) - lower) / width
     points = np.clip(unit + (spread * z * sds) @ vectors.T, 0.0, 1.0)
     scaled = lower + points * width
-    return pd.DataFrame(np.where(logs, np.exp(scaled), scaled), columns=names)
+    natural = np.where(logs, np.exp(np.where(logs, scaled, 0.0)), scaled)  # exp of logs only
+    return pd.DataFrame(natural, columns=names)
 
 
 def refine_at_data(

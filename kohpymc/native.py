@@ -29,11 +29,11 @@ from typing import Any
 
 import numba
 import numpy as np
-from llvmlite import ir as llvm_ir
-from numba.extending import intrinsic
 import pymc as pm
 import pytensor
 import pytensor.tensor as pt
+from llvmlite import ir as llvm_ir  # type: ignore[import-untyped]  # llvmlite ships no stubs
+from numba.extending import intrinsic
 from pymc.pytensorf import replace_vars_in_graphs
 from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
@@ -343,8 +343,8 @@ v = np.ascontiguousarray(v)
 grad_v = np.empty(N_DIM)
 value = np.empty(1)
 address = theta[N_MAP : N_MAP + 1].view(np.int64)[0]
-shared = theta[N_MAP + 1 :]
-if call_density(address, v.ctypes.data, shared.ctypes.data, grad_v.ctypes.data, value.ctypes.data) != 1:
+shared = theta.ctypes.data + 8 * (N_MAP + 1)
+if call_density(address, v.ctypes.data, shared, grad_v.ctypes.data, value.ctypes.data) != 1:
     raise ValueError("the log density raised")
 _, _, grad = map_fn(x, m, grad_v)
 logp[()] = value[0] + logjac
@@ -395,17 +395,15 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     function = pm.pytensorf.compile([z, m, g], outputs, mode="NUMBA")
     map_jit = function.vm.jit_fn
     n_map = _map_size(mapping)
-    shared = density.theta()
-    n_theta = n_map + 1 + shared.size
     map_key = CACHED_SRC_FUNCTIONS.get(map_jit.py_func)
     key = None
-    if map_key is not None:
-        parts = f"{map_key}-{n}-{n_map}-{n_theta}".encode()
-        key = f"kohpymc-native-composed-v3-{hashlib.sha256(parts).hexdigest()}"  # a file name
+    if map_key is not None:  # the density's shared values (after the address) are not read
+        parts = f"{map_key}-{n}-{n_map}".encode()
+        key = f"kohpymc-native-composed-v4-{hashlib.sha256(parts).hexdigest()}"  # a file name
     names = {"N_MAP": n_map, "map_fn": _inlined(map_jit), "call_density": call_density}
-    logp_c = _logp_c(_COMPOSED_BODY, n, n_theta, names, key)
+    logp_c = _logp_c(_COMPOSED_BODY, n, n_map + 1, names, key)
     address = np.array([density.c_function.address], dtype=np.int64).view(np.float64)
-    user_data = np.concatenate([parameters(mapping)[:n_map], address, shared])
+    user_data = np.concatenate([parameters(mapping)[:n_map], address, density.theta()])
     return logp_c, function, np.ascontiguousarray(user_data)
 
 

@@ -239,7 +239,8 @@ class NumbaDensity:
         source = _DENSITY_TEMPLATE.replace("ARGS", ", ".join(args))
         key = None
         if self.key is not None:
-            layout = [(str(np.asarray(v.get_value()).dtype), np.shape(v.get_value())) for v in self.shared]
+            values = [np.asarray(var.get_value()) for var in self.shared]
+            layout = [(str(value.dtype), value.shape) for value in values]
             parts = f"{self.key}-{n}-{layout}".encode()
             key = f"kohpymc-density-c-v1-{hashlib.sha256(parts).hexdigest()}"
         try:
@@ -253,7 +254,7 @@ class NumbaDensity:
 
     def theta(self) -> np.ndarray:
         """The shared values as :attr:`c_function` reads them (one float64 vector, ≥ 1 long)."""
-        values = [np.ravel(np.asarray(var.get_value(borrow=True), dtype=float)) for var in self.shared]
+        values = [np.ravel(np.asarray(var.get_value(borrow=True), float)) for var in self.shared]
         if not values or sum(v.size for v in values) == 0:
             return np.zeros(1)
         return np.ascontiguousarray(np.concatenate(values))

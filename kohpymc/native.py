@@ -267,13 +267,13 @@ def native_model(
 
     if not mapping.symbolic:
         raise NotImplementedError(f"no symbolic form of a {type(mapping).__name__}'s map")
-    python_ops = python_only_ops([value_logp(space.model)])
-    if python_ops:  # before any compiling (a numpy physics model's usual case)
-        raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
-    composed = _composed_logp(space, mapping)
+    composed = _composed_logp(space, mapping)  # the space's density has no Python-only Op
     if composed is not None:
         logp_c, function, user_data = composed
     else:
+        python_ops = python_only_ops([value_logp(space.model)])
+        if python_ops:  # before any compiling (a numpy physics model's usual case)
+            raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
         z, theta, logp, grad, shared = density_in_z(space, mapping)
         python_ops = python_only_ops([logp, grad])  # e.g. a Python Op in a gradient only
         if python_ops:

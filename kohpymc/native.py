@@ -32,6 +32,8 @@ import numpy as np
 import pymc as pm
 import pytensor
 import pytensor.tensor as pt
+from llvmlite import ir as llvm_ir  # type: ignore[import-untyped]  # llvmlite ships no stubs
+from numba.extending import intrinsic
 from pymc.pytensorf import replace_vars_in_graphs
 from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
@@ -265,13 +267,13 @@ def native_model(
 
     if not mapping.symbolic:
         raise NotImplementedError(f"no symbolic form of a {type(mapping).__name__}'s map")
-    python_ops = python_only_ops([value_logp(space.model)])
-    if python_ops:  # before any compiling (a numpy physics model's usual case)
-        raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
-    composed = _composed_logp(space, mapping)
+    composed = _composed_logp(space, mapping)  # the space's density has no Python-only Op
     if composed is not None:
         logp_c, function, user_data = composed
     else:
+        python_ops = python_only_ops([value_logp(space.model)])
+        if python_ops:  # before any compiling (a numpy physics model's usual case)
+            raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
         z, theta, logp, grad, shared = density_in_z(space, mapping)
         python_ops = python_only_ops([logp, grad])  # e.g. a Python Op in a gradient only
         if python_ops:
@@ -331,55 +333,78 @@ def map_in_z(mapping: Reparameterization, n: int) -> tuple[Any, Any, Any, list[A
     return z, m, g, [v, logjac, grad]
 
 
-#: the body of :func:`_composed_logp`'s C function: ``v(z)``, the density at ``v`` (its
-#: shared values after the map in the user data, SHARED), the gradient back in ``z``
+#: the body of :func:`_composed_logp`'s C function: ``v(z)``, the density at ``v`` (the
+#: space's compiled C function, its address and shared values after the map in the user
+#: data), the gradient back in ``z``
 _COMPOSED_BODY = """
 m = theta[:N_MAP]
 v, logjac, _ = map_fn(x, m, np.zeros(N_DIM))
-value, grad_v = graph(v, SHARED)
+v = np.ascontiguousarray(v)
+grad_v = np.empty(N_DIM)
+value = np.empty(1)
+address = theta[N_MAP : N_MAP + 1].view(np.int64)[0]
+shared = theta.ctypes.data + 8 * (N_MAP + 1)
+if call_density(address, v.ctypes.data, shared, grad_v.ctypes.data, value.ctypes.data) != 1:
+    raise ValueError("the log density raised")
 _, _, grad = map_fn(x, m, grad_v)
-logp[()] = value + logjac
+logp[()] = value[0] + logjac
 out[...] = grad
 """
+
+
+@intrinsic
+def call_density(typingctx: Any, address: Any, x: Any, theta: Any, out: Any, logp: Any) -> Any:
+    """Call the C function at ``address`` (:data:`~kohpymc.value_space.DENSITY_SIGNATURE`).
+
+    The arguments are addresses (integers); numba links nothing of the callee, so a
+    function calling the model's compiled density this way compiles in the time of its
+    own code, and caches on disk (the address is read at each call).
+    """
+    args = (address, x, theta, out, logp)
+    if not all(isinstance(arg, numba.types.Integer) for arg in args):
+        return None
+    pointer = llvm_ir.DoubleType().as_pointer()
+
+    def codegen(context: Any, builder: Any, signature: Any, values: Any) -> Any:
+        function_type = llvm_ir.FunctionType(llvm_ir.IntType(64), [pointer] * 4)
+        function = builder.inttoptr(values[0], function_type.as_pointer())
+        return builder.call(function, [builder.inttoptr(v, pointer) for v in values[1:]])
+
+    return numba.types.int64(*args), codegen
 
 
 def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any, Any, Any] | None:
     """Nutpie's C function as ``map_in_z`` around the space's compiled density, or None.
 
     Returns ``(C function, the map's compiled function, user data)``: the user data are
-    the plan's ``μ``, ``vec L`` and map constants and the density's shared values, which
-    the C function reads as arrays of their shapes (no copy).  ``None`` when the space's
-    density is not a :class:`NumbaDensity` or has a shared input that is not float64 (the
-    caller then compiles the whole density in ``z``, :func:`density_in_z`).
+    the plan's ``μ``, ``vec L`` and map constants, the address of the space's density
+    (:attr:`~kohpymc.value_space.NumbaDensity.c_function`, its bits as one float64) and
+    its shared values.  The C function holds the map only (the model's graph is
+    compiled once, in the density), so its disk cache serves every model with the same
+    plan structure.  ``None`` when the space's density is not a :class:`NumbaDensity`
+    with a C function (the caller then compiles the whole density in ``z``,
+    :func:`density_in_z`).
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
 
     density = space._logp_dlogp
-    if not isinstance(density, NumbaDensity):
-        return None
-    values = [np.asarray(var.get_value()) for var in density.shared]
-    if any(value.dtype != np.float64 for value in values):
+    if not isinstance(density, NumbaDensity) or density.c_function is None:
         return None
     n = space.ndim
     z, m, g, outputs = map_in_z(mapping, n)
     function = pm.pytensorf.compile([z, m, g], outputs, mode="NUMBA")
     map_jit = function.vm.jit_fn
     n_map = _map_size(mapping)
-    slices, start = [], n_map
-    for value in values:
-        slices.append(f"theta[{start}:{start + value.size}].reshape({value.shape!r})")
-        start += value.size
-    body = _COMPOSED_BODY.replace("SHARED", ", ".join(slices) or "")
     map_key = CACHED_SRC_FUNCTIONS.get(map_jit.py_func)
     key = None
-    if density.key is not None and map_key is not None:
-        shapes = [value.shape for value in values]
-        parts = f"{density.key}-{map_key}-{n}-{start}-{shapes}".encode()
-        key = f"kohpymc-native-composed-v2-{hashlib.sha256(parts).hexdigest()}"  # a file name
-    names = {"N_MAP": n_map, "map_fn": _inlined(map_jit), "graph": density.graph}
-    logp_c = _logp_c(body, n, start, names, key)
-    user_data = parameters(mapping, density.shared)
-    return logp_c, function, user_data
+    if map_key is not None:  # the density's shared values (after the address) are not read
+        parts = f"{map_key}-{n}-{n_map}".encode()
+        key = f"kohpymc-native-composed-v4-{hashlib.sha256(parts).hexdigest()}"  # a file name
+    names = {"N_MAP": n_map, "map_fn": _inlined(map_jit), "call_density": call_density}
+    logp_c = _logp_c(_COMPOSED_BODY, n, n_map + 1, names, key)
+    address = np.array([density.c_function.address], dtype=np.int64).view(np.float64)
+    user_data = np.concatenate([parameters(mapping)[:n_map], address, density.theta()])
+    return logp_c, function, np.ascontiguousarray(user_data)
 
 
 #: nutpie's log-density C signature: (dim, x, gradient out, logp out, user data) -> code

@@ -43,7 +43,7 @@ from kohpymc.checks import SAMPLERS, check_sampler
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
-from kohpymc.value_space import ValueSpace, transformed_value, value_space
+from kohpymc.value_space import ValueSpace, quiet_density_errors, transformed_value, value_space
 
 __all__ = [
     "SAMPLERS",
@@ -415,7 +415,7 @@ def _run_nutpie(
     coords, dims = _coords_and_dims(space)
     compiled, cores = _native_or_python(space, mapping, settings, failures, report)
     report.chain_threads = cores
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), quiet_density_errors():
         warnings.simplefilter("ignore", FutureWarning)
         idata = nutpie.sample(
             compiled,

@@ -15,12 +15,17 @@ log scale for positive bounded parameters.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import functools
+import hashlib
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 import pymc as pm
 import pytensor
@@ -87,6 +92,11 @@ class ValueSpace:
         """
         try:
             with np.errstate(all="ignore"):
+                if isinstance(self._logp_dlogp, NumbaDensity):  # no compile to raise
+                    result = self._logp_dlogp.evaluate(x)
+                    if result is None:
+                        return -np.inf, np.full(self.ndim, np.nan)
+                    return float(result[0]), np.asarray(result[1], dtype=float)
                 return self.logp_dlogp(x)
         except Exception:  # noqa: BLE001 - any failure is "outside the support" here
             return -np.inf, np.full(self.ndim, np.nan)
@@ -144,39 +154,168 @@ class ValueSpace:
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])
 
 
-@dataclass(frozen=True)
+#: C signature of :attr:`NumbaDensity.c_function`: ``(x, theta, gradient out, logp out)``
+#: -> 1, or 0 when the graph raised (numba's C wrapper then reports the exception to
+#: :func:`sys.unraisablehook`, see :func:`quiet_density_errors`)
+DENSITY_SIGNATURE = numba.types.int64(*[numba.types.CPointer(numba.types.double)] * 4)
+
+#: the graph's numba function as a C function; ``theta`` holds the shared values (ARGS)
+_DENSITY_TEMPLATE = """
+def density_c(x_, theta_, out_, logp_):
+    x = carray(x_, (N_DIM,))
+    theta = carray(theta_, (N_THETA,))
+    out = carray(out_, (N_DIM,))
+    logp = carray(logp_, ())
+    value, grad = graph(x, ARGS)
+    logp[()] = value
+    out[...] = grad
+    return 1
+"""
+
+#: ``ctypes`` prototype of :data:`DENSITY_SIGNATURE` taking addresses
+_DENSITY_CTYPE = ctypes.CFUNCTYPE(ctypes.c_int64, *[ctypes.c_void_p] * 4)
+
+
 class NumbaDensity:
-    """The log density and gradient of a NUMBA :class:`ValueSpace`: one numba function.
+    """The log density and gradient of a NUMBA :class:`ValueSpace`: one numba C function.
 
     Calling it evaluates at a flat value vector, reading the graph's shared inputs at
-    each call.  :mod:`kohpymc.native` builds nutpie's density in the sampling
-    coordinates around :attr:`graph` instead of compiling the model's graph a second
-    time.
+    each call.  The graph is compiled once, into :attr:`c_function` (the graph inlined,
+    cached on disk); :mod:`kohpymc.native` calls that same function from nutpie's
+    density in the sampling coordinates (by its address, :meth:`theta`) instead of
+    compiling the model's graph a second time.  When the graph cannot run as a C
+    function (an Op numba runs in object mode) or raises, :attr:`call` (a numba
+    function callable from Python, compiled at its first use) evaluates instead.
 
     Attributes
     ----------
     call : numba dispatcher
         ``call(x, *shared values)`` -> ``(logp, grad)``.
-    graph : numba dispatcher
-        PyTensor's function of the graph (the same arguments), inlined into its callers.
     shared : tuple
         The graph's shared variables, in argument order.
     key : str or None
         PyTensor's cache key of the graph (``None``: not cached on disk).
     """
 
-    call: Any
-    graph: Any
-    shared: tuple[Any, ...]
-    key: str | None
+    def __init__(
+        self, call: Any, graph: Any, shared: tuple[Any, ...], key: str | None, ndim: int,
+        python_ops: bool = False,
+    ) -> None:  # fmt: skip
+        self.call, self.shared, self.key = call, shared, key
+        self._graph, self._ndim, self._python_ops = graph, ndim, python_ops
+        self._compiled: tuple[Any, Any] | None = None
+        self._tried = False
+
+    @property
+    def c_function(self) -> Any:
+        """The graph as a numba C function (:data:`DENSITY_SIGNATURE`), or None.
+
+        Compiled (or loaded from numba's disk cache) at the first use; None when the
+        graph holds an Op numba would run in object mode or the compile fails.
+        """
+        if not self._tried:
+            self._tried = True
+            self._compiled = self._compile_c()
+        return None if self._compiled is None else self._compiled[0]
+
+    def _compile_c(self) -> tuple[Any, Any] | None:
+        """``(C function, its ctypes callable)``, or None (see :attr:`c_function`)."""
+        from pytensor.link.numba.cache import compile_numba_function_src
+
+        if self._python_ops:
+            return None
+        args = []
+        start = 0
+        for var in self.shared:
+            value = np.asarray(var.get_value(borrow=True))
+            part = f"theta[{start}:{start + value.size}].reshape({value.shape!r})"
+            args.append(part if value.dtype == np.float64 else f"{part}.astype(np.{value.dtype})")
+            start += value.size
+        n = self._ndim
+        env = {
+            "N_DIM": n, "N_THETA": max(start, 1), "carray": numba.carray, "np": np,
+            "graph": self._graph, "__name__": __name__,
+        }  # fmt: skip
+        source = _DENSITY_TEMPLATE.replace("ARGS", ", ".join(args))
+        key = None
+        if self.key is not None:
+            values = [np.asarray(var.get_value()) for var in self.shared]
+            layout = [(str(value.dtype), value.shape) for value in values]
+            parts = f"{self.key}-{n}-{layout}".encode()
+            key = f"kohpymc-density-c-v1-{hashlib.sha256(parts).hexdigest()}"
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("error", message="Numba will use object mode")
+                raw = compile_numba_function_src(source, "density_c", env, cache_key=key)
+                function = numba.cfunc(DENSITY_SIGNATURE, cache=key is not None)(raw)
+        except Exception:  # noqa: BLE001 - the Python-callable function evaluates instead
+            return None
+        return function, _DENSITY_CTYPE(function.address)
+
+    def theta(self) -> np.ndarray:
+        """The shared values as :attr:`c_function` reads them (one float64 vector, ≥ 1 long)."""
+        values = [np.ravel(np.asarray(var.get_value(borrow=True), float)) for var in self.shared]
+        if not values or sum(v.size for v in values) == 0:
+            return np.zeros(1)
+        return np.ascontiguousarray(np.concatenate(values))
 
     def __call__(self, x: np.ndarray) -> Any:
-        """``(logp, grad)`` at the flat value vector ``x``."""
+        """``(logp, grad)`` at the flat value vector ``x``; raises the graph's errors."""
+        x = np.ascontiguousarray(x, dtype=float)
+        result = self.evaluate(x)
+        if result is None:  # the graph raised: its own error, from the Python-callable function
+            return self._call_python(x)
+        return result
+
+    def evaluate(self, x: np.ndarray) -> tuple[Any, np.ndarray] | None:
+        """``(logp, grad)`` at ``x``, or None when the graph raised in :attr:`c_function`.
+
+        Without a C function, :attr:`call` evaluates (and raises).
+        """
+        x = np.ascontiguousarray(x, dtype=float)
+        if self.c_function is None:
+            return self._call_python(x)
+        assert self._compiled is not None
+        theta, grad, logp = self.theta(), np.empty(self._ndim), np.empty(())
+        addresses = (x.ctypes.data, theta.ctypes.data, grad.ctypes.data, logp.ctypes.data)
+        with quiet_density_errors():
+            ok = self._compiled[1](*addresses)
+        return (logp[()], grad) if ok == 1 else None
+
+    def _call_python(self, x: np.ndarray) -> Any:
         values = [var.get_value(borrow=True) for var in self.shared]
-        return self.call(np.ascontiguousarray(x), *values)
+        return self.call(x, *values)
 
 
-def _direct_numba_call(function: Any) -> Callable[..., Any]:
+def _is_density_error(record: Any) -> bool:
+    """Whether an unraisable record is numba's C wrapper reporting a graph's exception."""
+    return str(getattr(record, "object", "")).startswith("<numba.core.cpu.CPUContext")
+
+
+@contextlib.contextmanager
+def quiet_density_errors():
+    """Leave out numba's report of exceptions inside :data:`DENSITY_SIGNATURE` functions.
+
+    A graph that raises inside a numba C function (e.g. a Cholesky factor of a matrix
+    that is not positive definite, far in a posterior's tails) returns 0, and numba's C
+    wrapper hands the exception to :func:`sys.unraisablehook`, which prints it; the
+    callers treat that evaluation as failed instead.  Other unraisable records go to the
+    hook as before.
+    """
+    previous = sys.unraisablehook
+
+    def hook(record: Any) -> None:
+        if not _is_density_error(record):
+            previous(record)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
+def _direct_numba_call(function: Any, ndim: int) -> Callable[..., Any]:
     """``function`` (NUMBA mode) as one numba function around the graph's, cached on disk.
 
     PyTensor calls its graph's numba function through two wrappers, and numba generates
@@ -188,6 +327,8 @@ def _direct_numba_call(function: Any) -> Callable[..., Any]:
     """
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS, compile_numba_function_src
     from pytensor.link.numba.dispatch.basic import numba_njit
+
+    from kohpymc.native import python_only_ops
 
     jit_fn = getattr(getattr(function, "vm", None), "jit_fn", None)
     wrapper: Any = getattr(jit_fn, "py_func", None)
@@ -203,7 +344,8 @@ def _direct_numba_call(function: Any) -> Callable[..., Any]:
     source = f"def value_logp({names}):\n    return graph({names})\n"
     raw = compile_numba_function_src(source, "value_logp", env, cache_key=key)
     call = numba_njit(raw, final_function=True, cache=key is not None)
-    return NumbaDensity(call, inlined, shared, graph_key)
+    python_ops = bool(python_only_ops(function.maker.fgraph.outputs))
+    return NumbaDensity(call, inlined, shared, graph_key, ndim, python_ops)
 
 
 def _constant_value(bound: Any) -> np.ndarray:
@@ -454,7 +596,7 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         warnings.filterwarnings("ignore", message="Numba will use object mode")
         logp_dlogp = pm.pytensorf.compile([flat], joined_outputs, **compile_kwargs)
     if mode == "NUMBA":
-        logp_dlogp = _direct_numba_call(logp_dlogp)
+        logp_dlogp = _direct_numba_call(logp_dlogp, sum(int(np.prod(s, dtype=int)) for s in shapes))
     expanded = list(model.free_RVs) + list(model.deterministics)
     expanded_graphs = model.replace_rvs_by_values(expanded)
     expand_outputs, flat_e = join_nonshared_inputs(

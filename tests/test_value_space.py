@@ -126,3 +126,50 @@ def test_expand_rows_of_a_numba_space_match_the_c_backends_expand_row_by_row():
         for name, value in c.expand(row).items():
             np.testing.assert_allclose(got[name][r], value, rtol=1e-12)
             np.testing.assert_allclose(numba.expand(row)[name], value, rtol=1e-12)
+
+
+def test_numba_density_is_one_c_function_with_integer_data_and_errors_reported():
+    """The NUMBA density runs as one numba C function (graph compiled once), reading
+    float and integer shared data at each call, against the C backend to 1e-12; where the
+    graph raises (an Assert on a parameter) the strict
+    call raises the graph's own error and the tolerant one gives -inf, with nothing
+    printed by numba's C wrapper."""
+    import contextlib
+    import io
+    import sys
+
+    from pytensor.raise_op import Assert
+
+    data = pytensor.shared(np.array([1.0, 1.5, 2.0]), name="y_obs")
+    power = pytensor.shared(np.int64(2), name="power")
+    with pm.Model() as model:
+        a = pm.Normal("a", 0.0, 10.0)
+        s = pm.Normal("s", 0.0, 1.0)
+        checked = Assert("s above -1")(s, pt.gt(s, -1.0))
+        mean = a + 0.0 * checked**power
+        pm.Potential("gauss", -0.5 * pt.sum((data - mean) ** 2) / (1.0 + checked) ** 2)
+    numba, c = value_space(model, mode="NUMBA"), value_space(model, mode="FAST_RUN")
+    assert numba._logp_dlogp.c_function is not None
+    x = np.array([0.7, -0.4])
+    for values, exponent in (([1.0, 1.5, 2.0], 2), ([-3.0, 0.2, 5.0], 4)):
+        data.set_value(np.array(values))
+        power.set_value(np.int64(exponent))
+        expected_logp, expected_grad = c.logp_dlogp(x)
+        logp, grad = numba.logp_dlogp(x)
+        np.testing.assert_allclose(logp, expected_logp, rtol=1e-12)
+        np.testing.assert_allclose(grad, expected_grad, rtol=1e-12)
+    bad = np.array([0.7, -1.5])
+    stderr, seen = io.StringIO(), []
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = seen.append
+    try:
+        with contextlib.redirect_stderr(stderr):
+            logp, grad = numba.logp_dlogp_or_nan(bad)
+    finally:
+        sys.unraisablehook = previous_hook
+    assert logp == -np.inf and np.all(np.isnan(grad))
+    assert seen == [] and stderr.getvalue() == ""
+    with np.testing.assert_raises(Exception):
+        c.logp_dlogp(bad)
+    with np.testing.assert_raises(Exception):
+        numba.logp_dlogp(bad)

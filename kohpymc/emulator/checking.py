@@ -535,24 +535,44 @@ def _least_squares_shift(
     return {k: float(v) for k, v in zip(check.point, ratio, strict=True)}
 
 
-def _best_fit_parameters(emulator: Emulator, data: CalibrationData) -> dict[str, float]:
-    """θ minimising the squared error of the emulator's mean at the data, in the design box."""
+def _best_fit_parameters(
+    emulator: Emulator, data: CalibrationData, starts: int = 5
+) -> dict[str, float]:
+    """θ minimising the squared error of the emulator's mean at the data, in the design box.
+
+    Searched in the emulator's unit coordinates (the log for a parameter spanning decades:
+    in natural units an A over 1e-2..1e8 and a Q over 1e5..4e5 gave L-BFGS-B steps of the
+    wrong size by ten orders), from the ``starts`` design points that fit best.
+    """
     from scipy.optimize import minimize
 
     names = list(emulator.runs.parameters)
-    candidates = emulator.runs.points[names].drop_duplicates().to_numpy(float)
+    columns = [emulator.columns.index(k) for k in names]
+    logs, lower, width = (
+        emulator.log_columns[columns],
+        emulator.lower[columns],
+        emulator.width[columns],
+    )
     y = np.asarray(data.y, float)
 
-    def sse(values: np.ndarray) -> float:
-        mean, _ = emulator.predict(data.inputs, dict(zip(names, values, strict=True)))
+    def natural(unit: np.ndarray) -> np.ndarray:
+        scaled = lower + np.clip(unit, 0.0, 1.0) * width
+        return np.where(logs, np.exp(np.where(logs, scaled, 0.0)), scaled)
+
+    def sse(unit: np.ndarray) -> float:
+        values = dict(zip(names, natural(unit), strict=True))
+        mean, _ = emulator.predict(data.inputs, values)
         return float(np.sum((y - mean) ** 2))
 
-    start = min(candidates, key=sse)
-    columns = [list(emulator.runs.inputs + emulator.runs.parameters).index(k) for k in names]
-    lo, hi = emulator.runs.X[:, columns].min(axis=0), emulator.runs.X[:, columns].max(axis=0)
-    best = minimize(sse, start, method="L-BFGS-B", bounds=list(zip(lo, hi, strict=True)))
-    values = best.x if best.fun <= sse(start) else start
-    return {k: float(v) for k, v in zip(names, values, strict=True)}
+    points = emulator.runs.points[names].drop_duplicates().to_numpy(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        units = (np.where(logs, np.log(np.abs(points)), points) - lower) / width
+    units = np.clip(units, 0.0, 1.0)
+    ranked = sorted(units, key=sse)[:starts]
+    fits = [minimize(sse, u, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(names)) for u in ranked]
+    best = min(fits, key=lambda fit: fit.fun)
+    unit = best.x if best.fun <= sse(ranked[0]) else ranked[0]
+    return {k: float(v) for k, v in zip(names, natural(unit), strict=True)}
 
 
 def _format_theta(theta: dict[str, float]) -> str:

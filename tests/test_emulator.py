@@ -899,6 +899,38 @@ def test_a_local_design_in_natural_units_stays_in_the_box_without_overflow():
     assert design["A"].between(1e8 * (1 - 1e-12), 1e14 * (1 + 1e-12)).all()  # exp(ln b) ≈ b
 
 
+def test_the_emulators_best_fit_finds_an_arrhenius_least_squares_fit():
+    """Rates of ~4e-5 (an SSE of 1e-12: L-BFGS-B stopped at its start, the best design
+    point) with A over six decades and Q in J/mol: the emulator's best fit was 14-40
+    least-squares sds along the A-Q ridge from the simulator's own fit at three designs."""
+    from scipy.optimize import least_squares
+
+    from kohpymc import CalibrationData
+    from kohpymc.emulator import emulate
+    from kohpymc.emulator.checking import _best_fit_parameters
+
+    def rate(d, p):
+        return p["A"] * np.exp(-p["Q"] / (8.314 * np.asarray(d["T"], float)))
+
+    physics = PhysicsModel(
+        rate, {"A": LogUniform(1e8, 1e14), "Q": Uniform(1e5, 4e5)}, inputs=["T"], name="rate"
+    )
+    T = np.linspace(800.0, 900.0, 8)
+    clean = rate({"T": T}, {"A": 1e11, "Q": 2.5e5})
+    y = clean * (1 + 0.01 * np.random.default_rng(0).normal(size=T.size))
+    data = CalibrationData({"T": T}, y, noise_sd=0.01 * clean.mean())
+
+    def residual(u):  # (ln A, Q / 1e5)
+        return rate({"T": T}, {"A": np.exp(u[0]), "Q": 1e5 * u[1]}) - y
+
+    fit = least_squares(residual, [np.log(1e11), 2.5], x_scale=[1.0, 0.1])
+    sd = np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac))) * data.noise_sd
+    for seed in range(3):
+        best = _best_fit_parameters(emulate(physics, data, runs=40, seed=seed), data)
+        z = (np.array([np.log(best["A"]), best["Q"] / 1e5]) - fit.x) / sd
+        assert np.all(np.abs(z) < 0.5), (seed, best, z)
+
+
 @pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")
 def test_a_study_refines_a_coarse_emulator_and_a_rerun_reuses_the_rounds(tmp_path, monkeypatch):
     import json

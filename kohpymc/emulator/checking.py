@@ -542,7 +542,8 @@ def _best_fit_parameters(
 
     Searched in the emulator's unit coordinates (the log for a parameter spanning decades:
     in natural units an A over 1e-2..1e8 and a Q over 1e5..4e5 gave L-BFGS-B steps of the
-    wrong size by ten orders), from the ``starts`` design points that fit best.
+    wrong size by ten orders), from the ``starts`` design points that fit best, on the
+    squared error relative to the data's spread.
     """
     from scipy.optimize import minimize
 
@@ -554,6 +555,9 @@ def _best_fit_parameters(
         emulator.width[columns],
     )
     y = np.asarray(data.y, float)
+    # in units of the data's own spread: an SSE of 1e-12 (rates of 1e-5) has gradients
+    # below L-BFGS-B's absolute tolerance, and it stopped where it started
+    spread = float(np.sum((y - y.mean()) ** 2)) or 1.0
 
     def natural(unit: np.ndarray) -> np.ndarray:
         scaled = lower + np.clip(unit, 0.0, 1.0) * width
@@ -562,7 +566,7 @@ def _best_fit_parameters(
     def sse(unit: np.ndarray) -> float:
         values = dict(zip(names, natural(unit), strict=True))
         mean, _ = emulator.predict(data.inputs, values)
-        return float(np.sum((y - mean) ** 2))
+        return float(np.sum((y - mean) ** 2)) / spread
 
     points = emulator.runs.points[names].drop_duplicates().to_numpy(float)
     with np.errstate(divide="ignore", invalid="ignore"):

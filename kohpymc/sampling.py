@@ -46,10 +46,10 @@ from kohpymc.reparameterization import Coordinates, Reparameterization, Variance
 from kohpymc.value_space import ValueSpace, transformed_value, value_space
 
 __all__ = [
+    "CURVED_TARGET_ACCEPT",
     "SAMPLERS",
     "SamplingReport",
     "choose_sampler",
-    "CURVED_TARGET_ACCEPT",
     "sample_posterior",
     "target_accept_for",
     "variance_shares",

@@ -158,6 +158,7 @@ class Squeeze:
 class BentPlan(Reparameterization):
     """A whitened plan with a :class:`Squeeze` and a :class:`Bend` applied to ``u = μ + L z``."""
 
+    curved: ClassVar[bool] = True
     bend: Bend | None = None
     squeeze: Squeeze | None = None
 
@@ -460,6 +461,7 @@ class BentCoordinatesPlan(Reparameterization):
 
     #: ``inner``'s own map has no symbolic form (nutpie calls this plan from Python)
     symbolic: ClassVar[bool] = False
+    curved: ClassVar[bool] = True
     inner: Any = None
     bend: CurveBend = field(default_factory=lambda: CurveBend((), np.zeros(2), np.zeros((0, 2, 0))))
 

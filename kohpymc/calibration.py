@@ -294,7 +294,8 @@ def calibrate(
         system BLAS) and compiles from empty caches in 4 s where C takes 21 s.
     target_accept : float, optional
         NUTS target acceptance; default the formulation's ``default_target_accept``
-        (0.9, or 0.95 for the GP formulations).
+        (0.9, or 0.95 for the GP formulations), at least 0.95 when the sampling
+        coordinates follow a curved ridge (:data:`kohpymc.sampling.CURVED_TARGET_ACCEPT`).
     method, nuts_sampler :
         Older spellings of ``sampler`` (``method="smc"``, ``nuts_sampler="pymc"``).
     progressbar : bool
@@ -361,7 +362,8 @@ def calibrate(
         tune=tune,
         chains=chains,
         cores=cores,
-        target_accept=target_accept or discrepancy.default_target_accept,
+        target_accept=target_accept,
+        default_target_accept=discrepancy.default_target_accept,
         random_seed=random_seed,
         progressbar=progressbar,
         reparameterize=reparameterize,

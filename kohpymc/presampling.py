@@ -577,7 +577,7 @@ class PreSampling:
                 tune=settings["tune"],
                 chains=settings["chains"],
                 parallel=parallel,
-                target_accept=self.target_accept,
+                target_accept=settings.get("target_accept", self.target_accept),
                 threshold_s=self.threshold_s,
                 probe_s=min(20.0, max(10.0, 0.05 * float(self.threshold_s or 0.0))),
                 seed=int(settings.get("seed", 0)),

@@ -613,6 +613,11 @@ class Reparameterization:
     #: the map ``z -> v`` has a symbolic form over :class:`ArrayMath` (nutpie's native path)
     symbolic: ClassVar[bool] = True
 
+    #: the map follows a curved ridge fitted at a few points (:mod:`kohpymc.bends`): away
+    #: from them the curvature in ``z`` is not the mode's, and NUTS takes smaller steps
+    #: there (:data:`kohpymc.sampling.CURVED_TARGET_ACCEPT`)
+    curved: ClassVar[bool] = False
+
     def map_constants(self) -> np.ndarray:
         """The map's numbers besides ``μ`` and ``L``, flattened (none for this plan).
 

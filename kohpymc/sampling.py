@@ -46,12 +46,22 @@ from kohpymc.reparameterization import Coordinates, Reparameterization, Variance
 from kohpymc.value_space import ValueSpace, quiet_density_errors, transformed_value, value_space
 
 __all__ = [
+    "CURVED_TARGET_ACCEPT",
     "SAMPLERS",
     "SamplingReport",
     "choose_sampler",
     "sample_posterior",
+    "target_accept_for",
     "variance_shares",
 ]
+
+#: NUTS target acceptance on a curved plan (``Reparameterization.curved``) when the caller
+#: sets none.  Such a map is fitted to the ridge at a few points; beyond them the curvature
+#: in ``z`` grows (dielectric M0: the largest Hessian eigenvalue is 1 at the mode, 3.6 at
+#: the median draw and 10-28 at the 5 % of draws far along E_A's axis), and leapfrog steps
+#: of h are unstable where it exceeds (2/h)².  At 0.9, M0's step was 0.51-0.53 and 3 of
+#: 4000 draws diverged; at 0.95, 0.40-0.42 and none, for 1.37× the leapfrog steps.
+CURVED_TARGET_ACCEPT = 0.95
 
 
 @dataclass
@@ -87,6 +97,8 @@ class SamplingReport:
         Parameters whose draws lie against a prior bound
         (:func:`kohpymc.prior_bounds.hits_in_draws`), each also warned about (NUTS
         samplers; not checked after SMC).
+    target_accept : float or None
+        NUTS target acceptance that ran (:func:`target_accept_for`; None for SMC).
     """
 
     sampler: str
@@ -99,6 +111,7 @@ class SamplingReport:
     chain_threads: int = 1
     prior_bounds: list[dict[str, Any]] = field(default_factory=list)
     nutpie_backend: str = ""
+    target_accept: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for provenance."""
@@ -113,6 +126,7 @@ class SamplingReport:
             "chain_threads": self.chain_threads,
             "nutpie_backend": self.nutpie_backend,
             "prior_bounds": list(self.prior_bounds),
+            "target_accept": self.target_accept,
         }
 
 
@@ -151,7 +165,7 @@ def sample_posterior(
     tune: int = 1000,
     chains: int = 4,
     cores: int | None = None,
-    target_accept: float = 0.9,
+    target_accept: float | None = None,
     random_seed: int | None = None,
     progressbar: bool = False,
     reparameterize: bool = True,
@@ -161,6 +175,7 @@ def sample_posterior(
     variance_pairs: Sequence[Sequence[str]] = (),
     space: ValueSpace | None = None,
     before_sampling: Callable[..., None] | None = None,
+    default_target_accept: float = 0.9,
 ) -> tuple[az.InferenceData, SamplingReport]:
     """Sample ``model``'s posterior; returns the draws and what ran.
 
@@ -169,11 +184,16 @@ def sample_posterior(
     model : pymc.Model
     sampler : {"nutpie", "pymc", "smc"}, optional
         Default ``"nutpie"``.
-    draws, tune, chains, cores, target_accept, random_seed, progressbar :
+    draws, tune, chains, cores, random_seed, progressbar :
         The usual sampler settings (``cores`` defaults to ``min(chains, 2)``; it sets
         PyMC's and SMC's processes and nutpie's threads on the native path; through
         the Python callback nutpie's chains share one thread, see
         :attr:`SamplingReport.chain_threads`).
+    target_accept : float, optional
+        NUTS target acceptance; default ``default_target_accept``, raised to
+        :data:`CURVED_TARGET_ACCEPT` when the plan is curved (:func:`target_accept_for`).
+    default_target_accept : float
+        The default when ``target_accept`` is not given.
     reparameterize : bool
         Find the mode and whiten the sampling coordinates (NUTS samplers only).
     starts : sequence of dict
@@ -197,8 +217,8 @@ def sample_posterior(
     before_sampling : callable, optional
         Called as ``before_sampling(space, reparam, settings)`` after the mode is found
         and before the NUTS sampler starts (``settings``: draws, tune, chains, cores,
-        seed, sampler), e.g. :class:`kohpymc.presampling.PreSampling`; its time is
-        ``timings["presampling"]``.
+        seed, sampler, target_accept), e.g. :class:`kohpymc.presampling.PreSampling`;
+        its time is ``timings["presampling"]``.
 
     Returns
     -------
@@ -242,9 +262,13 @@ def sample_posterior(
         report.timings["compile"] = time.perf_counter() - start
         shares = variance_shares(space, variance_pairs)
         reparam = _plan(space, starts, seed, reparameterize, report, shares)
+        target_accept = target_accept_for(reparam, target_accept, default_target_accept)
+        report.target_accept = target_accept
         if before_sampling is not None:
             begin = time.perf_counter()
-            before_sampling(space, reparam, {**settings, "sampler": name})
+            before_sampling(
+                space, reparam, {**settings, "sampler": name, "target_accept": target_accept}
+            )
             report.timings["presampling"] = time.perf_counter() - begin
         report_phase("sampling")
         idata: az.InferenceData | None = None
@@ -275,6 +299,27 @@ def sample_posterior(
                 f"treated as zero density (first: {failures[0]})"
             )
         return idata, report
+
+
+def target_accept_for(
+    reparam: Reparameterization | None, requested: float | None, default: float = 0.9
+) -> float:
+    """NUTS target acceptance: ``requested``, else ``default``, at least 0.95 if curved.
+
+    A plan is curved when its map follows a ridge fitted at a few points
+    (``reparam.curved``); then the default is raised to :data:`CURVED_TARGET_ACCEPT`.
+
+    Examples
+    --------
+    >>> target_accept_for(None, None)
+    0.9
+    >>> target_accept_for(None, 0.8)
+    0.8
+    """
+    if requested is not None:
+        return float(requested)
+    curved = reparam is not None and reparam.curved
+    return max(default, CURVED_TARGET_ACCEPT) if curved else float(default)
 
 
 def _check_bounds(space: ValueSpace, idata: az.InferenceData, report: SamplingReport) -> None:

@@ -192,7 +192,7 @@ class FunnelPlan(Reparameterization):
     #: the funnel's map is numpy only (nutpie calls this plan from Python)
     symbolic: ClassVar[bool] = False
     inner: Any = None
-    funnel: NoiseFunnel | None = None
+    funnel: Any = None  # a NoiseFunnel (a default is needed after the base fields)
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``y``."""

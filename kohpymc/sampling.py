@@ -40,6 +40,7 @@ import numpy as np
 import pymc as pm
 
 from kohpymc.checks import SAMPLERS, check_sampler
+from kohpymc.funnel import funnel_plan
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
@@ -405,6 +406,7 @@ def _plan(
         return None
     begin = time.perf_counter()
     reparam = plan(space, _user_starts(space, starts), seed=seed, shares=shares)
+    reparam = funnel_plan(space, reparam) or reparam
     report.timings["mode_and_laplace"] = time.perf_counter() - begin
     report.reparameterization = reparam.to_dict()
     return reparam

@@ -303,6 +303,20 @@ def test_flat_ridge_from_corner_to_corner_goes_along_its_segment_and_samples_cle
     assert abs(lk.std() - 2 * half_width / np.sqrt(12)) < 0.1 * lk.std()
 
 
+def _assert_box_ridge_draws(idata, report, reference):
+    """Sampled along the box ridge: no divergences, r̂ ≤ 1.01, ESS > 300, and ln k's mean
+    and sd within 4 Monte Carlo errors of the quadrature ``reference`` (mean, sd)."""
+    assert report.reparameterization["kind"] == "box-ridge-log", report
+    assert int(idata.sample_stats.diverging.sum()) == 0
+    assert float(az.rhat(idata).to_array().max()) <= 1.01
+    ess = float(az.ess(idata, var_names=["k", "c"]).to_array().min())
+    assert ess > 300
+    lk = np.log(idata.posterior["k"].values.ravel())
+    mean, sd = reference
+    assert abs(lk.mean() - mean) < 4 * sd / np.sqrt(ess)
+    assert abs(lk.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess)
+
+
 def test_draws_along_a_flat_ridge_in_a_box_match_a_dense_reference():
     """r̂ 1.6, 196 divergences and bulk ESS 7 in 4 × 1000 draws before (the uniform-box
     product, log-uniform priors alike); now 0 divergences, and ln k's mean and sd match
@@ -310,15 +324,7 @@ def test_draws_along_a_flat_ridge_in_a_box_match_a_dense_reference():
     idata, report = sample_posterior(
         _product_in_a_box(), draws=500, tune=500, chains=2, random_seed=SEED
     )
-    assert report.reparameterization["kind"] == "box-ridge-log", report
-    assert int(idata.sample_stats.diverging.sum()) == 0
-    assert float(az.rhat(idata).to_array().max()) <= 1.01
-    ess = float(az.ess(idata, var_names=["k", "c"]).to_array().min())
-    assert ess > 300
-    lk = np.log(idata.posterior["k"].values.ravel())
-    mean, sd = _product_reference()
-    assert abs(lk.mean() - mean) < 4 * sd / np.sqrt(ess)
-    assert abs(lk.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess)
+    _assert_box_ridge_draws(idata, report, _product_reference())
 
 
 def _product_with_shared_noise():
@@ -380,15 +386,7 @@ def test_draws_along_a_flat_ridge_with_variance_shares_match_a_dense_reference()
         _product_with_shared_noise(), draws=500, tune=500, chains=2, random_seed=SEED,
         variance_pairs=[("a", "b")],
     )  # fmt: skip
-    assert report.reparameterization["kind"] == "box-ridge-log", report
-    assert int(idata.sample_stats.diverging.sum()) == 0
-    assert float(az.rhat(idata).to_array().max()) <= 1.01
-    ess = float(az.ess(idata, var_names=["k", "c"]).to_array().min())
-    assert ess > 300
-    lk = np.log(idata.posterior["k"].values.ravel())
-    mean, sd = _shared_noise_reference()
-    assert abs(lk.mean() - mean) < 4 * sd / np.sqrt(ess)
-    assert abs(lk.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess)
+    _assert_box_ridge_draws(idata, report, _shared_noise_reference())
 
 
 def test_mode_of_a_conjugate_normal_model():

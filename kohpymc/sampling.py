@@ -253,14 +253,7 @@ def sample_posterior(
         if name == "smc":
             return _run_smc(model, settings, kwargs, progressbar), report
         start = time.perf_counter()
-        report_phase("compiling")
-        if space is None:
-            space = _compiled_space(model, mode, report)
-        elif space.model is not model:
-            raise ValueError("space must be value_space(model) of the model being sampled")
-        else:
-            report.compile_mode = "compiled by the caller"
-        report.timings["compile"] = time.perf_counter() - start
+        space = _compile(model, space, mode, report)
         shares = variance_shares(space, variance_pairs)
         reparam = _plan(space, starts, seed, reparameterize, report, shares)
         target_accept = target_accept_for(reparam, target_accept, default_target_accept)
@@ -272,23 +265,9 @@ def sample_posterior(
             )
             report.timings["presampling"] = time.perf_counter() - begin
         report_phase("sampling")
-        idata: az.InferenceData | None = None
         failures: list[str] = []
-        if name == "nutpie":
-            try:
-                idata = _run_nutpie(
-                    space, reparam, settings, target_accept, progressbar, kwargs, failures,
-                    report,
-                )  # fmt: skip
-            # nutpie's Rust panics arrive as pyo3's PanicException, a BaseException
-            except BaseException as err:  # noqa: BLE001 - any failure falls back
-                if isinstance(err, KeyboardInterrupt | SystemExit | GeneratorExit):
-                    raise
-                report.sampler = "pymc"
-                first_line = (str(err).splitlines() or [""])[0][:300]
-                report.reason = f"nutpie failed ({type(err).__name__}: {first_line})"
-        if idata is None:
-            idata = _run_pymc(model, space, reparam, settings, target_accept, progressbar, kwargs)
+        run = (space, reparam, settings, target_accept, progressbar, kwargs)
+        idata = _run_nuts(model, name, run, failures, report)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
         _report_rate(settings, report.timings["sampling"])
         _add_observed_data(idata, model)
@@ -300,6 +279,46 @@ def sample_posterior(
                 f"treated as zero density (first: {failures[0]})"
             )
         return idata, report
+
+
+#: what both NUTS runners take: space, plan, settings, target_accept, progressbar, kwargs
+_NutsRun = tuple[ValueSpace, Reparameterization | None, dict[str, Any], float, bool, dict[str, Any]]
+
+
+def _compile(
+    model: pm.Model, space: ValueSpace | None, mode: str | None, report: SamplingReport
+) -> ValueSpace:
+    """``model``'s value space, compiled now unless the caller's; its time in the report."""
+    start = time.perf_counter()
+    report_phase("compiling")
+    if space is None:
+        space = _compiled_space(model, mode, report)
+    elif space.model is not model:
+        raise ValueError("space must be value_space(model) of the model being sampled")
+    else:
+        report.compile_mode = "compiled by the caller"
+    report.timings["compile"] = time.perf_counter() - start
+    return space
+
+
+def _run_nuts(
+    model: pm.Model, name: str, run: _NutsRun, failures: list[str], report: SamplingReport
+) -> az.InferenceData:
+    """Sample with nutpie when chosen, else (or when it fails: reason recorded) PyMC's NUTS.
+
+    ``run`` is ``(space, reparam, settings, target_accept, progressbar, kwargs)``.
+    """
+    if name == "nutpie":
+        try:
+            return _run_nutpie(*run, failures, report)
+        # nutpie's Rust panics arrive as pyo3's PanicException, a BaseException
+        except BaseException as err:  # noqa: BLE001 - any failure falls back
+            if isinstance(err, KeyboardInterrupt | SystemExit | GeneratorExit):
+                raise
+            report.sampler = "pymc"
+            first_line = (str(err).splitlines() or [""])[0][:300]
+            report.reason = f"nutpie failed ({type(err).__name__}: {first_line})"
+    return _run_pymc(model, *run)
 
 
 def target_accept_for(

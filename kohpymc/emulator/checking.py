@@ -548,35 +548,23 @@ def _best_fit_parameters(
     from scipy.optimize import minimize
 
     names = list(emulator.runs.parameters)
-    columns = [emulator.columns.index(k) for k in names]
-    logs, lower, width = (
-        emulator.log_columns[columns],
-        emulator.lower[columns],
-        emulator.width[columns],
-    )
     y = np.asarray(data.y, float)
     # in units of the data's own spread: an SSE of 1e-12 (rates of 1e-5) has gradients
     # below L-BFGS-B's absolute tolerance, and it stopped where it started
     spread = float(np.sum((y - y.mean()) ** 2)) or 1.0
 
-    def natural(unit: np.ndarray) -> np.ndarray:
-        scaled = lower + np.clip(unit, 0.0, 1.0) * width
-        return np.where(logs, np.exp(np.where(logs, scaled, 0.0)), scaled)
-
     def sse(unit: np.ndarray) -> float:
-        values = dict(zip(names, natural(unit), strict=True))
+        values = dict(zip(names, emulator.parameters_from_unit(np.clip(unit, 0, 1)), strict=True))
         mean, _ = emulator.predict(data.inputs, values)
         return float(np.sum((y - mean) ** 2)) / spread
 
     points = emulator.runs.points[names].drop_duplicates().to_numpy(float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        units = (np.where(logs, np.log(np.abs(points)), points) - lower) / width
-    units = np.clip(units, 0.0, 1.0)
+    units = np.clip(emulator.parameters_to_unit(points), 0.0, 1.0)
     ranked = sorted(units, key=sse)[:starts]
     fits = [minimize(sse, u, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(names)) for u in ranked]
     best = min(fits, key=lambda fit: fit.fun)
     unit = best.x if best.fun <= sse(ranked[0]) else ranked[0]
-    return {k: float(v) for k, v in zip(names, natural(unit), strict=True)}
+    return {k: float(v) for k, v in zip(names, emulator.parameters_from_unit(unit), strict=True)}
 
 
 def _format_theta(theta: dict[str, float]) -> str:

@@ -369,6 +369,34 @@ class Emulator(SharedTrainingData):
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(self.log_columns, np.log(np.abs(values)), values)
 
+    def parameters_to_unit(self, values: np.ndarray) -> np.ndarray:
+        """θ rows (columns in ``runs.parameters`` order) in the unit box of the fit.
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import emulate
+        >>> from kohpymc.examples import beam
+        >>> em = emulate(beam.physics_model(), beam.generate_data(seed=1), runs=10)
+        >>> u = em.parameters_to_unit(np.array([[150.0]]))
+        >>> bool(np.allclose(em.parameters_from_unit(u), 150.0))
+        True
+        """
+        cols = self._parameter_columns()
+        values = np.asarray(values, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scaled = np.where(self.log_columns[cols], np.log(np.abs(values)), values)
+        return (scaled - self.lower[cols]) / self.width[cols]
+
+    def parameters_from_unit(self, unit: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`parameters_to_unit` (exp only of the log-scaled columns)."""
+        cols = self._parameter_columns()
+        scaled = self.lower[cols] + np.asarray(unit, dtype=float) * self.width[cols]
+        logs = self.log_columns[cols]
+        return np.where(logs, np.exp(np.where(logs, scaled, 0.0)), scaled)
+
+    def _parameter_columns(self) -> list[int]:
+        return [self.columns.index(k) for k in self.runs.parameters]
+
     def _output_moments(self, mean: Any, var: Any, lib: Any = np) -> tuple[Any, Any]:
         """Latent mean/variance (standardised) as output-unit mean and variance."""
         m, v = self.y_mean + self.y_sd * mean, self.y_sd**2 * var

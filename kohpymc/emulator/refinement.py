@@ -131,7 +131,7 @@ def local_design(
     """
     names = list(emulator.runs.parameters)
     cols = [emulator.columns.index(k) for k in names]
-    logs, lower, width = emulator.log_columns[cols], emulator.lower[cols], emulator.width[cols]
+    logs, width = emulator.log_columns[cols], emulator.width[cols]
     centre = np.array([theta[k] for k in names], dtype=float)
     J, noise, cov = linearisation(emulator, data, theta)
     Ju = J * (width * np.where(logs, centre, 1.0))  # d mean / d unit coordinate
@@ -141,12 +141,9 @@ def local_design(
         sds = np.minimum(1.0 / np.sqrt(np.maximum(eigenvalues, 0.0)), 1.0)
     box = {f"z{i}": (-1.0, 1.0) for i in range(len(names))}
     z = space_filling_design(box, n, seed=seed).to_numpy(float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        unit = (np.where(logs, np.log(centre), centre) - lower) / width
+    unit = emulator.parameters_to_unit(centre)
     points = np.clip(unit + (spread * z * sds) @ vectors.T, 0.0, 1.0)
-    scaled = lower + points * width
-    natural = np.where(logs, np.exp(np.where(logs, scaled, 0.0)), scaled)  # exp of logs only
-    return pd.DataFrame(natural, columns=names)
+    return pd.DataFrame(emulator.parameters_from_unit(points), columns=names)
 
 
 def refine_at_data(

@@ -214,3 +214,32 @@ def test_replicates_on_a_dask_cluster_match_the_in_process_ones(spec, quick_chec
     by_index = {r["index"]: r for r in on_cluster.records}
     for record in first.records:
         assert by_index[record["index"]]["rank"] == record["rank"]
+
+
+def _record(sd: float, sigma: float | None, trouble: bool, seed: int) -> dict:
+    y = np.random.default_rng(seed).normal(0.0, sd, 40)
+    truth = {} if sigma is None else {"sigma_obs": sigma}
+    return {"y": y, "truth": truth, "problems": ["divergences"] if trouble else []}
+
+
+def test_trouble_on_noise_only_or_off_scale_data_is_blamed_on_the_priors():
+    observed = np.random.default_rng(0).normal(0.0, 2.0, 40)
+    records = [
+        _record(0.1, 0.1, True, 1),  # sd at the noise: mostly noise
+        _record(2e3, 1.0, True, 2),  # sd 1000x the data's
+        _record(2.0, 0.1, True, 3),  # like the data
+        _record(2.0, 0.1, False, 4),  # no trouble: not counted
+    ]
+    note = sbc.summary.prior_data_note(records, observed)
+    assert note.startswith("2 of the 3 replicates with sampler trouble")
+    assert "1 mostly noise, 1 on a scale" in note
+
+
+def test_trouble_on_data_like_the_observed_is_not_blamed_on_the_priors():
+    observed = np.random.default_rng(0).normal(0.0, 2.0, 40)
+    records = [_record(2.0, 0.1, True, s) for s in range(3)] + [_record(0.1, 0.1, True, 9)]
+    assert sbc.summary.prior_data_note(records, observed) == ""
+    # a known noise sd (no sigma_obs among the truths) is used in its place
+    quiet = [_record(0.1, None, True, s) for s in range(2)]
+    assert "2 mostly noise" in sbc.summary.prior_data_note(quiet, observed, noise_sd=0.1)
+    assert sbc.summary.prior_data_note(quiet, observed) == ""

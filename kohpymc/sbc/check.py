@@ -28,7 +28,7 @@ from kohpymc.sbc.replicates import (
     verify_swap,
 )
 from kohpymc.sbc.settings import CheckSettings, model_hash, replicate_seed, resolve, setup_hash
-from kohpymc.sbc.summary import coverage_table, verdict
+from kohpymc.sbc.summary import MAX_FLAGGED, coverage_table, prior_data_note, verdict
 
 __all__ = ["CalibrationCheck", "check_calibration"]
 
@@ -274,6 +274,9 @@ def _finish(spec, settings, recipe, records, failures, done, timings, started, o
     names = list(ordered[0]["rank"])
     table = coverage_table(usable, names, settings.rank_draws)
     passed, line = verdict(table, len(ordered), len(ordered) - len(usable), settings.formulation)
+    if len(ordered) - len(usable) > MAX_FLAGGED * len(ordered):
+        note = prior_data_note(ordered, spec.calibration.y, spec.calibration.noise_sd)
+        line += f"; {note}" if note else ""
     seconds = [float(r["seconds"]) for r in ordered]  # reused ones: when they were fitted
     timings["replicate_mean"] = statistics.fmean(seconds)
     timings["replicate_median"] = statistics.median(seconds)

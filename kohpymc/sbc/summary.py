@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-__all__ = ["coverage_table", "rank_uniformity", "verdict"]
+__all__ = ["coverage_table", "prior_data_note", "rank_uniformity", "verdict"]
 
 #: the two central intervals whose coverage is checked
 LEVELS = (0.5, 0.9)
@@ -22,6 +22,10 @@ COVERAGE_Z = 3.0
 UNIFORMITY_ALPHA = 1e-3
 #: fraction of replicates with sampler trouble above which the check fails
 MAX_FLAGGED = 0.10
+#: a replicate whose data's sd is below this many noise sds is called mostly noise
+NOISE_ONLY_RATIO = 1.5
+#: a replicate whose data's sd differs from the calibration data's by this factor is off scale
+OFF_SCALE_FACTOR = 100.0
 
 
 def rank_uniformity(ranks: np.ndarray, n_ranked: int) -> tuple[float, int, np.ndarray]:
@@ -123,4 +127,66 @@ def verdict(table: pd.DataFrame, n_finished: int, n_flagged: int, label: str) ->
         f"PASS: {label}, {n_used} replicates: every parameter's 90 % interval covers the truth "
         f"({covers}; allowed 0.90 ± {tolerance:.2f}); 50 % coverage and rank histograms "
         f"consistent with uniform ranks{weak}"
+    )
+
+
+def _unlike_the_data(y: np.ndarray, noise_sd: float | None, observed_sd: float) -> str:
+    """``"noise"``, ``"scale"`` or ``""``: how one replicate's data differ from the real ones."""
+    spread = float(np.std(y))
+    if noise_sd is not None and noise_sd > 0 and spread < NOISE_ONLY_RATIO * noise_sd:
+        return "noise"
+    if observed_sd > 0 and not (
+        observed_sd / OFF_SCALE_FACTOR <= spread <= observed_sd * OFF_SCALE_FACTOR
+    ):
+        return "scale"
+    return ""
+
+
+def prior_data_note(
+    records: list[dict[str, Any]], observed: np.ndarray, noise_sd: float | None = None
+) -> str:
+    """Why replicates with sampler trouble may be the priors' doing, or ``""``.
+
+    A simulation-based check draws its truths from the priors. When the priors reach values
+    where the model's output varies less than the noise (the data are mostly noise) or on a
+    scale far from the real data's, those replicates cannot be calibrated, and their sampler
+    trouble says more about the priors than about the sampler. This counts, among the
+    replicates with trouble, those whose data's sd is below ``NOISE_ONLY_RATIO`` noise sds
+    (the replicate's own ``sigma_obs``, else ``noise_sd``) or outside
+    ``1 / OFF_SCALE_FACTOR … OFF_SCALE_FACTOR`` times the observed data's sd; the note is
+    returned when they are at least half of them.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> records = [
+    ...     {"problems": ["3 divergences"], "y": rng.normal(0, 0.1, 20),
+    ...      "truth": {"sigma_obs": 0.1}},
+    ...     {"problems": ["r_hat 1.2"], "y": 1e6 * rng.normal(size=20),
+    ...      "truth": {"sigma_obs": 0.1}},
+    ...     {"problems": [], "y": rng.normal(0, 5, 20), "truth": {"sigma_obs": 0.1}},
+    ... ]
+    >>> print(prior_data_note(records, rng.normal(0, 5, 20)))  # doctest: +NORMALIZE_WHITESPACE
+    2 of the 2 replicates with sampler trouble had data unlike the calibration data (1 mostly
+    noise, 1 on a scale 100 times off): the priors reach values where the model cannot be
+    calibrated from such data; narrowing them to physically plausible values (check the
+    prior's predictions) makes the check meaningful
+    """
+    troubled = [r for r in records if r["problems"]]
+    observed_sd = float(np.std(np.asarray(observed, dtype=float)))
+    kinds = [
+        _unlike_the_data(
+            np.asarray(r["y"], dtype=float), r["truth"].get("sigma_obs", noise_sd), observed_sd
+        )
+        for r in troubled
+    ]
+    unlike = sum(bool(k) for k in kinds)
+    if not troubled or 2 * unlike < len(troubled):
+        return ""
+    return (
+        f"{unlike} of the {len(troubled)} replicates with sampler trouble had data unlike the "
+        f"calibration data ({kinds.count('noise')} mostly noise, {kinds.count('scale')} on a "
+        f"scale {OFF_SCALE_FACTOR:g} times off): the priors reach values where the model "
+        "cannot be calibrated from such data; narrowing them to physically plausible values "
+        "(check the prior's predictions) makes the check meaningful"
     )

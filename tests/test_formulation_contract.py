@@ -140,10 +140,6 @@ def test_a_formulation_defined_in_a_test_goes_through_everything(beam_physics, t
     with pytest.raises(ValueError, match="Mt: the Fisher check needs a Gaussian likelihood"):
         kp.fisher_information_check(beam_physics, data, student)
     settings = dict(draws=300, tune=300, chains=2, cores=1)
-    cal = kp.calibrate(beam_physics, data, student, random_seed=SEED, warn=False, **settings)
-    assert cal.idata.log_likelihood["y"].dims == ("chain", "draw", "obs")
-    pred = cal.predict(validation, random_seed=SEED)
-    assert pred.predictions["y_model"].shape[-1] == validation.n
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         study = kp.run_study(
@@ -160,6 +156,11 @@ def test_a_formulation_defined_in_a_test_goes_through_everything(beam_physics, t
     assert not study.failures, study.failures
     assert set(study.table.index) == {"M1", "Mt", "combined"}
     assert (tmp_path / "Mt.nc").exists()
+    # the study's calibration (kohpymc.calibrate inside): pointwise likelihood, prediction
+    cal = study.calibrations["Mt"]
+    assert cal.idata.log_likelihood["y"].dims == ("chain", "draw", "obs")
+    pred = cal.predict(validation, random_seed=SEED)
+    assert pred.predictions["y_model"].shape[-1] == validation.n
     # the Student-t fit is close to M1's: same bias model, heavier-tailed errors
     e1, et = (study.calibrations[k].posterior["E"] for k in ("M1", "Mt"))
     assert abs(float(e1.mean()) - float(et.mean())) < 3 * float(e1.std())

@@ -52,15 +52,25 @@ def _write(tmp_path, *, data="noise_sd = { u = 0.3, strain = 3.0 }", validation=
     return path
 
 
+@pytest.fixture(scope="module")
+def study_here(tmp_path_factory):
+    """``(spec, result, folder)``: the study of ``_write`` (M0, M1 and ``bad``, which names
+    an input the data lack) run once in this process into ``folder``; read, never changed,
+    by the Dask test and the weights test (each used to run the same study itself)."""
+    root = tmp_path_factory.mktemp("study_here")
+    spec = load_multi_output_study(_write(root))
+    spec.formulations["bad"] = Coregionalized(["nope"])
+    out = root / "out"
+    return spec, run_multi_output_study(spec, out_dir=out, figures=False, **SMALL), out
+
+
 # ------------------------------------------------------------------ execution
-def test_workers_give_the_in_process_posterior_and_resume(tmp_path, dask_cluster):
+def test_workers_give_the_in_process_posterior_and_resume(tmp_path, dask_cluster, study_here):
     """On a real Dask LocalCluster (2 worker processes) each formulation gives the same
     draws as in this process for the same seed; a failing one is recorded and the others
     go on; each file is written when its formulation finishes, and a rerun in this
     process reuses the files the cluster wrote."""
-    spec = load_multi_output_study(_write(tmp_path))
-    spec.formulations["bad"] = Coregionalized(["nope"])  # an input the data lack
-    here = run_multi_output_study(spec, **SMALL)
+    spec, here, _ = study_here
     out = tmp_path / "out"
     there = run_multi_output_study(
         spec, out_dir=out, scheduler=dask_cluster.scheduler_address, figures=False, **SMALL
@@ -322,14 +332,13 @@ def test_units_per_output_reach_discovery(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------ weights and mixture
-def test_reliability_weights_come_from_the_combined_rows_and_make_the_mixture(tmp_path):
+def test_reliability_weights_come_from_the_combined_rows_and_make_the_mixture(study_here):
     """Each formulation's weight is its combined μ_r (every validation row of every
     output counted once, recomputed here from the per-row reliabilities) over their sum;
     the mixture of E takes that share of its draws from each formulation and is written
     to combined.nc with the weights in study.json and the table."""
-    spec = load_multi_output_study(_write(tmp_path))
-    out = tmp_path / "out"
-    result = run_multi_output_study(spec, out_dir=out, figures=False, **SMALL)
+    _, result, out = study_here
+    assert set(result.weights) == {"M0", "M1"}  # not the formulation that failed
     combined_mu = {}
     for label, rel in result.reliabilities.items():
         rows = np.concatenate([rel.pointwise[k].values.ravel() for k in ("u", "strain")])

@@ -13,6 +13,8 @@ from kohpymc.examples import beam
 from kohpymc.study import COMBINED, markdown_table
 
 SMALL = {"draws": 150, "tune": 150, "chains": 2}
+#: for the tests of files, reuse and recomputation, which check no posterior statistic
+FEW = {"draws": 40, "tune": 40, "chains": 2}
 
 
 @pytest.fixture(scope="module")
@@ -260,10 +262,10 @@ def test_a_failing_mixture_step_keeps_every_finished_posterior(
     formulations = {"M0": NoDiscrepancy(), "M1": ConstantBias()}
     args = (beam_physics, beam_data, beam_validation, formulations)
     with pytest.raises(StudyStepError, match="weights and mixture failed.*injected") as caught:
-        run_study(*args, tolerance=0.75, random_seed=3, out_dir=tmp_path, **SMALL)
+        run_study(*args, tolerance=0.75, random_seed=3, out_dir=tmp_path, **FEW)
     for label in ("M0", "M1"):
         back = az.from_netcdf(tmp_path / f"{label}.nc")
-        assert back.posterior["E"].shape == (2, 150)
+        assert back.posterior["E"].shape == (2, FEW["draws"])
     table = pd.read_csv(tmp_path / "table.csv", index_col=0)
     assert list(table.index) == ["M0", "M1"] and table["mu_r"].notna().all()
     manifest = json.loads((tmp_path / "study.json").read_text())
@@ -275,7 +277,7 @@ def test_a_failing_mixture_step_keeps_every_finished_posterior(
     monkeypatch.undo()
     lines: list[str] = []
     again = run_study(
-        *args, tolerance=0.75, random_seed=3, out_dir=tmp_path, progress=lines.append, **SMALL
+        *args, tolerance=0.75, random_seed=3, out_dir=tmp_path, progress=lines.append, **FEW
     )
     assert again.reused == ["M0", "M1"]
     assert any("M0: reused" in line for line in lines)
@@ -290,7 +292,7 @@ def test_changed_prior_recomputes_only_the_formulation_that_uses_it(
     def run(m1, **extra):
         return run_study(
             beam_physics, beam_data, beam_validation, {"M0": NoDiscrepancy(), "M1": m1},
-            tolerance=0.75, random_seed=3, out_dir=tmp_path, figures=False, **SMALL, **extra,
+            tolerance=0.75, random_seed=3, out_dir=tmp_path, figures=False, **FEW, **extra,
         )  # fmt: skip
 
     first = run(ConstantBias())

@@ -169,7 +169,7 @@ def report(result: dict, direct_path: Path, emulated_path: Path, out: Path) -> s
         f"| 0.90 ± 0.05 | {score['coverage']:.3f} |",
         f"| wall time, emulated / direct | ≤ 0.2 | {total:.0f} s / {direct_wall:.0f} s = "
         f"{total / direct_wall:.3f} |",
-        f"| CPU time (all threads), emulated / direct | (load-independent reading) | "
+        f"| CPU time (all threads), emulated / direct | (moves less with the load) | "
         f"{cpu:.1f} s / {direct_cpu:.1f} s = {cpu / direct_cpu:.3f} |",
         "",
         f"Held-out emulator error: RMSE {score['rmse / noise sd']:.2g} noise sds "

@@ -197,22 +197,22 @@ def _register_numba() -> None:
         return
 
     @numba_basic.numba_njit
-    def lower_times(chol_inv, k, kc, a, out):
-        """``out = tril(L_k⁻¹) @ kc[k, a]`` (each row of ``L_k⁻¹`` up to the diagonal)."""
+    def lower_both(chol_inv, k, kc, a, v, w):
+        """``v = tril(L_k⁻¹) @ kc[k, a]`` and ``w = tril(L_k⁻¹)ᵀ @ v`` in one pass over the rows.
+
+        Row ``i`` gives ``v_i`` (a dot product over its lower part) and is then added,
+        times ``v_i``, to ``w`` while it is in cache: ``L⁻¹`` (~1.3 MB for 7 GPs on 150
+        runs) is read once per evaluation instead of twice.  The sums run in the same
+        order as two separate passes would.
+        """
+        w[:] = 0.0
         for i in range(chol_inv.shape[1]):
             s = 0.0
             for j in range(i + 1):
                 s += chol_inv[k, i, j] * kc[k, a, j]
-            out[i] = s
-
-    @numba_basic.numba_njit
-    def lower_transposed_times(chol_inv, k, v, out):
-        """``out = tril(L_k⁻¹)ᵀ @ v`` (row by row: an axpy over each row's lower part)."""
-        out[:] = 0.0
-        for i in range(chol_inv.shape[1]):
-            vi = v[i]
+            v[i] = s
             for j in range(i + 1):
-                out[j] += vi * chol_inv[k, i, j]
+                w[j] += s * chol_inv[k, i, j]
 
     @register_funcify_default_op_cache_key(KernelQuadratic)
     def _numba_kernel_quadratic(op, node, **kwargs):
@@ -243,7 +243,7 @@ def _register_numba() -> None:
                             r = np.sqrt(r2[k, a, j] + 1e-12)
                             poly = 1.0 + _SQRT5 * r + 5.0 * r2[k, a, j] / 3.0
                             kc[k, a, j] = amp[k] * poly * np.exp(-_SQRT5 * r)
-                    lower_times(chol_inv, k, kc, a, V[a])
+                    lower_both(chol_inv, k, kc, a, V[a], W[k, a])
                 for a in range(m):
                     for b in range(a + 1):
                         s = 0.0
@@ -251,10 +251,9 @@ def _register_numba() -> None:
                             s += V[a, i] * V[b, i]
                         Q[k, a, b] = s
                         Q[k, b, a] = s
-                    lower_transposed_times(chol_inv, k, V[a], W[k, a])
             return kc, Q, W, r2
 
-        return kernel_quadratic, 1
+        return kernel_quadratic, 2  # the cache key salt: 2 since the one-pass products
 
 
 _register_numba()

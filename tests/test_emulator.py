@@ -906,7 +906,7 @@ def test_the_emulators_best_fit_finds_an_arrhenius_least_squares_fit():
     from scipy.optimize import least_squares
 
     from kohpymc import CalibrationData
-    from kohpymc.emulator import emulate
+    from kohpymc.emulator import EmulatorsAtData, emulate
     from kohpymc.emulator.checking import _best_fit_parameters
 
     def rate(d, p):
@@ -926,7 +926,8 @@ def test_the_emulators_best_fit_finds_an_arrhenius_least_squares_fit():
     fit = least_squares(residual, [np.log(1e11), 2.5], x_scale=[1.0, 0.1])
     sd = np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac))) * data.noise_sd
     for seed in range(3):
-        best = _best_fit_parameters(emulate(physics, data, runs=40, seed=seed), data)
+        em = emulate(physics, data, runs=40, seed=seed)
+        best = _best_fit_parameters(EmulatorsAtData.of(em, data))
         z = (np.array([np.log(best["A"]), best["Q"] / 1e5]) - fit.x) / sd
         assert np.all(np.abs(z) < 0.5), (seed, best, z)
 

@@ -952,7 +952,7 @@ def test_a_study_refines_a_coarse_emulator_and_a_rerun_reuses_the_rounds(tmp_pat
     def no_rounds(*args, **kwargs):
         raise AssertionError("the refinement ran again")
 
-    monkeypatch.setattr(emulator_study, "refine_at_data", no_rounds)
+    monkeypatch.setattr(emulator_study, "refine_emulators_at_data", no_rounds)
     again = study_physics(settings, physics, data, tmp_path)
     assert physics.n_calls == calls  # every run from the cache
     assert again.emulator.n_runs == first.emulator.n_runs
@@ -1018,3 +1018,9 @@ def test_the_study_report_says_what_the_refinement_did(tmp_path, capsys):
     assert "rms 0.0024 against the simulator's misfit 0.0113" in line
     _say_refinement(EmulatorSettings(refine_at_data=0), tmp_path)  # off: nothing said
     assert capsys.readouterr().out == ""
+    outputs = {"u": check, "strain": {"rmse": 0.5, "misfit": 0.25}}  # several outputs
+    record["rounds"][-1]["check"] = {"problems": [], "outputs": outputs}
+    (tmp_path / "refine_at_data.json").write_text(json.dumps(record))
+    _say_refinement(EmulatorSettings(), tmp_path)
+    line = capsys.readouterr().out
+    assert "u rms 0.0024 against the simulator's misfit 0.0113, strain rms 0.5" in line

@@ -565,6 +565,8 @@ def warn_at_data(
     """
     if check.fit or emulator is None:
         return
+    if isinstance(emulator, EmulatorsAtData) and emulator.single:
+        emulator = emulator.first
     if isinstance(emulator, EmulatorsAtData):
         what = f"emulators of {emulator.simulator.name!r} ({emulator.n_runs} runs) are"
     else:

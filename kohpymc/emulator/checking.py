@@ -531,9 +531,8 @@ def check_emulators_at_data(
     total = {p: float(sum(part[p] for part in parts.values())) for p in theta}
     result = OutputsCheck(checks, theta, total)
     if len(checks) > 1:
-        result.joint_problems = _moved(
-            total, max_shift, f"{_where(target, theta)} the outputs' errors together move the "
-        )
+        together = f"{_where(target, theta)} the outputs' errors together move the joint "
+        result.joint_problems = _moved(total, max_shift, together)
     return result
 
 

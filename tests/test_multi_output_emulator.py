@@ -397,8 +397,8 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
     tmp_path, capsys
 ):
     """The first run simulates the 30 design points once each (both outputs from one
-    call) besides the checks a dry run makes (each output at the prior centre, each
-    formulation built); the second simulates nothing, refits the same emulators and
+    call) and the check at the data once, besides the checks a dry run makes (each output
+    at the prior centre, each formulation built); the second simulates nothing, refits the same emulators and
     reuses the formulation's posterior.  Slow: 48 s with a warm compile cache at load 9,
     165 s cold (two studies, each compiling its models)."""
     from kohpymc.cli import main
@@ -422,7 +422,8 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
         assert (out / "emulator" / k / "check.png").is_file()
         table = pd.read_csv(out / "emulator" / k / "runs.csv")
         assert len(table) == 30 and {"x", "a", "k", "output"} <= set(table.columns)
-    assert len(list((out / "emulator" / "runs").glob("*.json"))) == 30
+    # the 30 design points and the check's θ̂ at the 20 distinct rows of both outputs
+    assert len(list((out / "emulator" / "runs").glob("*.json"))) == 30 + 20
     table = pd.read_csv(out / "table.csv")
     assert set(table["output"]) == {"level", "rate", "combined"}
     middle = _calls(tmp_path)

@@ -165,11 +165,16 @@ def _say_refinement(settings: Any, folder: Path) -> None:
     record = json.loads(path.read_text())
     last = record["rounds"][-1]["check"]
     outcome = "passes" if record["passed"] else "STILL FAILS (see the warning above)"
+    checks = last.get("outputs", {"": last})  # several outputs: one check each
+    errors = ", ".join(
+        f"{k + ' ' if k else ''}rms {c['rmse']:.3g} against the simulator's misfit "
+        f"{c['misfit']:.3g}"
+        for k, c in checks.items()
+    )
     print(
         f"emulator check at the data: {len(record['rounds']) - 1} refinement round(s) added "
-        f"{record['added_runs']} runs; at the best fit the emulator's error is rms "
-        f"{last['rmse']:.3g} against the simulator's misfit {last['misfit']:.3g}: {outcome} "
-        f"({folder}/{REFINEMENT_RECORD})"
+        f"{record['added_runs']} runs; at the best fit the emulator's error is {errors}: "
+        f"{outcome} ({folder}/{REFINEMENT_RECORD})"
     )
 
 
@@ -197,6 +202,7 @@ def _emulated_outputs(spec: Any, execution: dict, out: Path) -> Any:
     )
     for name, emulator in emulators.items():
         print(f"  {name}: {emulator!r}")
+    _say_refinement(spec.emulator, out / "emulator")
     return replace(spec, physics=physics)
 
 

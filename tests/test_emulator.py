@@ -906,7 +906,7 @@ def test_the_emulators_best_fit_finds_an_arrhenius_least_squares_fit():
     from scipy.optimize import least_squares
 
     from kohpymc import CalibrationData
-    from kohpymc.emulator import emulate
+    from kohpymc.emulator import EmulatorsAtData, emulate
     from kohpymc.emulator.checking import _best_fit_parameters
 
     def rate(d, p):
@@ -926,7 +926,8 @@ def test_the_emulators_best_fit_finds_an_arrhenius_least_squares_fit():
     fit = least_squares(residual, [np.log(1e11), 2.5], x_scale=[1.0, 0.1])
     sd = np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac))) * data.noise_sd
     for seed in range(3):
-        best = _best_fit_parameters(emulate(physics, data, runs=40, seed=seed), data)
+        em = emulate(physics, data, runs=40, seed=seed)
+        best = _best_fit_parameters(EmulatorsAtData.of(em, data))
         z = (np.array([np.log(best["A"]), best["Q"] / 1e5]) - fit.x) / sd
         assert np.all(np.abs(z) < 0.5), (seed, best, z)
 
@@ -951,7 +952,7 @@ def test_a_study_refines_a_coarse_emulator_and_a_rerun_reuses_the_rounds(tmp_pat
     def no_rounds(*args, **kwargs):
         raise AssertionError("the refinement ran again")
 
-    monkeypatch.setattr(emulator_study, "refine_at_data", no_rounds)
+    monkeypatch.setattr(emulator_study, "refine_emulators_at_data", no_rounds)
     again = study_physics(settings, physics, data, tmp_path)
     assert physics.n_calls == calls  # every run from the cache
     assert again.emulator.n_runs == first.emulator.n_runs
@@ -1017,3 +1018,9 @@ def test_the_study_report_says_what_the_refinement_did(tmp_path, capsys):
     assert "rms 0.0024 against the simulator's misfit 0.0113" in line
     _say_refinement(EmulatorSettings(refine_at_data=0), tmp_path)  # off: nothing said
     assert capsys.readouterr().out == ""
+    outputs = {"u": check, "strain": {"rmse": 0.5, "misfit": 0.25}}  # several outputs
+    record["rounds"][-1]["check"] = {"problems": [], "outputs": outputs}
+    (tmp_path / "refine_at_data.json").write_text(json.dumps(record))
+    _say_refinement(EmulatorSettings(), tmp_path)
+    line = capsys.readouterr().out
+    assert "u rms 0.0024 against the simulator's misfit 0.0113, strain rms 0.5" in line

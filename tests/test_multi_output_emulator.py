@@ -178,6 +178,101 @@ def test_a_near_exact_emulator_gives_the_direct_joint_posterior(direct_posterior
         assert 0.85 < emulated[name][1] / sd < 1.15, (name, emulated[name], sd)
 
 
+# ------------------------------------------------------ the check and refinement at the data
+
+
+def _joint_least_squares(data):
+    """The simulator's own joint least-squares θ over both outputs and its sds (scipy,
+    each output's rows in its noise's units; not the emulators' code)."""
+    from scipy.optimize import least_squares
+
+    def residual(p):
+        theta = {"a": p[0], "k": p[1]}
+        return np.concatenate([(_two({"x": _X[k]}, theta)[k] - data[k].y) / _NOISE for k in _X])
+
+    fit = least_squares(residual, [1.5, 1.0])
+    return fit.x, np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)))
+
+
+def _target(emulators, physics=None):
+    from kohpymc.emulator import EmulatorsAtData
+
+    return EmulatorsAtData.of_outputs(physics or _physics(), emulators, _data())
+
+
+def test_the_joint_check_at_data_predicts_how_far_the_emulators_move_the_joint_fit():
+    """40 runs: the check's linearised move of the joint least-squares θ (the sum of the
+    outputs' moves) against the simulator's own joint fit (scipy), in its sds."""
+    from kohpymc.emulator import check_emulators_at_data
+
+    emulators = emulate_outputs(_physics(), _data(), runs=40, seed=1, log_output=False)
+    check = check_emulators_at_data(_target(emulators))
+    popt, sd = _joint_least_squares(_data())
+    actual = (popt - np.array([check.point["a"], check.point["k"]])) / sd
+    predicted = np.array([check.shift["a"], check.shift["k"]])
+    assert np.max(np.abs(actual)) > 0.25  # something to predict, and a failed check
+    np.testing.assert_allclose(predicted, actual, atol=0.1)
+    for p in ("a", "k"):  # the joint move is the sum of the outputs' own moves
+        parts = [check.checks[k].shift[p] for k in ("level", "rate")]
+        assert check.shift[p] == pytest.approx(sum(parts))
+    assert not check.fit and any("joint least-squares" in p for p in check.problems)
+    for k in ("level", "rate"):  # each output scored against the simulator at the joint θ̂
+        expected = _two({"x": _X[k]}, check.point)[k]
+        np.testing.assert_allclose(check.checks[k].simulated, expected, rtol=1e-12)
+    record = check.to_dict()
+    assert set(record["outputs"]) == {"level", "rate"} and record["problems"] == check.problems
+
+
+def test_refinement_brings_a_coarse_joint_fit_onto_the_simulators(tmp_path):
+    """8 runs for (x, a, k): the emulators' joint best fit lies > 4 sds from the
+    simulator's joint least-squares fit and the check fails; the rounds (θ̂ and 3 θ of
+    the joint local design, each at the 20 distinct rows of both outputs, one simulator
+    call per θ for both outputs) bring it within 0.25 sd, and the check passes."""
+    from kohpymc.emulator import refine_emulators_at_data
+
+    counted = _Counted()
+    physics = _physics(counted)
+    emulators = emulate_outputs(physics, _data(), runs=8, seed=1, log_output=False)
+    popt, sd = _joint_least_squares(_data())
+    result = refine_emulators_at_data(_target(emulators, physics), rounds=3, cache=tmp_path)
+    first, last = result.checks[0], result.checks[-1]
+    before = (np.array([first.point["a"], first.point["k"]]) - popt) / sd
+    after = (np.array([last.point["a"], last.point["k"]]) - popt) / sd
+    assert not first.fit and np.max(np.abs(before)) > 4.0, before
+    assert last.fit and np.max(np.abs(after)) < 0.25, after
+    assert result.passed and result.stopped == "passed"
+    assert all(n == 4 * 20 for n in result.added), result.added  # 4 θ x 20 rows
+    for em in result.emulators.values():
+        assert em.n_runs == 8 + sum(result.added)
+    # one call per θ, giving both outputs: the 8 design points, then per round 3 local θ
+    # and the next check's θ̂ (a round's own θ̂, the last check's, comes from the cache)
+    assert counted.calls == 8 + 1 + 4 * len(result.added)
+    rounds = result.to_dict()["rounds"]
+    assert rounds[0]["check"]["problems"] and rounds[-1]["check"]["problems"] == []
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
+def test_refined_emulators_give_the_direct_joint_posterior(direct_posterior):
+    """8 runs: the joint posterior through the emulators lies > 1 direct sd off; after
+    the refinement rounds at the data, within 0.25 direct sd, its sds within 25 %."""
+    from kohpymc.emulator import refine_emulators_at_data
+
+    emulators = emulate_outputs(_physics(), _data(), runs=8, seed=1, log_output=False)
+    coarse = _posterior(
+        calibrate_outputs(emulated_outputs(_physics(), emulators), _data(), **_SAMPLING, warn=False)
+    )
+    refined = refine_emulators_at_data(_target(emulators)).emulators
+    fine = _posterior(
+        calibrate_outputs(emulated_outputs(_physics(), refined), _data(), **_SAMPLING, warn=False)
+    )
+    shifts = {k: abs(coarse[k][0] - m) / sd for k, (m, sd) in direct_posterior.items()}
+    assert max(shifts.values()) > 1.0, shifts  # the coarse emulators miss
+    for name, (mean, sd) in direct_posterior.items():
+        assert abs(fine[name][0] - mean) < 0.25 * sd, (name, fine[name], mean, sd)
+        assert 0.8 < fine[name][1] / sd < 1.25, (name, fine[name], sd)
+
+
 # ------------------------------------------------------------------- study files
 
 _SIMULATOR = '''
@@ -240,18 +335,60 @@ def test_a_studys_emulators_are_rebuilt_from_cached_runs_without_a_simulator_cal
     from kohpymc.multi_output.emulator import study_outputs_physics
 
     counted = _Counted()
-    settings = EmulatorSettings(runs=25, log_output=False)
+    settings = EmulatorSettings(runs=25, log_output=False, refine_at_data=0)
     first = study_outputs_physics(settings, _physics(counted), _data(), tmp_path)
-    assert counted.calls == 25
+    assert counted.calls == 25 + 1  # the design and the check at the data
     again = study_outputs_physics(settings, _physics(counted), _data(), tmp_path)
-    assert counted.calls == 25  # nothing simulated
+    assert counted.calls == 25 + 1  # nothing simulated
     for k in ("level", "rate"):
         assert physics_fingerprint(again.output(k)) == physics_fingerprint(first.output(k))
         check = json.loads((tmp_path / "emulator" / k / "check.json").read_text())
         assert check["runs"] == 25 and 0.0 <= check["coverage"] <= 1.0
     assert json.loads((tmp_path / "emulator" / "settings.json").read_text())["runs"] == 25
+    at_data = json.loads((tmp_path / "emulator" / "check_at_data.json").read_text())
+    assert set(at_data["outputs"]) == {"level", "rate"}
     with pytest.raises(ValueError, match="sequential"):
         study_outputs_physics(EmulatorSettings(sequential=1), _physics(), _data(), tmp_path)
+
+
+@pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")
+def test_a_study_refines_coarse_emulators_and_a_rerun_restores_them_without_runs(
+    tmp_path, monkeypatch
+):
+    """8 runs: the joint check at the data fails, the refinement rounds (default
+    refine_at_data = 2) add runs giving both outputs until it passes, and the files say
+    so; a rerun with the same settings refits the final emulators from the cached runs
+    (rounds.json): no simulator call, no refinement, the same predictions."""
+    import kohpymc.emulator.study as emulator_study
+    from kohpymc.emulator.study import EmulatorSettings
+    from kohpymc.multi_output.emulator import study_outputs_physics
+
+    counted = _Counted()
+    settings = EmulatorSettings(runs=8, seed=1, log_output=False)
+    first = study_outputs_physics(settings, _physics(counted), _data(), tmp_path)
+    folder = tmp_path / "emulator"
+    record = json.loads((folder / "refine_at_data.json").read_text())
+    assert record["passed"] and record["added_runs"] > 0
+    assert record["rounds"][0]["check"]["problems"]  # the first check failed
+    assert json.loads((folder / "check_at_data.json").read_text())["problems"] == []
+    for k in ("level", "rate"):
+        assert first.output(k).emulator.n_runs == 8 + record["added_runs"]
+        check = json.loads((folder / k / "check.json").read_text())
+        assert check["runs"] == 8 + record["added_runs"]  # rewritten after the rounds
+    calls = counted.calls
+
+    def no_rounds(*args, **kwargs):
+        raise AssertionError("the refinement ran again")
+
+    monkeypatch.setattr(emulator_study, "refine_emulators_at_data", no_rounds)
+    again = study_outputs_physics(settings, _physics(counted), _data(), tmp_path)
+    assert counted.calls == calls  # every run from the cache
+    z = np.array([[0.5, 1.7, 0.8], [2.0, 1.2, 1.5]])
+    for k in ("level", "rate"):
+        new, old = again.output(k).emulator, first.output(k).emulator
+        assert new.n_runs == old.n_runs
+        for a, b in zip(new.predict_matrix(z), old.predict_matrix(z), strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-10)
 
 
 @pytest.mark.slow
@@ -260,13 +397,13 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
     tmp_path, capsys
 ):
     """The first run simulates the 30 design points once each (both outputs from one
-    call) besides the checks a dry run makes (each output at the prior centre, each
-    formulation built); the second simulates nothing, refits the same emulators and
+    call) and the check at the data once, besides the checks a dry run makes (each output
+    at the prior centre, each formulation built); the second simulates nothing, refits the same emulators and
     reuses the formulation's posterior.  Slow: 48 s with a warm compile cache at load 9,
     165 s cold (two studies, each compiling its models)."""
     from kohpymc.cli import main
 
-    path = _study(tmp_path)
+    path = _study(tmp_path, emulator="[emulator]\nruns = 30\nrefine_at_data = 0\n")
     out = tmp_path / "out"
     assert main(["study", str(path), "--out", str(out), "--dry-run"]) == 0
     assert "[emulator]: 30 simulator runs" in capsys.readouterr().out
@@ -276,7 +413,7 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
     before = _calls(tmp_path)
     assert main(args) == 0
     first = capsys.readouterr().out
-    assert _calls(tmp_path) - before == checks + 30
+    assert _calls(tmp_path) - before == checks + 30 + 1  # + the check at the data
     assert "30 runs (30 simulated, 0 from" in first
     for k in ("level", "rate"):
         check = json.loads((out / "emulator" / k / "check.json").read_text())
@@ -285,7 +422,8 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
         assert (out / "emulator" / k / "check.png").is_file()
         table = pd.read_csv(out / "emulator" / k / "runs.csv")
         assert len(table) == 30 and {"x", "a", "k", "output"} <= set(table.columns)
-    assert len(list((out / "emulator" / "runs").glob("*.json"))) == 30
+    # the 30 design points and the check's θ̂ at the 20 distinct rows of both outputs
+    assert len(list((out / "emulator" / "runs").glob("*.json"))) == 30 + 20
     table = pd.read_csv(out / "table.csv")
     assert set(table["output"]) == {"level", "rate", "combined"}
     middle = _calls(tmp_path)

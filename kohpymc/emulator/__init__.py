@@ -12,11 +12,22 @@
   :class:`EmulatorWarning` when the emulator is not fit for calibration;
 * :mod:`~kohpymc.emulator.sequential`: :func:`emulate` (design, run, fit) and
   :func:`sequential_design` (add runs at posterior draws until the posterior settles);
+* :mod:`~kohpymc.emulator.at_data`: :class:`EmulatorsAtData`, a simulator's emulators
+  (one per output) with their calibration data, as the check at the data sees them;
 * :mod:`~kohpymc.emulator.refinement`: :func:`refine_at_data` (add runs around the
-  emulator's best fit until :func:`check_at_data` passes; no sampling).
+  emulator's best fit until :func:`check_at_data` passes; no sampling), and
+  :func:`refine_emulators_at_data` for several outputs.
 """
 
-from kohpymc.emulator.checking import EmulatorCheck, EmulatorWarning, check_at_data, check_emulator
+from kohpymc.emulator.at_data import EmulatorsAtData
+from kohpymc.emulator.checking import (
+    EmulatorCheck,
+    EmulatorWarning,
+    OutputsCheck,
+    check_at_data,
+    check_emulator,
+    check_emulators_at_data,
+)
 from kohpymc.emulator.design import (
     design_box,
     extend_design,
@@ -30,7 +41,12 @@ from kohpymc.emulator.functional import (
     run_curves,
 )
 from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
-from kohpymc.emulator.refinement import Refinement, local_design, refine_at_data
+from kohpymc.emulator.refinement import (
+    Refinement,
+    local_design,
+    refine_at_data,
+    refine_emulators_at_data,
+)
 from kohpymc.emulator.runs import SimulatorRuns, run_design
 from kohpymc.emulator.sequential import (
     SequentialDesign,
@@ -45,6 +61,9 @@ __all__ = [
     "EmulatorWarning",
     "check_at_data",
     "check_emulator",
+    "check_emulators_at_data",
+    "EmulatorsAtData",
+    "OutputsCheck",
     "Emulator",
     "EmulatedPhysics",
     "GPHyperparameters",
@@ -66,4 +85,5 @@ __all__ = [
     "Refinement",
     "local_design",
     "refine_at_data",
+    "refine_emulators_at_data",
 ]

@@ -31,6 +31,7 @@ import pandas as pd
 from scipy import stats
 
 from kohpymc.data import CalibrationData
+from kohpymc.emulator.at_data import SINGLE, EmulatorsAtData, linearisation
 from kohpymc.emulator.gp import Emulator, EmulatorWarning
 from kohpymc.emulator.runs import SimulatorRuns
 from kohpymc.warning_filters import warn_user
@@ -38,8 +39,11 @@ from kohpymc.warning_filters import warn_user
 __all__ = [
     "EmulatorCheck",
     "EmulatorWarning",
+    "OutputsCheck",
     "check_at_data",
     "check_emulator",
+    "check_emulators_at_data",
+    "check_target_at_data",
     "linearisation",
     "posterior_widening",
     "warn_at_data",
@@ -333,46 +337,12 @@ def posterior_widening(emulator: Emulator, data: CalibrationData) -> dict[str, f
     True
     """
     names = list(emulator.physics.parameters)
-    J, noise, cov = linearisation(emulator, data, _best_fit_parameters(emulator, data))
+    theta = _best_fit_parameters(EmulatorsAtData.of(emulator, data))
+    J, noise, cov = linearisation(emulator, data, theta)
     plain = np.diag(np.linalg.pinv(J.T @ J / noise**2))
     through = np.diag(np.linalg.pinv(J.T @ np.linalg.solve(noise**2 * np.eye(len(J)) + cov, J)))
     ratio = np.sqrt(np.maximum(through, 0.0) / np.maximum(plain, np.finfo(float).tiny))
     return {k: float(r) for k, r in zip(names, ratio, strict=True)}
-
-
-def linearisation(
-    emulator: Emulator, data: CalibrationData, theta: dict[str, float]
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """The emulator linearised at ``theta`` on the data's rows: ``(J, σ, Σ_η)``.
-
-    ``J`` is the Jacobian of the emulator's mean with respect to θ (the emulated
-    physics' finite differences; rows = data rows, columns = parameters in their own
-    units), ``σ`` the data's noise sd (known or pooled from replicates) or else the rms
-    residual of the emulator's mean at ``theta``, and ``Σ_η`` the emulator's covariance
-    between the rows.  ``(Jᵀ (σ² I + Σ_η)⁻¹ J)⁻¹`` is then the linearised posterior
-    covariance of θ through the emulator (flat prior).
-
-    Examples
-    --------
-    >>> from kohpymc.emulator import emulate
-    >>> from kohpymc.examples import beam
-    >>> data = beam.generate_data(seed=1)
-    >>> J, noise, cov = linearisation(emulate(beam.physics_model(), data, runs=30), data,
-    ...                               {"E": 200.0})
-    >>> J.shape == (data.n, 1), cov.shape == (data.n, data.n)
-    (True, True)
-    """
-    names = list(emulator.physics.parameters)
-    inputs = {k: np.asarray(data.inputs[k], float) for k in emulator.physics.inputs}
-    point = np.array([theta[k] for k in names], dtype=float)
-    X = np.column_stack([inputs[k] for k in emulator.physics.inputs])
-    cov = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
-    noise = data.noise_sd
-    if noise is None:
-        mean, _ = emulator.predict(inputs, point)
-        noise = float(np.sqrt(np.mean((np.asarray(data.y, float) - mean) ** 2)))
-    J = emulator.physics_model().jacobian_matrix(inputs, theta)  # finite differences
-    return J, float(noise), cov
 
 
 def check_at_data(
@@ -441,18 +411,200 @@ def check_at_data(
     >>> check.kind, check.fit, round(check.shift["E"], 1)  # E's fit moved 1.2 sds
     ('at the calibration data', False, -1.2)
     """
-    from kohpymc.emulator.runs import run_design
+    target = EmulatorsAtData.of(emulator, data)
+    check = check_target_at_data(
+        target, cache=cache, level=level, max_shift=max_shift, workers=workers,
+        scheduler=scheduler,
+    )  # fmt: skip
+    if warn:
+        warn_at_data(emulator, check)
+    return check
 
-    theta = _best_fit_parameters(emulator, data)
-    design = pd.DataFrame({k: np.asarray(data.inputs[k], float) for k in emulator.runs.inputs})
-    for name, value in theta.items():
-        design[name] = value
-    runs = run_design(emulator.physics, design, cache=cache, workers=workers, scheduler=scheduler)
+
+@dataclass
+class OutputsCheck:
+    """The check at the data of several outputs' emulators, at their joint best fit.
+
+    Attributes
+    ----------
+    checks : dict of str to EmulatorCheck
+        Output -> its check at the joint ``θ̂`` (its ``shift``: how far its own error
+        moves the joint least-squares θ, in joint posterior sds).
+    point : dict
+        The joint best fit ``θ̂``.
+    shift : dict
+        Parameter -> how far all the outputs' errors together move the joint
+        least-squares θ, in joint posterior sds (the sum of the outputs' shifts).
+    joint_problems : list of str
+        The problems of the joint shift.
+
+    Examples
+    --------
+    >>> empty = np.empty(0)
+    >>> one = EmulatorCheck("at the calibration data", empty, empty, empty, problems=["off"])
+    >>> OutputsCheck({"u": one}, {"E": 200.0}, {"E": 0.1}).problems
+    ['u: off']
+    """
+
+    checks: dict[str, EmulatorCheck]
+    point: dict[str, float]
+    shift: dict[str, float]
+    joint_problems: list[str] = field(default_factory=list)
+
+    @property
+    def problems(self) -> list[str]:
+        """Every output's problems (named) and the joint ones."""
+        named = [f"{k}: {p}" for k, check in self.checks.items() for p in check.problems]
+        return named + list(self.joint_problems)
+
+    @property
+    def fit(self) -> bool:
+        """No problems found."""
+        return not self.problems
+
+    def to_dict(self) -> dict[str, Any]:
+        """The joint point, shift and problems; each output's ``check_at_data`` fields."""
+        return {
+            "kind": "at the calibration data (joint)",
+            "point": dict(self.point),
+            "shift": dict(self.shift),
+            "problems": self.problems,
+            "outputs": {k: check.to_dict() for k, check in self.checks.items()},
+        }
+
+
+def check_emulators_at_data(
+    target: EmulatorsAtData,
+    *,
+    cache: str | Path | None = None,
+    level: float = 0.9,
+    max_shift: float = 0.25,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> OutputsCheck:
+    """:func:`check_at_data` over every output at once, at the outputs' joint best fit.
+
+    ``θ̂`` minimises the outputs' squared errors, each output's weighted by ``1/σ_k²``
+    (its noise sd; without one, by the inverse variance of its data); the simulator runs
+    once at ``θ̂`` on the distinct calibration rows of all outputs (one call gives them
+    all; cached).  Each output is scored as by :func:`check_at_data` (coverage, error
+    against its simulator misfit), and the move of the joint least-squares θ is
+    linearised over the stacked outputs, each in its noise's units:
+    ``-(J̃ᵀJ̃)⁻¹ J̃ₖᵀ r̃ₖ`` per output (``J̃ₖ = Jₖ/σₖ``, ``r̃ₖ = rₖ/σₖ``) in the joint
+    sds ``√diag(J̃ᵀJ̃)⁻¹``.  An output whose error moves θ by more than ``max_shift``
+    sds fails the check, and so does the sum of the outputs' moves.  No warning
+    (:func:`warn_at_data`).
+
+    Parameters
+    ----------
+    target : EmulatorsAtData
+        The simulator, its emulators and their data.
+    cache, level, max_shift, workers, scheduler :
+        As for :func:`check_at_data`.
+
+    Returns
+    -------
+    OutputsCheck
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import EmulatorsAtData
+    >>> from kohpymc.examples import beam_multi_output as bm
+    >>> from kohpymc.multi_output import emulate_outputs
+    >>> physics, data = bm.physics_model(), bm.generate_data()
+    >>> target = EmulatorsAtData.of_outputs(physics, emulate_outputs(physics, data, runs=20),
+    ...                                     data)
+    >>> check = check_emulators_at_data(target)
+    >>> sorted(check.checks), check.fit
+    (['strain', 'u'], False)
+    """
+    theta = _best_fit_parameters(target)
+    simulated = _simulated_at(target, theta, cache, workers, scheduler)
+    checks = {k: _scored(target, k, theta, simulated[k], level) for k in target.data}
+    parts = _least_squares_shift(target, checks)
+    joint = "joint " if len(checks) > 1 else ""
+    for k, check in checks.items():
+        check.shift = parts[k]
+        check.problems += _moved(
+            parts[k], max_shift, f"{_where(target, theta)} its error moves the {joint}"
+        )
+    total = {p: float(sum(part[p] for part in parts.values())) for p in theta}
+    result = OutputsCheck(checks, theta, total)
+    if len(checks) > 1:
+        together = f"{_where(target, theta)} the outputs' errors together move the joint "
+        result.joint_problems = _moved(total, max_shift, together)
+    return result
+
+
+def check_target_at_data(target: EmulatorsAtData, **options: Any) -> Any:
+    """:func:`check_emulators_at_data`; for a single-output simulator its one check.
+
+    Returns
+    -------
+    EmulatorCheck (one output) or OutputsCheck
+    """
+    joint = check_emulators_at_data(target, **options)
+    return joint.checks[SINGLE] if target.single else joint
+
+
+def warn_at_data(
+    emulator: Emulator | EmulatorsAtData | None,
+    check: EmulatorCheck | OutputsCheck,
+    advice: str = "add runs ([emulator] runs, refine_at_data, or sequential rounds)",
+) -> None:
+    """The :class:`EmulatorWarning` of a failed :func:`check_at_data` (none if it passed).
+
+    ``emulator`` is the emulator, or for several outputs their :class:`EmulatorsAtData`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> check = EmulatorCheck("at the calibration data", np.ones(2), np.ones(2), np.ones(2))
+    >>> warn_at_data(None, check)  # no problems: no warning
+    """
+    if check.fit or emulator is None:
+        return
+    if isinstance(emulator, EmulatorsAtData) and emulator.single:
+        emulator = emulator.first
+    if isinstance(emulator, EmulatorsAtData):
+        what = f"emulators of {emulator.simulator.name!r} ({emulator.n_runs} runs) are"
+    else:
+        what = f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is"
+    warn_user(
+        f"{what} not fit for this calibration: {'; '.join(check.problems)}; {advice}",
+        EmulatorWarning,
+    )
+
+
+def _simulated_at(
+    target: EmulatorsAtData,
+    theta: dict[str, float],
+    cache: str | Path | None,
+    workers: int,
+    scheduler: Any,
+) -> dict[str, np.ndarray]:
+    """Output -> the simulator at ``theta`` on that output's calibration rows (one call)."""
+    runs = target.run(
+        target.design(pd.DataFrame([theta])), cache=cache, workers=workers, scheduler=scheduler
+    )
     if len(runs.failed):
         raise RuntimeError(f"check_at_data: {runs.failure_summary()}")
-    columns = list(design.columns)
-    done = runs.points[[*columns, "output"]].drop_duplicates(subset=columns)
-    simulated = design.merge(done, on=columns, how="left")["output"].to_numpy(float)
+    columns = [*target.inputs, *target.parameters]
+    simulated = {}
+    for k, data in target.data.items():
+        rows = pd.DataFrame({i: np.asarray(data.inputs[i], float) for i in target.inputs})
+        rows = rows.assign(**theta)
+        done = target.output_runs(runs, k).points[[*columns, "output"]]
+        done = done.drop_duplicates(subset=columns)
+        simulated[k] = rows.merge(done, on=columns, how="left")["output"].to_numpy(float)
+    return simulated
+
+
+def _scored(
+    target: EmulatorsAtData, name: str, theta: dict[str, float], simulated: np.ndarray, level: float
+) -> EmulatorCheck:
+    """One output's emulator scored against the simulator at ``theta``: coverage, error."""
+    emulator, data = target.emulators[name], target.data[name]
     mean, var = emulator.predict_matrix(
         emulator._matrix(data.inputs, theta), without=_runs_at(emulator, theta)
     )
@@ -461,7 +613,7 @@ def check_at_data(
         "at the calibration data", simulated, mean, np.sqrt(var), level, point=theta, misfit=misfit
     )
     tol = max(0.05, 3.0 * np.sqrt(level * (1.0 - level) / simulated.size))
-    where = f"at {_format_theta(theta)} (the emulator's best fit to the data)"
+    where = _where(target, theta)
     if check.coverage < level - tol:
         check.problems.append(
             f"{where} its {level:.0%} bands cover {check.coverage:.2f} of the simulator's "
@@ -472,39 +624,21 @@ def check_at_data(
             f"{where} its error at the calibration rows (rms {check.rmse:.3g}) exceeds the "
             f"simulator's own misfit to the data (rms {misfit:.3g})"
         )
-    check.shift = _least_squares_shift(emulator, data, check)
-    moved = {k: v for k, v in check.shift.items() if abs(v) > max_shift}
-    if moved:
-        named = ", ".join(f"{k} {v:+.2g}" for k, v in moved.items())
-        check.problems.append(
-            f"{where} its error moves the least-squares θ by about {named} posterior sds "
-            f"(linearised; > {max_shift})"
-        )
-    if warn:
-        warn_at_data(emulator, check)
     return check
 
 
-def warn_at_data(
-    emulator: Emulator,
-    check: EmulatorCheck,
-    advice: str = "add runs ([emulator] runs, refine_at_data, or sequential rounds)",
-) -> None:
-    """The :class:`EmulatorWarning` of a failed :func:`check_at_data` (none if it passed).
+def _where(target: EmulatorsAtData, theta: dict[str, float]) -> str:
+    fit = "the emulator's best fit" if len(target.data) == 1 else "the emulators' joint best fit"
+    return f"at {_format_theta(theta)} ({fit} to the data)"
 
-    Examples
-    --------
-    >>> import numpy as np
-    >>> check = EmulatorCheck("at the calibration data", np.ones(2), np.ones(2), np.ones(2))
-    >>> warn_at_data(None, check)  # no problems: no warning
-    """
-    if check.fit:
-        return
-    warn_user(
-        f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is not fit for "
-        f"this calibration: {'; '.join(check.problems)}; {advice}",
-        EmulatorWarning,
-    )
+
+def _moved(shift: dict[str, float], max_shift: float, what: str) -> list[str]:
+    """The problem of a move of the least-squares θ beyond ``max_shift`` sds (or none)."""
+    moved = {k: v for k, v in shift.items() if abs(v) > max_shift}
+    if not moved:
+        return []
+    named = ", ".join(f"{k} {v:+.2g}" for k, v in moved.items())
+    return [f"{what}least-squares θ by about {named} posterior sds (linearised; > {max_shift})"]
 
 
 def _runs_at(emulator: Emulator, theta: dict[str, float]) -> np.ndarray:
@@ -522,49 +656,78 @@ def _runs_at(emulator: Emulator, theta: dict[str, float]) -> np.ndarray:
 
 
 def _least_squares_shift(
-    emulator: Emulator, data: CalibrationData, check: EmulatorCheck
-) -> dict[str, float]:
-    """The simulator's least-squares θ minus the emulator's, in posterior sds (linearised)."""
-    J, _, _ = linearisation(emulator, data, check.point)
-    inverse = np.linalg.pinv(J.T @ J)
-    move = -inverse @ J.T @ (check.simulated - check.mean)
-    noise = data.noise_sd if data.noise_sd is not None else check.misfit
-    sds = float(noise or 0.0) * np.sqrt(np.maximum(np.diag(inverse), 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(sds > 0, move / sds, 0.0)
-    return {k: float(v) for k, v in zip(check.point, ratio, strict=True)}
+    target: EmulatorsAtData, checks: dict[str, EmulatorCheck]
+) -> dict[str, dict[str, float]]:
+    """Output -> how far its error moves the joint least-squares θ, in posterior sds.
+
+    Linearised over the stacked outputs in their noise's units (σ the noise sd, else the
+    simulator's misfit): the simulator's joint least-squares θ lies near
+    ``θ̂ - Σₖ (J̃ᵀJ̃)⁻¹ J̃ₖᵀ r̃ₖ``; for one output ``θ̂ - (JᵀJ)⁻¹Jᵀr`` in sds
+    ``σ √diag (JᵀJ)⁻¹``.  A zero noise (a simulator fitting the data exactly) gives 0.
+    """
+    names = target.parameters
+    blocks, errors = {}, {}
+    for k, check in checks.items():
+        data = target.data[k]
+        J, _, _ = linearisation(target.emulators[k], data, check.point)
+        noise = float((data.noise_sd if data.noise_sd is not None else check.misfit) or 0.0)
+        if noise <= 0.0:
+            return {k: dict.fromkeys(names, 0.0) for k in checks}
+        blocks[k], errors[k] = J / noise, (check.simulated - check.mean) / noise
+    stacked = np.vstack(list(blocks.values()))
+    inverse = np.linalg.pinv(stacked.T @ stacked)
+    sds = np.sqrt(np.maximum(np.diag(inverse), 0.0))
+    parts = {}
+    for k, J in blocks.items():
+        move = -inverse @ J.T @ errors[k]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(sds > 0, move / sds, 0.0)
+        parts[k] = {p: float(v) for p, v in zip(names, ratio, strict=True)}
+    return parts
 
 
-def _best_fit_parameters(
-    emulator: Emulator, data: CalibrationData, starts: int = 5
-) -> dict[str, float]:
-    """θ minimising the squared error of the emulator's mean at the data, in the design box.
+def _best_fit_parameters(target: EmulatorsAtData, starts: int = 5) -> dict[str, float]:
+    """θ minimising the emulators' squared errors at the data, in the design box.
 
-    Searched in the emulator's unit coordinates (the log for a parameter spanning decades:
+    Searched in the emulators' unit coordinates (the log for a parameter spanning decades:
     in natural units an A over 1e-2..1e8 and a Q over 1e5..4e5 gave L-BFGS-B steps of the
-    wrong size by ten orders), from the ``starts`` design points that fit best, on the
-    squared error relative to the data's spread.
+    wrong size by ten orders), from the ``starts`` design points that fit best.  Each
+    output's squared error is weighted by ``1/σ_k²`` (its noise sd; without one, by the
+    inverse variance of its data), and the sum is divided by the data's own weighted
+    spread (for one output: the squared error relative to the data's spread).
     """
     from scipy.optimize import minimize
 
-    names = list(emulator.runs.parameters)
-    y = np.asarray(data.y, float)
+    first, names = target.first, target.parameters
+    ys = {k: np.asarray(d.y, float) for k, d in target.data.items()}
+    weights = {k: _output_weight(d, ys[k]) for k, d in target.data.items()}
     # in units of the data's own spread: an SSE of 1e-12 (rates of 1e-5) has gradients
     # below L-BFGS-B's absolute tolerance, and it stopped where it started
-    spread = float(np.sum((y - y.mean()) ** 2)) or 1.0
+    spread = sum(weights[k] * float(np.sum((y - y.mean()) ** 2)) for k, y in ys.items()) or 1.0
 
     def sse(unit: np.ndarray) -> float:
-        values = dict(zip(names, emulator.parameters_from_unit(np.clip(unit, 0, 1)), strict=True))
-        mean, _ = emulator.predict(data.inputs, values)
-        return float(np.sum((y - mean) ** 2)) / spread
+        values = dict(zip(names, first.parameters_from_unit(np.clip(unit, 0, 1)), strict=True))
+        total = 0.0
+        for k, y in ys.items():
+            mean, _ = target.emulators[k].predict(target.data[k].inputs, values)
+            total += weights[k] * float(np.sum((y - mean) ** 2))
+        return total / spread
 
-    points = emulator.runs.points[names].drop_duplicates().to_numpy(float)
-    units = np.clip(emulator.parameters_to_unit(points), 0.0, 1.0)
+    points = first.runs.points[names].drop_duplicates().to_numpy(float)
+    units = np.clip(first.parameters_to_unit(points), 0.0, 1.0)
     ranked = sorted(units, key=sse)[:starts]
     fits = [minimize(sse, u, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(names)) for u in ranked]
     best = min(fits, key=lambda fit: fit.fun)
     unit = best.x if best.fun <= sse(ranked[0]) else ranked[0]
-    return {k: float(v) for k, v in zip(names, emulator.parameters_from_unit(unit), strict=True)}
+    return {k: float(v) for k, v in zip(names, first.parameters_from_unit(unit), strict=True)}
+
+
+def _output_weight(data: CalibrationData, y: np.ndarray) -> float:
+    """``1/σ²`` of an output's data (its noise sd, else the variance of its values)."""
+    if data.noise_sd is not None:
+        return 1.0 / float(data.noise_sd) ** 2
+    variance = float(np.var(y))
+    return 1.0 / variance if variance > 0 else 1.0
 
 
 def _format_theta(theta: dict[str, float]) -> str:

@@ -5,9 +5,11 @@ parameters that fit the data (:func:`~kohpymc.emulator.checking.check_at_data`).
 :func:`refine_at_data` answers a failed check without sampling: around the emulator's best
 fit ``θ̂`` it adds a small space-filling design of θ, spread over ``spread`` sds of the
 linearised posterior through the emulator (:func:`local_design`), plus ``θ̂`` itself, each
-θ at every calibration input row (as the sequential rounds'
-:func:`~kohpymc.emulator.posterior_design` does); it refits, checks again, and stops when
+θ at every distinct calibration input row; it refits, checks again, and stops when
 the check passes, after ``rounds`` rounds, or when ``max_runs`` runs have been added.
+:func:`refine_emulators_at_data` does the same for a simulator with several outputs and
+one emulator per output (:class:`~kohpymc.emulator.at_data.EmulatorsAtData`): the check
+and the local design at the outputs' joint best fit, each run giving every output.
 """
 
 from __future__ import annotations
@@ -20,25 +22,31 @@ import numpy as np
 import pandas as pd
 
 from kohpymc.data import CalibrationData
-from kohpymc.emulator.checking import EmulatorCheck, check_at_data, linearisation
+from kohpymc.emulator.at_data import EmulatorsAtData
+from kohpymc.emulator.checking import EmulatorCheck, check_target_at_data
 from kohpymc.emulator.design import space_filling_design
 from kohpymc.emulator.gp import Emulator
-from kohpymc.emulator.runs import run_design
-from kohpymc.emulator.sequential import posterior_design, refit
 
-__all__ = ["Refinement", "local_design", "refine_at_data"]
+__all__ = [
+    "Refinement",
+    "design_around",
+    "local_design",
+    "refine_at_data",
+    "refine_emulators_at_data",
+]
 
 
 @dataclass
 class Refinement:
-    """The rounds of :func:`refine_at_data`.
+    """The rounds of :func:`refine_at_data` (or :func:`refine_emulators_at_data`).
 
     Attributes
     ----------
-    emulator : Emulator
-        The last emulator.
-    checks : list of EmulatorCheck
-        The check at the data before the first round and after each round.
+    target : EmulatorsAtData
+        The last emulators (one per output) with their data.
+    checks : list of EmulatorCheck or OutputsCheck
+        The check at the data before the first round and after each round (an
+        :class:`~kohpymc.emulator.checking.OutputsCheck` for several outputs).
     added : list of int
         Runs added in each round.
     stopped : str
@@ -46,15 +54,30 @@ class Refinement:
         ``"max_runs"`` (no room left for another round).
     """
 
-    emulator: Emulator
-    checks: list[EmulatorCheck] = field(default_factory=list)
+    target: EmulatorsAtData
+    checks: list[Any] = field(default_factory=list)
     added: list[int] = field(default_factory=list)
     stopped: str = "passed"
 
     @property
+    def emulators(self) -> dict[str, Emulator]:
+        """Output -> its last emulator."""
+        return self.target.emulators
+
+    @property
+    def emulator(self) -> Emulator:
+        """The last emulator of a single-output simulator."""
+        if not self.target.single:
+            raise ValueError(
+                f"a refinement of outputs {list(self.emulators)} has one emulator per "
+                "output: see .emulators"
+            )
+        return self.target.first
+
+    @property
     def passed(self) -> bool:
         """Whether the last check at the data passed."""
-        return self.checks[-1].fit
+        return bool(self.checks[-1].fit)
 
     def to_dict(self) -> dict[str, Any]:
         """Per round its runs and check (``check_at_data.json``'s fields); how it ended."""
@@ -66,7 +89,7 @@ class Refinement:
             "passed": self.passed,
             "stopped": self.stopped,
             "added_runs": int(sum(self.added)),
-            "runs": self.emulator.n_runs,
+            "runs": self.target.n_runs,
             "rounds": rounds,
         }
 
@@ -78,7 +101,7 @@ class Refinement:
         outcome = "passes" if self.passed else "still fails"
         return (
             f"{n} round(s) added {sum(self.added)} runs at the data; the check there "
-            f"{outcome} ({self.emulator.n_runs} runs)"
+            f"{outcome} ({self.target.n_runs} runs)"
         )
 
 
@@ -94,11 +117,12 @@ def local_design(
     """``n`` space-filling θ within ``spread`` linearised posterior sds of ``theta``.
 
     The emulator is linearised at ``theta`` in the coordinates of its unit box (ln θ
-    for log-scaled parameters; :func:`~kohpymc.emulator.checking.linearisation`,
+    for log-scaled parameters; :func:`~kohpymc.emulator.at_data.linearisation`,
     its own covariance added to the noise, so a poor emulator gets a wider design); a
     maximin Latin hypercube on ``[-1, 1]^p`` is mapped along the eigenvectors of that
     posterior's precision, each axis scaled by ``spread`` sds (at most the box's
-    width, for a direction the data do not inform) and clipped to the box.
+    width, for a direction the data do not inform) and clipped to the box.  For several
+    outputs, :func:`design_around` (their joint linearised posterior).
 
     Parameters
     ----------
@@ -129,13 +153,39 @@ def local_design(
     >>> len(d), bool(d["E"].between(190.0, 210.0).all())
     (5, True)
     """
-    names = list(emulator.runs.parameters)
+    return design_around(EmulatorsAtData.of(emulator, data), theta, n, spread=spread, seed=seed)
+
+
+def design_around(
+    target: EmulatorsAtData,
+    theta: dict[str, float],
+    n: int,
+    *,
+    spread: float = 3.0,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """:func:`local_design` of every output's emulator at once (their joint posterior).
+
+    The outputs are stacked in their noise's units
+    (:meth:`~kohpymc.emulator.at_data.EmulatorsAtData.whitened_linearisation`), so the
+    design spreads along the linearised posterior of θ given all outputs' data.
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import emulate
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> target = EmulatorsAtData.of(emulate(beam.physics_model(), data, runs=20), data)
+    >>> len(design_around(target, {"E": 200.0}, 4))
+    4
+    """
+    emulator, names = target.first, target.parameters
     cols = [emulator.columns.index(k) for k in names]
     logs, width = emulator.log_columns[cols], emulator.width[cols]
     centre = np.array([theta[k] for k in names], dtype=float)
-    J, noise, cov = linearisation(emulator, data, theta)
-    Ju = J * (width * np.where(logs, centre, 1.0))  # d mean / d unit coordinate
-    precision = Ju.T @ np.linalg.solve(noise**2 * np.eye(len(J)) + cov, Ju)
+    J, cov = target.whitened_linearisation(theta)
+    Ju = J * (width * np.where(logs, centre, 1.0))  # d mean / d unit coordinate, in σ
+    precision = Ju.T @ np.linalg.solve(np.eye(len(J)) + cov, Ju)
     eigenvalues, vectors = np.linalg.eigh(precision)
     with np.errstate(divide="ignore"):
         sds = np.minimum(1.0 / np.sqrt(np.maximum(eigenvalues, 0.0)), 1.0)
@@ -199,16 +249,66 @@ def refine_at_data(
     >>> result.checks[0].fit, result.passed, result.added  # 3 θ at the 20 data rows
     (False, True, [60])
     """
+    return refine_emulators_at_data(
+        EmulatorsAtData.of(emulator, data), rounds=rounds, new_runs=new_runs,
+        max_runs=max_runs, first=first, spread=spread, cache=cache, seed=seed,
+        workers=workers, scheduler=scheduler,
+    )  # fmt: skip
+
+
+def refine_emulators_at_data(
+    target: EmulatorsAtData,
+    *,
+    rounds: int = 2,
+    new_runs: int | None = None,
+    max_runs: int | None = None,
+    first: Any = None,
+    spread: float = 3.0,
+    cache: str | Path | None = None,
+    seed: int = 0,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> Refinement:
+    """:func:`refine_at_data` for one emulator per output of one simulator.
+
+    The check is :func:`~kohpymc.emulator.checking.check_emulators_at_data` (the
+    outputs' joint best fit ``θ̂``; for one output :func:`check_at_data`'s), the θ
+    around it come from :func:`design_around` (the joint linearised posterior), each θ
+    runs at the distinct calibration rows of all outputs (one simulator call gives every
+    output; cached) and every output's emulator is refitted to the new runs.
+
+    Parameters
+    ----------
+    target : EmulatorsAtData
+        The simulator, its emulators and their data.
+    rounds, new_runs, max_runs, spread, cache, seed, workers, scheduler :
+        As for :func:`refine_at_data` (``m`` counts the distinct rows of all outputs).
+    first : EmulatorCheck or OutputsCheck, optional
+        The check of the emulators already made (else made here).
+
+    Returns
+    -------
+    Refinement
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam_multi_output as bm
+    >>> from kohpymc.multi_output import emulate_outputs
+    >>> physics, data = bm.physics_model(), bm.generate_data()
+    >>> target = EmulatorsAtData.of_outputs(physics, emulate_outputs(physics, data, runs=20),
+    ...                                     data)
+    >>> result = refine_emulators_at_data(target, rounds=1)
+    >>> result.checks[0].fit, len(result.added), sorted(result.emulators)
+    (False, 1, ['strain', 'u'])
+    """
     if rounds < 0:
         raise ValueError(f"rounds must be >= 0, got {rounds}")
-    check = first or check_at_data(
-        emulator, data, cache=cache, warn=False, workers=workers, scheduler=scheduler
-    )
-    result = Refinement(emulator, [check])
-    physics = emulator.physics
-    m = len(np.unique(data.matrix(tuple(physics.inputs)), axis=0))
-    per_round = new_runs if new_runs is not None else max(1, emulator.n_runs // 2)
-    n_local = max(len(physics.parameters) + 1, int(round(per_round / m)))
+    where = {"cache": cache, "workers": workers, "scheduler": scheduler}
+    check = first or check_target_at_data(target, **where)
+    result = Refinement(target, [check])
+    m = len(target.rows())
+    per_round = new_runs if new_runs is not None else max(1, target.n_runs // 2)
+    n_local = max(len(target.parameters) + 1, int(round(per_round / m)))
     budget = max_runs if max_runs is not None else rounds * (n_local + 1) * m
     for round_ in range(1, rounds + 1):
         if check.fit:
@@ -217,18 +317,14 @@ def refine_at_data(
         if room < 1:
             result.stopped = "max_runs"
             return result
-        local = local_design(
-            result.emulator, data, check.point, min(n_local, room), spread=spread,
-            seed=seed + round_,
-        )  # fmt: skip
-        thetas = pd.concat([pd.DataFrame([check.point]), local], ignore_index=True)
-        points = posterior_design(thetas, data, physics, len(thetas) * m)
-        runs = run_design(physics, points, cache=cache, workers=workers, scheduler=scheduler)
-        result.emulator = refit(result.emulator, runs, seed=seed)
-        result.added.append(len(runs.points))
-        check = check_at_data(
-            result.emulator, data, cache=cache, warn=False, workers=workers, scheduler=scheduler
+        local = design_around(
+            result.target, check.point, min(n_local, room), spread=spread, seed=seed + round_
         )
+        thetas = pd.concat([pd.DataFrame([check.point]), local], ignore_index=True)
+        runs = result.target.run(result.target.design(thetas), **where)
+        result.target = result.target.refit(runs, seed=seed)
+        result.added.append(len(runs.points))
+        check = check_target_at_data(result.target, **where)
         result.checks.append(check)
     result.stopped = "passed" if check.fit else "rounds"
     return result

@@ -362,6 +362,10 @@ def _design_rounds(
 def refit(emulator: Emulator, new: SimulatorRuns, *, seed: int = 0) -> Emulator:
     """The emulator refitted to its runs and ``new`` ones (box, kernel, output scale kept).
 
+    An emulator of ``ln y`` whose new runs include an output ``<= 0`` (a strain that
+    changes sign where the data are, after a design that missed it) is refitted on
+    the linear scale, where ``ln`` is undefined.
+
     Examples
     --------
     >>> from kohpymc.examples import beam
@@ -372,9 +376,11 @@ def refit(emulator: Emulator, new: SimulatorRuns, *, seed: int = 0) -> Emulator:
     >>> refit(em, more).n_runs == 10 + data.n
     True
     """
+    runs = _merged(emulator.runs, new)
+    log_output = emulator.log_output and bool(np.all(runs.y > 0))
     return Emulator(
-        _merged(emulator.runs, new), emulator.physics, box=emulator_box(emulator),
-        kernel=emulator.kernel, seed=seed, log_output=emulator.log_output,
+        runs, emulator.physics, box=emulator_box(emulator), kernel=emulator.kernel,
+        seed=seed, log_output=log_output,
     )  # fmt: skip
 
 

@@ -33,14 +33,17 @@ every run (failures with their error) to ``runs.csv``. The rounds' final design 
 ``rounds.json`` (also after refinement rounds alone) with a key of the settings,
 simulator, data (and, with sequential rounds, formulation and sampler settings): a rerun
 with the same key refits the final emulator from the cached runs instead of running the
-rounds again.  Multi-output studies do not refine yet.  Every file is written under a
-temporary name and renamed.
+rounds again.  A multi-output study
+(:func:`~kohpymc.multi_output.emulator.study_outputs_physics`) goes through the same
+:func:`study_emulators`: one check at the data over all its outputs, refinement rounds whose
+runs give every output, the same files.  Every file is written under a temporary name and
+renamed.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -50,10 +53,16 @@ import pandas as pd
 
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
-from kohpymc.emulator.checking import EmulatorCheck, check_at_data, check_emulator, warn_at_data
+from kohpymc.emulator.at_data import SINGLE, EmulatorsAtData
+from kohpymc.emulator.checking import (
+    EmulatorCheck,
+    check_emulator,
+    check_target_at_data,
+    warn_at_data,
+)
 from kohpymc.emulator.design import DESIGNS
 from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator, EmulatorWarning
-from kohpymc.emulator.refinement import Refinement, refine_at_data
+from kohpymc.emulator.refinement import Refinement, refine_emulators_at_data
 from kohpymc.emulator.runs import run_design
 from kohpymc.emulator.sequential import emulate, emulator_box, fit_emulator, sequential_design
 from kohpymc.fingerprint import (
@@ -69,6 +78,8 @@ from kohpymc.warning_filters import warn_user
 
 __all__ = [
     "EmulatorSettings",
+    "rounds_key",
+    "study_emulators",
     "study_physics",
     "warn_if_extrapolating",
     "write_check",
@@ -218,37 +229,105 @@ def study_physics(
     30
     """
     folder = Path(out_dir) / "emulator"
-    folder.mkdir(parents=True, exist_ok=True)
     key = (
-        _rounds_key(settings, physics, calibration, formulations, sampling)
+        rounds_key(settings, physics, calibration, formulations, sampling)
         if settings.sequential > 0 or settings.refine_at_data > 0
         else ""
     )
-    emulator = _restored_rounds(folder, key, settings, physics, workers, scheduler)
-    if emulator is None:
-        emulator, at_data = _first_emulator(
-            settings, physics, calibration, folder, workers, scheduler
-        )
-        emulator = _refined(settings, calibration, emulator, at_data, folder, workers, scheduler)
-        if settings.sequential > 0:
-            emulator = _sequential_rounds(
-                settings,
-                physics,
-                calibration,
-                emulator,
-                folder,
-                formulations=formulations,
-                sampling=sampling,
-                workers=workers,
-                scheduler=scheduler,
-            )
-        if key:
-            _write_rounds_record(folder, key, emulator)
+
+    def first() -> EmulatorsAtData:
+        options = settings.design_options()
+        emulator = emulate(
+            physics, calibration, cache=folder / "runs", workers=workers, scheduler=scheduler,
+            **options,
+        )  # fmt: skip
+        return EmulatorsAtData.of(emulator, calibration)
+
+    def sequential(target: EmulatorsAtData) -> EmulatorsAtData:
+        emulator = _sequential_rounds(
+            settings, physics, calibration, target.first, folder, formulations=formulations,
+            sampling=sampling, workers=workers, scheduler=scheduler,
+        )  # fmt: skip
+        return EmulatorsAtData.of(emulator, calibration)
+
+    emulator = study_emulators(
+        settings, physics, folder, first, key=key,
+        more_rounds=sequential if settings.sequential > 0 else None,
+        workers=workers, scheduler=scheduler,
+    )[SINGLE]  # fmt: skip
     write_settings(folder, settings)
     write_emulator(folder, emulator)
     if validation is not None:
         warn_if_extrapolating(emulator, validation, "validation")
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+
+
+def study_emulators(
+    settings: EmulatorSettings,
+    simulator: Any,
+    folder: Path,
+    first: Callable[[], EmulatorsAtData],
+    *,
+    key: str = "",
+    more_rounds: Callable[[EmulatorsAtData], EmulatorsAtData] | None = None,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> dict[str, Emulator]:
+    """A study's emulators (one per output): restored from an earlier run, or built.
+
+    With a record of earlier rounds under ``key`` (``rounds.json``), the final design
+    is read from the run cache and every output's emulator refitted to it (no
+    simulator call).  Else ``first()`` builds them (design, runs, fits), their checks
+    over the design and at the data are written, the refinement rounds at the data run
+    (``refine_at_data``), then ``more_rounds`` (the sequential rounds of one output),
+    and with a ``key`` the final design is recorded.
+
+    Parameters
+    ----------
+    settings : EmulatorSettings
+    simulator : PhysicsModel or MultiOutputPhysics
+        What runs.
+    folder : path
+        ``<output>/emulator``.
+    first : callable
+        Builds the first emulators (with their data).
+    key : str
+        What the rounds depend on (empty: nothing recorded or restored).
+    more_rounds : callable, optional
+        Rounds after the refinement (the sequential ones).
+    workers, scheduler :
+        Where the simulator runs go.
+
+    Returns
+    -------
+    dict of str to Emulator
+        Output -> emulator (one output: ``"output"``).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kohpymc.examples import beam
+    >>> physics, data = beam.physics_model(), beam.generate_data(seed=1)
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> first = lambda: EmulatorsAtData.of(emulate(physics, data, runs=30), data)
+    >>> settings = EmulatorSettings(runs=30, refine_at_data=0)
+    >>> study_emulators(settings, physics, folder, first)["output"].n_runs
+    30
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    emulators = _restored_rounds(folder, key, settings, simulator, workers, scheduler)
+    if emulators is not None:
+        return emulators
+    target = first()
+    at_data = _write_checks(
+        folder, target, warn=settings.refine_at_data == 0, workers=workers, scheduler=scheduler
+    )
+    target = _refined(settings, target, at_data, folder, workers, scheduler)
+    if more_rounds is not None:
+        target = more_rounds(target)
+    if key:
+        _write_rounds_record(folder, key, target.emulators)
+    return target.emulators
 
 
 #: an emulator input whose fitted length scale exceeds this many box widths is one the
@@ -295,52 +374,24 @@ def warn_if_extrapolating(emulator: Emulator, data: CalibrationData, what: str) 
         )
 
 
-def _first_emulator(
-    settings: EmulatorSettings,
-    physics: PhysicsModel,
-    calibration: CalibrationData,
-    folder: Path,
-    workers: int,
-    scheduler: Any,
-) -> tuple[Emulator, EmulatorCheck]:
-    """The initial design, run (cached in ``folder/runs``) and fitted; its checks written.
-
-    The check at the data warns here only without refinement rounds (else after them).
-    """
-    emulator = emulate(
-        physics,
-        calibration,
-        cache=folder / "runs",
-        workers=workers,
-        scheduler=scheduler,
-        **settings.design_options(),
-    )
-    at_data = _write_checks(
-        folder, emulator, calibration, warn=settings.refine_at_data == 0,
-        workers=workers, scheduler=scheduler,
-    )  # fmt: skip
-    return emulator, at_data
-
-
 def _refined(
     settings: EmulatorSettings,
-    calibration: CalibrationData,
-    emulator: Emulator,
-    at_data: EmulatorCheck,
+    target: EmulatorsAtData,
+    at_data: Any,
     folder: Path,
     workers: int,
     scheduler: Any,
-) -> Emulator:
+) -> EmulatorsAtData:
     """The refinement rounds at the data (if any and if the check failed); files and warning.
 
-    ``refine_at_data.json`` records every round; with runs added, ``check.json`` and
-    ``check_at_data.json`` are rewritten for the refitted emulator.
+    ``refine_at_data.json`` records every round; with runs added, the checks over the
+    design (``check.json``) and ``check_at_data.json`` are rewritten for the refitted
+    emulators.
     """
     if settings.refine_at_data == 0:
-        return emulator
-    result = refine_at_data(
-        emulator,
-        calibration,
+        return target
+    result = refine_emulators_at_data(
+        target,
         rounds=settings.refine_at_data,
         new_runs=settings.new_runs,
         max_runs=settings.refine_runs,
@@ -352,10 +403,10 @@ def _refined(
     )
     _write_json(folder / REFINEMENT_RECORD, result.to_dict())
     if result.added:
-        write_check(folder, check_emulator(result.emulator, data=calibration))
+        _write_design_checks(folder, result.target)
         _write_json(folder / "check_at_data.json", result.checks[-1].to_dict())
-    warn_at_data(result.emulator, result.checks[-1], _refinement_advice(settings, result))
-    return result.emulator
+    warn_at_data(result.target, result.checks[-1], _refinement_advice(settings, result))
+    return result.target
 
 
 def _refinement_advice(settings: EmulatorSettings, result: Refinement) -> str:
@@ -369,22 +420,34 @@ def _refinement_advice(settings: EmulatorSettings, result: Refinement) -> str:
     )
 
 
-def _rounds_key(
+def rounds_key(
     settings: EmulatorSettings,
-    physics: PhysicsModel,
-    calibration: CalibrationData,
-    formulations: Mapping[str, Discrepancy] | None,
-    sampling: Mapping[str, Any] | None,
+    physics: Any,
+    calibration: Any,
+    formulations: Mapping[str, Discrepancy] | None = None,
+    sampling: Mapping[str, Any] | None = None,
 ) -> str:
     """What the rounds' result depends on: settings, simulator, data (sequential: sampler).
 
+    The key of ``rounds.json`` (:func:`study_emulators`).
+
     Refinement rounds alone do not sample, so the formulation and the sampler settings
-    enter the key only with sequential rounds.
+    enter the key only with sequential rounds.  A simulator with several outputs (and
+    their data) enters output by output.
     """
+    outputs = tuple(getattr(physics, "outputs", ()))
     parts: dict[str, Any] = {
         "settings": asdict(settings),
-        "physics": physics_fingerprint(physics),
-        "data": data_fingerprint(calibration),
+        "physics": (
+            {k: physics_fingerprint(physics.output(k)) for k in outputs}
+            if outputs
+            else physics_fingerprint(physics)
+        ),
+        "data": (
+            {k: data_fingerprint(calibration[k]) for k in calibration.outputs}
+            if outputs
+            else data_fingerprint(calibration)
+        ),
         "version": kohpymc_version(),
     }
     if settings.sequential > 0:
@@ -393,16 +456,20 @@ def _rounds_key(
     return digest(parts)
 
 
-def _write_rounds_record(folder: Path, key: str, emulator: Emulator) -> None:
-    """``rounds.json``: the key and the final design, so a rerun refits without the rounds."""
-    runs = emulator.runs
+def _write_rounds_record(folder: Path, key: str, emulators: Mapping[str, Emulator]) -> None:
+    """``rounds.json``: the key and the final design, so a rerun refits without the rounds.
+
+    Every output's emulator has the same runs and box; each its own output scale.
+    """
+    first = next(iter(emulators.values()))
+    runs = first.runs
     columns = [*runs.inputs, *runs.parameters]
     record = {
         "key": key,
         "columns": columns,
         "design": runs.points[columns].to_numpy(dtype=float).tolist(),
-        "box": emulator_box(emulator),
-        "log_output": emulator.log_output,
+        "box": emulator_box(first),
+        "log_output": {k: em.log_output for k, em in emulators.items()},
     }
     text = json.dumps(record)
     write_atomic(folder / ROUNDS_RECORD, lambda tmp: tmp.write_text(text))
@@ -412,11 +479,11 @@ def _restored_rounds(
     folder: Path,
     key: str,
     settings: EmulatorSettings,
-    physics: PhysicsModel,
+    simulator: Any,
     workers: int,
     scheduler: Any,
-) -> Emulator | None:
-    """The final emulator of earlier rounds with the same ``key``, refitted from the cache.
+) -> dict[str, Emulator] | None:
+    """The final emulators of earlier rounds with the same ``key``, refitted from the cache.
 
     None without rounds (empty ``key``), without a record, or when the record's key
     differs (then the rounds run again; their simulator runs still come from the cache).
@@ -432,18 +499,29 @@ def _restored_rounds(
     if not isinstance(record, dict) or record.get("key") != key:
         return None
     design = pd.DataFrame(record["design"], columns=record["columns"])
-    runs = run_design(physics, design, cache=folder / "runs", workers=workers, scheduler=scheduler)
+    runs = run_design(
+        simulator, design, cache=folder / "runs", workers=workers, scheduler=scheduler
+    )
     box = {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}
-    emulator = fit_emulator(
-        runs, physics, box=box, kernel=settings.kernel,
-        seed=settings.seed,
-        log_output=record.get("log_output", settings.log_output),
-    )  # fmt: skip
-    _warn_again(folder, emulator)
-    return emulator
+    outputs = tuple(getattr(simulator, "outputs", ()))
+    models = {k: simulator.output(k) for k in outputs} if outputs else {SINGLE: simulator}
+    scales = record.get("log_output", settings.log_output)
+    emulators = {
+        k: fit_emulator(
+            EmulatorsAtData.output_runs(runs, k),
+            model,
+            box=box,
+            kernel=settings.kernel,
+            seed=settings.seed,
+            log_output=scales.get(k, settings.log_output) if isinstance(scales, dict) else scales,
+        )  # fmt: skip
+        for k, model in models.items()
+    }
+    _warn_again(folder, EmulatorsAtData(simulator, emulators, {}))
+    return emulators
 
 
-def _warn_again(folder: Path, emulator: Emulator) -> None:
+def _warn_again(folder: Path, target: EmulatorsAtData) -> None:
     """The warning of a failed check at the data recorded when the rounds ran."""
     try:
         problems = json.loads((folder / "check_at_data.json").read_text())["problems"]
@@ -452,7 +530,7 @@ def _warn_again(folder: Path, emulator: Emulator) -> None:
     if problems:
         empty = np.empty(0)
         recorded = EmulatorCheck("at the calibration data", empty, empty, empty, problems=problems)
-        warn_at_data(emulator, recorded, "(recorded in check_at_data.json when the rounds ran)")
+        warn_at_data(target, recorded, "(recorded in check_at_data.json when the rounds ran)")
 
 
 def _round_formulation(
@@ -498,32 +576,44 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    _write_checks(folder, result.emulator, calibration, workers=workers, scheduler=scheduler)
+    target = EmulatorsAtData.of(result.emulator, calibration)
+    _write_checks(folder, target, workers=workers, scheduler=scheduler)
     return result.emulator
 
 
 def _write_checks(
     folder: Path,
-    emulator: Emulator,
-    calibration: CalibrationData,
+    target: EmulatorsAtData,
     *,
     warn: bool = True,
     workers: int = 1,
     scheduler: Any = None,
-) -> EmulatorCheck:
+) -> Any:
     """``check.json``/``.png`` over the design, and ``check_at_data.json`` at the data.
 
-    The second runs the simulator once, at the emulator's best fit to the calibration
+    The second runs the simulator once, at the emulators' best fit to the calibration
     rows (cached in ``folder/runs`` like the design), since leave-one-out over the prior
     box can pass an emulator that is many noise sds off where the data are.  Returns it.
     """
-    write_check(folder, check_emulator(emulator, data=calibration))
-    at_data = check_at_data(
-        emulator, calibration, cache=folder / "runs", warn=warn, workers=workers,
-        scheduler=scheduler,
-    )  # fmt: skip
+    _write_design_checks(folder, target)
+    at_data = check_target_at_data(
+        target, cache=folder / "runs", workers=workers, scheduler=scheduler
+    )
+    if warn:
+        warn_at_data(target, at_data)
     _write_json(folder / "check_at_data.json", at_data.to_dict())
     return at_data
+
+
+def _write_design_checks(folder: Path, target: EmulatorsAtData) -> None:
+    """Each output's :func:`check_emulator` (with its data's predicted widening).
+
+    One output: ``folder/check.json``; several: ``folder/<output>/check.json``.
+    """
+    for k, emulator in target.emulators.items():
+        part = folder if target.single else folder / k
+        part.mkdir(parents=True, exist_ok=True)
+        write_check(part, check_emulator(emulator, data=target.data.get(k)))
 
 
 def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:

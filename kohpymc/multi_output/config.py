@@ -38,7 +38,8 @@ differences::
     runs = 200                          # design, every run gives all outputs, one GP per
     # design = "maximin-lhs"            # output (kohpymc.multi_output.emulator); keys as
                                         # for one output except sequential (must be 0), and
-                                        # no coregionalized formulation beside it
+                                        # no coregionalized formulation beside it;
+                                        # refine_at_data rounds check all outputs jointly
 
     [execution]                         # as for one output: formulations as Dask tasks
     workers = 2                         # (or scheduler = "tcp://HOST:PORT")

@@ -24,7 +24,13 @@ leave-one-out: standardised errors, coverage of the 90 % bands), figure, hyperpa
 and runs go to ``<output>/emulator/<k>/`` (``check.json``, ``check.png``,
 ``emulator.json``, ``runs.csv``) as a single-output study writes them to
 ``<output>/emulator/``; the predicted posterior widening of the check is that of the
-output's own data alone (linearised).  Sequential design rounds are for single-output studies only.
+output's own data alone (linearised).  The check at the data runs the simulator once at the
+emulators' joint best fit and scores every output there
+(:func:`~kohpymc.emulator.check_emulators_at_data`, ``<output>/emulator/check_at_data.json``);
+while it fails, ``refine_at_data`` rounds add runs around that fit, each giving every output
+(:func:`~kohpymc.emulator.refine_emulators_at_data`, ``refine_at_data.json``), and
+``rounds.json`` lets a rerun refit the final emulators from the cache.  Sequential design
+rounds are for single-output studies only.
 """
 
 from __future__ import annotations
@@ -35,15 +41,16 @@ from typing import Any, Literal
 
 import numpy as np
 
-from kohpymc.emulator.checking import check_emulator
+from kohpymc.emulator.at_data import EmulatorsAtData
 from kohpymc.emulator.design import DesignMethod, design_box, space_filling_design
 from kohpymc.emulator.gp import Emulator
 from kohpymc.emulator.runs import run_design
 from kohpymc.emulator.sequential import fit_emulator
 from kohpymc.emulator.study import (
     EmulatorSettings,
+    rounds_key,
+    study_emulators,
     warn_if_extrapolating,
-    write_check,
     write_emulator,
     write_settings,
 )
@@ -179,6 +186,15 @@ def study_outputs_physics(
 ) -> MultiOutputPhysics:
     """Build (or rebuild from cached runs) a multi-output study's emulators as physics.
 
+    As :func:`kohpymc.emulator.study.study_physics` for one output
+    (:func:`~kohpymc.emulator.study.study_emulators`): the checks over the design
+    (``emulator/<output>/check.json``), the check at the data over all outputs at once
+    (``emulator/check_at_data.json``, :func:`~kohpymc.emulator.check_emulators_at_data`),
+    the refinement rounds at the data while it fails (``refine_at_data``,
+    ``emulator/refine_at_data.json``; each new run gives every output) and
+    ``emulator/rounds.json``, from which a rerun with the same settings, simulator and
+    data refits the final emulators without a simulator call.
+
     Parameters
     ----------
     settings : EmulatorSettings
@@ -206,8 +222,9 @@ def study_outputs_physics(
     >>> import tempfile
     >>> from kohpymc.examples import beam_multi_output as bm
     >>> folder = Path(tempfile.mkdtemp())
-    >>> emulated = study_outputs_physics(EmulatorSettings(runs=20), bm.physics_model(),
-    ...                                  bm.generate_data(), folder)
+    >>> settings = EmulatorSettings(runs=20, refine_at_data=0)
+    >>> emulated = study_outputs_physics(settings, bm.physics_model(), bm.generate_data(),
+    ...                                  folder)
     >>> sorted(p.name for p in (folder / "emulator" / "u").iterdir())
     ['check.json', 'check.png', 'emulator.json', 'runs.csv']
     """
@@ -217,22 +234,22 @@ def study_outputs_physics(
             "emulator takes runs = N (sequential = 0)"
         )
     folder = Path(out_dir) / "emulator"
-    folder.mkdir(parents=True, exist_ok=True)
-    emulators = emulate_outputs(
-        physics,
-        calibration,
-        cache=folder / "runs",
-        workers=workers,
-        scheduler=scheduler,
-        **settings.design_options(),
+    key = rounds_key(settings, physics, calibration) if settings.refine_at_data > 0 else ""
+
+    def first() -> EmulatorsAtData:
+        emulators = emulate_outputs(
+            physics, calibration, cache=folder / "runs", workers=workers, scheduler=scheduler,
+            **settings.design_options(),
+        )  # fmt: skip
+        return EmulatorsAtData.of_outputs(physics, emulators, calibration)
+
+    emulators = study_emulators(
+        settings, physics, folder, first, key=key, workers=workers, scheduler=scheduler
     )
     write_settings(folder, settings)
     for name, emulator in emulators.items():
-        part = folder / name
-        part.mkdir(exist_ok=True)
-        data = calibration[name] if name in calibration.outputs else None
-        write_check(part, check_emulator(emulator, data=data))
-        write_emulator(part, emulator)
+        (folder / name).mkdir(parents=True, exist_ok=True)
+        write_emulator(folder / name, emulator)
         if validation is not None and name in validation.outputs:
             warn_if_extrapolating(emulator, validation[name], "validation")
     return emulated_outputs(physics, emulators, covariance=settings.covariance)  # type: ignore[arg-type]

@@ -1,0 +1,203 @@
+"""The emulators of one calibration at its data: one per output, sharing θ and the simulator.
+
+The check at the data (:func:`~kohpymc.emulator.checking.check_at_data`) and the
+refinement rounds (:mod:`~kohpymc.emulator.refinement`) see a calibration through
+:class:`EmulatorsAtData`: the simulator that runs, one emulator per output and that
+output's calibration data.  A single-output study is the case of one output
+(:meth:`EmulatorsAtData.of`); a multi-output one has every output's emulator fitted to
+the same runs, each run giving all outputs from one simulator call
+(:meth:`EmulatorsAtData.of_outputs`).  The outputs are stacked in the units of their
+noise: :meth:`EmulatorsAtData.whitened_linearisation` divides each output's rows by its
+noise sd, so the joint least squares weighs each output by ``1/σ_k²``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+from scipy import linalg
+
+from kohpymc.data import CalibrationData
+from kohpymc.emulator.gp import Emulator
+from kohpymc.emulator.runs import SimulatorRuns, run_design
+from kohpymc.emulator.sequential import refit
+
+if TYPE_CHECKING:
+    from kohpymc.multi_output.physics import MultiOutputPhysics
+
+__all__ = ["EmulatorsAtData", "linearisation"]
+
+#: the output name of a single-output calibration in :class:`EmulatorsAtData`
+SINGLE = "output"
+
+
+def linearisation(
+    emulator: Emulator, data: CalibrationData, theta: Mapping[str, float]
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """The emulator linearised at ``theta`` on the data's rows: ``(J, σ, Σ_η)``.
+
+    ``J`` is the Jacobian of the emulator's mean with respect to θ (the emulated
+    physics' finite differences; rows = data rows, columns = parameters in their own
+    units), ``σ`` the data's noise sd (known or pooled from replicates) or else the rms
+    residual of the emulator's mean at ``theta``, and ``Σ_η`` the emulator's covariance
+    between the rows.  ``(Jᵀ (σ² I + Σ_η)⁻¹ J)⁻¹`` is then the linearised posterior
+    covariance of θ through the emulator (flat prior).
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import emulate
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> J, noise, cov = linearisation(emulate(beam.physics_model(), data, runs=30), data,
+    ...                               {"E": 200.0})
+    >>> J.shape == (data.n, 1), cov.shape == (data.n, data.n)
+    (True, True)
+    """
+    names = list(emulator.physics.parameters)
+    inputs = {k: np.asarray(data.inputs[k], float) for k in emulator.physics.inputs}
+    point = np.array([theta[k] for k in names], dtype=float)
+    X = np.column_stack([inputs[k] for k in emulator.physics.inputs])
+    cov = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
+    noise = data.noise_sd
+    if noise is None:
+        mean, _ = emulator.predict(inputs, point)
+        noise = float(np.sqrt(np.mean((np.asarray(data.y, float) - mean) ** 2)))
+    J = emulator.physics_model().jacobian_matrix(inputs, dict(theta))  # finite differences
+    return J, float(noise), cov
+
+
+@dataclass(frozen=True)
+class EmulatorsAtData:
+    """A simulator, one emulator per output and each output's calibration data.
+
+    Attributes
+    ----------
+    simulator : PhysicsModel or MultiOutputPhysics
+        What runs (one call per θ gives every output).
+    emulators : dict of str to Emulator
+        Output -> its emulator; all fitted to the same runs, on the same box.
+    data : dict of str to CalibrationData
+        Output -> its calibration data (the outputs checked at the data).
+
+    Examples
+    --------
+    >>> from kohpymc.emulator import emulate
+    >>> from kohpymc.examples import beam
+    >>> data = beam.generate_data(seed=1)
+    >>> target = EmulatorsAtData.of(emulate(beam.physics_model(), data, runs=10), data)
+    >>> target.outputs, target.n_runs, target.rows().shape == (data.n, 2)
+    (('output',), 10, True)
+    """
+
+    simulator: Any
+    emulators: dict[str, Emulator]
+    data: dict[str, CalibrationData]
+
+    @classmethod
+    def of(cls, emulator: Emulator, data: CalibrationData) -> EmulatorsAtData:
+        """One output: the emulator's own simulator and the data."""
+        return cls(emulator.physics, {SINGLE: emulator}, {SINGLE: data})
+
+    @classmethod
+    def of_outputs(
+        cls,
+        simulator: MultiOutputPhysics,
+        emulators: Mapping[str, Emulator],
+        data: Any,
+    ) -> EmulatorsAtData:
+        """Several outputs of one simulator and their data (a ``MultiOutputData``).
+
+        Outputs without calibration data are refitted with the others but not checked.
+        """
+        with_data = {k: data[k] for k in emulators if k in data.outputs}
+        if not with_data:
+            raise ValueError(
+                f"EmulatorsAtData: none of the emulated outputs {list(emulators)} has "
+                f"calibration data (outputs {list(data.outputs)})"
+            )
+        return cls(simulator, dict(emulators), with_data)
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        """The outputs' names."""
+        return tuple(self.emulators)
+
+    @property
+    def single(self) -> bool:
+        """Whether the simulator has one output (its runs have no per-output columns)."""
+        return not getattr(self.simulator, "outputs", ())
+
+    @property
+    def first(self) -> Emulator:
+        """The first output's emulator (every one has the same columns and box)."""
+        return next(iter(self.emulators.values()))
+
+    @property
+    def parameters(self) -> list[str]:
+        """The calibration parameters."""
+        return list(self.first.runs.parameters)
+
+    @property
+    def inputs(self) -> list[str]:
+        """The simulator's inputs."""
+        return list(self.first.runs.inputs)
+
+    @property
+    def n_runs(self) -> int:
+        """Runs the emulators are fitted to."""
+        return self.first.n_runs
+
+    def rows(self) -> np.ndarray:
+        """The distinct calibration input rows over every output (columns: inputs)."""
+        names = tuple(self.inputs)
+        return np.unique(np.vstack([d.matrix(names) for d in self.data.values()]), axis=0)
+
+    def design(self, thetas: pd.DataFrame) -> pd.DataFrame:
+        """Each θ (a row of ``thetas``) at every distinct calibration input row."""
+        X = self.rows()
+        values = thetas[self.parameters].to_numpy(float)
+        blocks = [np.column_stack([X, np.tile(theta, (len(X), 1))]) for theta in values]
+        return pd.DataFrame(np.vstack(blocks), columns=[*self.inputs, *self.parameters])
+
+    def run(
+        self,
+        design: pd.DataFrame,
+        *,
+        cache: str | Path | None = None,
+        workers: int = 1,
+        scheduler: Any = None,
+    ) -> SimulatorRuns:
+        """The simulator at the design's points (one call per θ, cached)."""
+        return run_design(self.simulator, design, cache=cache, workers=workers, scheduler=scheduler)
+
+    @staticmethod
+    def output_runs(runs: SimulatorRuns, name: str) -> SimulatorRuns:
+        """One output's runs (the runs themselves for a single-output simulator)."""
+        return runs.output(name) if runs.outputs else runs
+
+    def refit(self, runs: SimulatorRuns, *, seed: int = 0) -> EmulatorsAtData:
+        """Every emulator refitted to its runs and its output of ``runs``."""
+        emulators = {
+            k: refit(em, self.output_runs(runs, k), seed=seed) for k, em in self.emulators.items()
+        }
+        return EmulatorsAtData(self.simulator, emulators, self.data)
+
+    def whitened_linearisation(self, theta: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """``(J̃, Σ̃)``: every output's :func:`linearisation` stacked, in its noise's units.
+
+        Output ``k``'s rows of ``J`` are divided by its ``σ_k`` and its block of the
+        emulator's covariance by ``σ_k²`` (block-diagonal: the outputs' emulators are
+        independent), so ``(J̃ᵀ (I + Σ̃)⁻¹ J̃)⁻¹`` is the linearised joint posterior
+        covariance of θ through the emulators (flat prior).
+        """
+        blocks, covs = [], []
+        for k, data in self.data.items():
+            J, noise, cov = linearisation(self.emulators[k], data, theta)
+            blocks.append(J / noise)
+            covs.append(cov / noise**2)
+        return np.vstack(blocks), linalg.block_diag(*covs)

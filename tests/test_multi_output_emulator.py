@@ -399,8 +399,8 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
     """The first run simulates the 30 design points once each (both outputs from one
     call) and the check at the data once, besides the checks a dry run makes (each output
     at the prior centre, each formulation built); the second simulates nothing, refits the
-    same emulators and reuses the formulation's posterior.  Slow: 48 s with a warm compile cache at load 9,
-    165 s cold (two studies, each compiling its models)."""
+    same emulators and reuses the formulation's posterior.  Slow: 48 s with a warm compile
+    cache at load 9, 165 s cold (two studies, each compiling its models)."""
     from kohpymc.cli import main
 
     path = _study(tmp_path, emulator="[emulator]\nruns = 30\nrefine_at_data = 0\n")

@@ -130,11 +130,11 @@ def _numpy_elemwise(fgraph: Any, node: Apply) -> list[Any] | None:
 
 
 def rows_function(
-    flat: Any, outputs: Sequence[Any], optimizer: str | None = "fast_run"
+    flat: Any, outputs: Sequence[Any], optimizer: str = "fast_run"
 ) -> Callable[..., list[np.ndarray]] | None:
     """``outputs`` (graphs of the vector ``flat``) as a function of a matrix of rows.
 
-    ``optimizer``: PyTensor's rewrites of the batched graph (``None``: none, for a
+    ``optimizer``: PyTensor's rewrites of the batched graph (``"None"``: none, for a
     function evaluated once, where rewriting costs more than it saves).
 
     Returns

@@ -18,6 +18,7 @@ from typing import Any
 import arviz as az
 import numpy as np
 import pymc as pm
+import pytensor.tensor as pt
 import xarray as xr
 from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import ancestors
@@ -88,7 +89,7 @@ def _batched(
         return None
     outputs = _sized_draws_batched(outputs, flat)
     try:
-        function = rows_function(flat, outputs, optimizer=None)  # one evaluation: no rewrites
+        function = rows_function(flat, outputs, optimizer="None")  # one evaluation: no rewrites
     except ValueError:  # a random variable's size that PyTensor cannot extend
         return None
     if function is None:
@@ -135,7 +136,8 @@ def _sized_draws_batched(outputs: Sequence[Any], flat: Any) -> list[Any]:
         batched = [p for p in params[1:] if _depends(p, flat)]
         if not batched:
             continue
-        first = (params[0] + 0 * batched[0]).astype(params[0].dtype)
+        dtype = params[0].type.dtype  # type: ignore[attr-defined]  # a TensorType's
+        first = pt.cast(pt.add(params[0], pt.mul(0, batched[0])), dtype)
         new = op.make_node(op.rng_param(node), op.size_param(node), first, *params[1:])
         fgraph.replace_all(list(zip(node.outputs, new.outputs, strict=True)), import_missing=True)
     return list(fgraph.outputs)

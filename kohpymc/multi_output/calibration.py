@@ -377,9 +377,10 @@ def predict_output(
     Xn = new_input_matrix(new_inputs, names)
     wanted = ["physics", "discrepancy", "y_model", "y_pred"]
     with pymc_info_hidden():
-        names = [variable(output, k) for k in wanted]
-        pred = sample_predictions(calibration.idata, built.model, names, random_seed)
-    pred.predictions = pred.predictions.rename({variable(output, k): k for k in wanted})
+        requested = [variable(output, k) for k in wanted]
+        pred = sample_predictions(calibration.idata, built.model, requested, random_seed)
+    renamed = pred.predictions.rename(dict(zip(requested, wanted, strict=True)))  # type: ignore[attr-defined]  # arviz adds groups at run time
+    pred.predictions = renamed  # type: ignore[attr-defined]
     _attach_input_coords(pred, PRED_DIM, {k: Xn[:, j] for j, k in enumerate(names)})
     pred.attrs["output"] = output
     return pred

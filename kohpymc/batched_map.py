@@ -129,8 +129,13 @@ def _numpy_elemwise(fgraph: Any, node: Apply) -> list[Any] | None:
     return [pt.cast(out, node.outputs[0].type.dtype)]
 
 
-def rows_function(flat: Any, outputs: Sequence[Any]) -> Callable[..., list[np.ndarray]] | None:
+def rows_function(
+    flat: Any, outputs: Sequence[Any], optimizer: str = "fast_run"
+) -> Callable[..., list[np.ndarray]] | None:
     """``outputs`` (graphs of the vector ``flat``) as a function of a matrix of rows.
+
+    ``optimizer``: PyTensor's rewrites of the batched graph (``"None"``: none, for a
+    function evaluated once, where rewriting costs more than it saves).
 
     Returns
     -------
@@ -159,7 +164,7 @@ def rows_function(flat: Any, outputs: Sequence[Any]) -> Callable[..., list[np.nd
     except NotImplementedError:
         return None
     numpy_calls = (in2out(_numpy_elemwise, _stacked_linalg, name="kohpymc_numpy_calls"), 49.2)
-    mode = Mode(linker="py", optimizer="fast_run").excluding("fusion").register(numpy_calls)
+    mode = Mode(linker="py", optimizer=optimizer).excluding("fusion").register(numpy_calls)
     function = compile_function([rows], batched, on_unused_input="ignore", mode=mode)
     if any(_per_row(node.op) for node in function.maker.fgraph.apply_nodes):
         return None

@@ -23,7 +23,6 @@ from typing import Any, Literal
 
 import arviz as az
 import numpy as np
-import pymc as pm
 
 from kohpymc.checks import check_compile_mode, resolve_sampler
 from kohpymc.data import CalibrationData
@@ -38,6 +37,7 @@ from kohpymc.identifiability import (
 from kohpymc.loo import compute_log_likelihood, pointwise_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
+from kohpymc.predictive import sample_predictions
 from kohpymc.presampling import SLOW_SAMPLING_S, PreSampling
 from kohpymc.priors import Prior
 from kohpymc.sampling import one_blas_thread, sample_posterior
@@ -445,14 +445,11 @@ def predict(
     )
     names = built.input_names
     Xn = new_input_matrix(new_inputs, names)
-    with built.model, pymc_info_hidden():
-        pred = pm.sample_posterior_predictive(
-            calibration.idata,
-            var_names=["physics", "discrepancy", "y_model", "y_pred"],
-            predictions=True,
-            random_seed=random_seed,
-            progressbar=progressbar,
-        )
+    with pymc_info_hidden():
+        pred = sample_predictions(
+            calibration.idata, built.model, ["physics", "discrepancy", "y_model", "y_pred"],
+            random_seed, progressbar,
+        )  # fmt: skip
     _attach_input_coords(pred, PRED_DIM, {k: Xn[:, j] for j, k in enumerate(names)})
     pred.attrs["formulation"] = calibration.label
     return pred

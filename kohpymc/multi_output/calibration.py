@@ -18,7 +18,6 @@ from typing import Any, Literal
 
 import arviz as az
 import numpy as np
-import pymc as pm
 
 from kohpymc.calibration import _attach_input_coords
 from kohpymc.checks import check_compile_mode, resolve_sampler
@@ -42,6 +41,7 @@ from kohpymc.multi_output.model import (
     variable,
 )
 from kohpymc.multi_output.physics import MultiOutputPhysics
+from kohpymc.predictive import sample_predictions
 from kohpymc.sampling import SamplingReport, one_blas_thread, sample_posterior
 from kohpymc.warning_filters import pymc_info_hidden, warn_user
 
@@ -376,15 +376,11 @@ def predict_output(
     names = built.parts[output].input_names
     Xn = new_input_matrix(new_inputs, names)
     wanted = ["physics", "discrepancy", "y_model", "y_pred"]
-    with built.model, pymc_info_hidden():
-        pred = pm.sample_posterior_predictive(
-            calibration.idata,
-            var_names=[variable(output, k) for k in wanted],
-            predictions=True,
-            random_seed=random_seed,
-            progressbar=False,
-        )
-    pred.predictions = pred.predictions.rename({variable(output, k): k for k in wanted})
+    with pymc_info_hidden():
+        requested = [variable(output, k) for k in wanted]
+        pred = sample_predictions(calibration.idata, built.model, requested, random_seed)
+    renamed = pred.predictions.rename(dict(zip(requested, wanted, strict=True)))  # type: ignore[attr-defined]  # arviz adds groups at run time
+    pred.predictions = renamed  # type: ignore[attr-defined]
     _attach_input_coords(pred, PRED_DIM, {k: Xn[:, j] for j, k in enumerate(names)})
     pred.attrs["output"] = output
     return pred

@@ -335,7 +335,6 @@ def _twisted_plan(space):
     return bend_coordinates(space, replace(plain, gaussian_score=_gaussian_score(space, plain)))
 
 
-@pytest.mark.slow  # 17 s CPU (load 14-17, 2026-11-27)
 def test_two_axes_moving_a_third_get_a_pair_surface():
     """x's axis is bent and (x, g) get a surface: their joint drop at (±2, ±2) sds, which
     misses the sum of their own by > 100 without it, is then additive within 1 (y's prior); the
@@ -353,7 +352,6 @@ def test_two_axes_moving_a_third_get_a_pair_surface():
         _check_plan_exact(space, bent, z, rtol=1e-6, atol=1e-6, inverse_atol=1e-9)
 
 
-@pytest.mark.slow  # 24 s CPU (load 14-17, 2026-11-27)
 def test_pair_surface_draws_match_quadrature():
     """Sampled with the surface (2 × (1000 + 1000), target acceptance 0.95): no divergences,
     and the mean, sd and correlation of (x, y) and (g, y) within 4 Monte Carlo errors of

@@ -1603,6 +1603,11 @@ def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization)
                 else ""
             )
             + (f"; {len(bend.axes)} axis/axes bent along the conditional modes" if bend else "")
+            + (
+                f", {len(bend.surfaces)} pair(s) of axes jointly"
+                if bend is not None and bend.surfaces
+                else ""
+            )
         ),
     )
 

@@ -48,7 +48,7 @@ def sample_predictions(
     ...     _ = pm.Normal("y", mu, 1e-6, shape=2)
     >>> post = xr.Dataset({"mu": (("chain", "draw"), [[0.0, 5.0]])})
     >>> pred = sample_predictions(az.InferenceData(posterior=post), model, ["y"], 1)
-    >>> np.round(pred.predictions["y"].values, 3).tolist()
+    >>> (np.round(pred.predictions["y"].values, 3) + 0.0).tolist()  # no -0.0
     [[[0.0, 0.0], [5.0, 5.0]]]
     """
     batched = _batched(idata["posterior"], model, list(var_names), random_seed)

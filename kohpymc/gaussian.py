@@ -470,114 +470,124 @@ class WoodburyLogDensity(Op):
 _woodbury_log_density = WoodburyLogDensity()
 
 
+def _capacitance_loops(r, d, F):
+    """``(A = I + Fᵀ D⁻¹ F`` (lower triangle), ``b = Fᵀ D⁻¹ r``, ``rᵀ D⁻¹ r``, ``Σ log d)``."""
+    n, k = F.shape
+    inner, b = np.eye(k), np.zeros(k)
+    quad, log_d = 0.0, 0.0
+    for i in range(n):
+        inv_d = 1.0 / d[i]
+        quad += r[i] * r[i] * inv_d
+        log_d += np.log(d[i])
+        for a in range(k):
+            fa = F[i, a] * inv_d
+            b[a] += fa * r[i]
+            for c in range(a + 1):
+                inner[a, c] += fa * F[i, c]
+    return inner, b, quad, log_d
+
+
+def _small_cholesky(inner):
+    """Lower Cholesky factor of the ``k × k`` ``inner`` (lower triangle read); NaN if not PD."""
+    k = inner.shape[0]
+    chol = np.zeros((k, k))
+    for a in range(k):
+        s = inner[a, a]
+        for c in range(a):
+            s -= chol[a, c] * chol[a, c]
+        if not s > 0.0:
+            chol[:, :] = np.nan
+            return chol
+        chol[a, a] = np.sqrt(s)
+        for e in range(a + 1, k):
+            t = inner[e, a]
+            for c in range(a):
+                t -= chol[e, c] * chol[a, c]
+            chol[e, a] = t / chol[a, a]
+    return chol
+
+
+def _cholesky_inverse(chol):
+    """``A⁻¹ = L⁻ᵀ L⁻¹`` from the lower factor ``L`` (full symmetric matrix)."""
+    k = chol.shape[0]
+    linv = np.zeros((k, k))
+    for a in range(k):
+        linv[a, a] = 1.0 / chol[a, a]
+        for e in range(a + 1, k):
+            s = 0.0
+            for c in range(a, e):
+                s -= chol[e, c] * linv[c, a]
+            linv[e, a] = s / chol[e, e]
+    inverse = np.empty((k, k))
+    for a in range(k):
+        for c in range(a + 1):
+            s = 0.0
+            for e in range(a, k):
+                s += linv[e, a] * linv[e, c]
+            inverse[a, c] = s
+            inverse[c, a] = s
+    return inverse
+
+
+def _woodbury_numba_kernel(njit: Any) -> Any:
+    """The jitted value-and-parts kernel of :class:`WoodburyLogDensity`, built with ``njit``."""
+    capacitance = njit(_capacitance_loops)
+    small_cholesky = njit(_small_cholesky)
+    cholesky_inverse = njit(_cholesky_inverse)
+
+    @njit
+    def woodbury_log_density(r, d, F):
+        # loops over the rows (n k²) and the k × k algebra in place: for k ≪ n the
+        # LAPACK and BLAS calls of the matrix form cost more than the arithmetic
+        n, k = F.shape
+        failed = (np.array(-np.inf), np.zeros(n), np.zeros(n), np.zeros((n, k)))
+        for i in range(n):
+            if not d[i] > 0:
+                return failed
+        inner, b, quad, log_det = capacitance(r, d, F)
+        chol = small_cholesky(inner)
+        if not np.all(np.isfinite(chol)):
+            return failed
+        c = np.empty(k)  # forward substitution, L c = b
+        for a in range(k):
+            s = b[a]
+            for e in range(a):
+                s -= chol[a, e] * c[e]
+            c[a] = s / chol[a, a]
+            quad -= c[a] * c[a]
+            log_det += 2.0 * np.log(chol[a, a])
+        inverse = cholesky_inverse(chol)
+        alpha, diag_inverse, solved = np.empty(n), np.empty(n), np.empty((n, k))
+        for i in range(n):
+            inv_d = 1.0 / d[i]
+            mean_part, diag_part = 0.0, 0.0
+            for a in range(k):
+                s = 0.0
+                for e in range(k):
+                    s += F[i, e] * inverse[e, a]
+                s *= inv_d
+                solved[i, a] = s
+                mean_part += s * b[a]
+                diag_part += s * F[i, a]
+            alpha[i] = r[i] * inv_d - mean_part
+            diag_inverse[i] = inv_d - diag_part * inv_d
+        logp = -0.5 * (quad + log_det + n * _LOG_2PI)
+        return np.array(logp), alpha, diag_inverse, solved
+
+    return woodbury_log_density
+
+
 def _register_woodbury_numba() -> None:
     """Compile :class:`WoodburyLogDensity` natively in PyTensor's NUMBA mode (and nutpie)."""
     parts = _numba_dispatch()
     if parts is None:  # pragma: no cover - numba is a PyTensor dependency here
         return
     numba_basic, register_funcify_default_op_cache_key, _ = parts
-
-    @numba_basic.numba_njit
-    def capacitance(r, d, F):
-        """``(A = I + Fᵀ D⁻¹ F`` (lower triangle), ``b = Fᵀ D⁻¹ r``, ``rᵀ D⁻¹ r``, ``Σ log d)``."""
-        n, k = F.shape
-        inner, b = np.eye(k), np.zeros(k)
-        quad, log_d = 0.0, 0.0
-        for i in range(n):
-            inv_d = 1.0 / d[i]
-            quad += r[i] * r[i] * inv_d
-            log_d += np.log(d[i])
-            for a in range(k):
-                fa = F[i, a] * inv_d
-                b[a] += fa * r[i]
-                for c in range(a + 1):
-                    inner[a, c] += fa * F[i, c]
-        return inner, b, quad, log_d
-
-    @numba_basic.numba_njit
-    def small_cholesky(inner):
-        """Lower Cholesky factor of the ``k × k`` ``inner`` (lower triangle read); NaN if not PD."""
-        k = inner.shape[0]
-        chol = np.zeros((k, k))
-        for a in range(k):
-            s = inner[a, a]
-            for c in range(a):
-                s -= chol[a, c] * chol[a, c]
-            if not s > 0.0:
-                chol[:, :] = np.nan
-                return chol
-            chol[a, a] = np.sqrt(s)
-            for e in range(a + 1, k):
-                t = inner[e, a]
-                for c in range(a):
-                    t -= chol[e, c] * chol[a, c]
-                chol[e, a] = t / chol[a, a]
-        return chol
-
-    @numba_basic.numba_njit
-    def cholesky_inverse(chol):
-        """``A⁻¹ = L⁻ᵀ L⁻¹`` from the lower factor ``L`` (full symmetric matrix)."""
-        k = chol.shape[0]
-        linv = np.zeros((k, k))
-        for a in range(k):
-            linv[a, a] = 1.0 / chol[a, a]
-            for e in range(a + 1, k):
-                s = 0.0
-                for c in range(a, e):
-                    s -= chol[e, c] * linv[c, a]
-                linv[e, a] = s / chol[e, e]
-        inverse = np.empty((k, k))
-        for a in range(k):
-            for c in range(a + 1):
-                s = 0.0
-                for e in range(a, k):
-                    s += linv[e, a] * linv[e, c]
-                inverse[a, c] = s
-                inverse[c, a] = s
-        return inverse
+    kernel = _woodbury_numba_kernel(numba_basic.numba_njit)
 
     @register_funcify_default_op_cache_key(WoodburyLogDensity)
     def _numba_woodbury_log_density(op, node, **kwargs):
-        @numba_basic.numba_njit
-        def woodbury_log_density(r, d, F):
-            # loops over the rows (n k²) and the k × k algebra in place: for k ≪ n the
-            # LAPACK and BLAS calls of the matrix form cost more than the arithmetic
-            n, k = F.shape
-            failed = (np.array(-np.inf), np.zeros(n), np.zeros(n), np.zeros((n, k)))
-            for i in range(n):
-                if not d[i] > 0:
-                    return failed
-            inner, b, quad, log_det = capacitance(r, d, F)
-            chol = small_cholesky(inner)
-            if not np.all(np.isfinite(chol)):
-                return failed
-            c = np.empty(k)  # forward substitution, L c = b
-            for a in range(k):
-                s = b[a]
-                for e in range(a):
-                    s -= chol[a, e] * c[e]
-                c[a] = s / chol[a, a]
-                quad -= c[a] * c[a]
-                log_det += 2.0 * np.log(chol[a, a])
-            inverse = cholesky_inverse(chol)
-            alpha, diag_inverse, solved = np.empty(n), np.empty(n), np.empty((n, k))
-            for i in range(n):
-                inv_d = 1.0 / d[i]
-                mean_part, diag_part = 0.0, 0.0
-                for a in range(k):
-                    s = 0.0
-                    for e in range(k):
-                        s += F[i, e] * inverse[e, a]
-                    s *= inv_d
-                    solved[i, a] = s
-                    mean_part += s * b[a]
-                    diag_part += s * F[i, a]
-                alpha[i] = r[i] * inv_d - mean_part
-                diag_inverse[i] = inv_d - diag_part * inv_d
-            logp = -0.5 * (quad + log_det + n * _LOG_2PI)
-            return np.array(logp), alpha, diag_inverse, solved
-
-        return woodbury_log_density, 2  # the cache key salt: 2 since the loops
+        return kernel, 2  # the cache key salt: 2 since the loops
 
 
 _register_woodbury_numba()

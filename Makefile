@@ -32,7 +32,8 @@ $(BENCH_STAMP): $(STAMP)
 	@touch $(BENCH_STAMP)
 
 # kohpymc vs random-walk Metropolis and surmise, study wall time, n = 9,120 GP (~20 min),
-# time to a usable posterior (ESS >= 1000, r_hat <= 1.01; ~1 h); tables in benchmarks/results/
+# time to a usable posterior (ESS >= 1000, r_hat <= 1.01; ~1 h, plus up to ~2 h for the dielectric
+# stand-in M0-M5); tables in benchmarks/results/
 bench: $(BENCH_STAMP)
 	$(PY) -m benchmarks.run
 

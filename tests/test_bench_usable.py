@@ -100,3 +100,15 @@ def test_isolated_returns_raises_and_times_out():
         usable.isolated(lambda d, i: time.sleep(30), 0.5)(1, 0)
     row = usable.until_usable(usable.isolated(lambda d, i: time.sleep(30), 0.5), draws=10)
     assert not row["reached"] and "timed out" in row["note"] and "error" not in row["note"]
+
+
+def test_dielectric_cases_are_the_six_formulations_started_at_the_fit():
+    from kohpymc.examples import dielectric
+
+    cases = usable.cases(["dielectric"])
+    assert [c.formulation for c in cases] == ["M0", "M1", "M2", "M3", "M4", "M5"]
+    start = cases[0].extra["initvals"]
+    assert set(start) == set(dielectric.PRIOR_RANGES)
+    for name, (lower, upper) in dielectric.PRIOR_RANGES.items():
+        assert lower < start[name] < upper, name
+    assert all(c.data.n == cases[0].data.n == 240 for c in cases)

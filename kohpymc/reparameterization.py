@@ -84,6 +84,9 @@ _BEND_SCORE = 0.25
 #: Gaussian score above which a plan that no parabola improves has its worst axes followed
 #: along the others' conditional modes (:func:`kohpymc.bends.follow_plan`)
 _FOLLOW_SCORE = 5.0
+#: eigenvalues of the unit-diagonal Hessian below this share of the largest are raised to
+#: it for a provisional whitening, whose axes are then differenced again (:func:`_laplace`)
+_PROVISIONAL_FLOOR = 1e-9
 
 
 def _np_put(out: np.ndarray, index: Any, value: Any) -> np.ndarray:
@@ -848,8 +851,11 @@ def _laplace(space: ValueSpace, coords: Coordinates, mode_w: np.ndarray):
     mode_w = _refine_whitened(logp_w, mode_w)
     mode_w, hess = _newton(logp_w, mode_w)
     chol = _inverse_cholesky(hess)
-    if chol is None:
-        return mode_w, None
+    if chol is None:  # directions below the differences' resolution: measured again below
+        chol = _inverse_cholesky(hess, floor=_PROVISIONAL_FLOOR)
+        if chol is None:
+            return mode_w, None
+        mode_w = _refine_mode(logp_w, mode_w, chol, maxiter=5000, ftol=1e-15, gtol=1e-10)
     # second pass: differences along the whitened axes, well scaled whatever the units
     white = Reparameterization("affine", mode_w, chol, coords, "")
     hess_z = _hessian(
@@ -940,11 +946,14 @@ def _refine_whitened(logp_w, w: np.ndarray, rounds: int = 3) -> np.ndarray:
     return w
 
 
-def _inverse_cholesky(hess: np.ndarray) -> np.ndarray | None:
+def _inverse_cholesky(hess: np.ndarray, floor: float | None = None) -> np.ndarray | None:
     """``L`` with ``L Lᵀ = H⁻¹``, or None when ``H`` is not positive definite.
 
     ``H`` is first scaled to unit diagonal, so parameters whose scales differ by 10¹⁰
-    are judged by their correlation, not by their units.
+    are judged by their correlation, not by their units.  With ``floor``, eigenvalues of
+    the scaled ``H`` below ``floor`` times the largest (negative ones included) are
+    raised to it: a provisional factor for a Hessian whose weakest directions lie below
+    the finite differences' resolution (see :func:`_laplace`).
     """
     if not np.all(np.isfinite(hess)):
         return None
@@ -954,6 +963,8 @@ def _inverse_cholesky(hess: np.ndarray) -> np.ndarray | None:
     d = np.sqrt(diag)
     scaled = hess / np.outer(d, d)
     vals, vecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
+    if floor is not None and vals.max() > 0:
+        vals = np.maximum(vals, floor * vals.max())
     if vals.min() <= 1e-12 * vals.max():
         return None
     inverse = (vecs / vals) @ vecs.T

@@ -89,6 +89,8 @@ def _real_values(model: PhysicsModel, out: Any, params: dict[str, float]) -> np.
     (``np.emath.sqrt`` of a negative number) would lose it in the cast; a dict, ``None``
     or text is not a column of numbers.
     """
+    if isinstance(out, np.ndarray) and out.dtype == np.float64:
+        return out  # the common case: no conversion, no message to prepare
     where = f"at parameters {format_params(params)}"
     try:
         raw = np.asarray(out)

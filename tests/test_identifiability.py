@@ -417,3 +417,27 @@ def test_confounded_pair_with_a_power_law_named():
     A = np.column_stack([b**0.25 * x, 0.25 * a * b**-0.75 * x])
     (text,) = analyse_matrix(A, list(point), point=point).confounded()
     assert "a·b^0.25" in text and "a·b " not in text
+
+
+def test_one_combination_of_three_parameters_is_named_whole():
+    """y = A·B²/C·x/(1 + x): the output depends on A·B²/C only (scaling A by s, B by s and C
+    by s³ leaves it unchanged, checked directly); the pairwise confoundings state it in
+    pieces, the first line names it whole.  With a parameter of either sign the combination
+    is linear: y = (a + 2b − c)·x."""
+    from kohpymc.identifiability.rank import analyse_matrix
+
+    x = np.linspace(0.1, 5.0, 12)
+    f = x / (1 + x)
+    point = {"A": 1e-4, "B": 1e4, "C": 2.0}
+
+    def y(A, B, C):
+        return A * B**2 / C * f
+
+    np.testing.assert_allclose(y(1.1e-4, 1.1e4, 2.0 * 1.1**3), y(1e-4, 1e4, 2.0))
+    A, B, C = point.values()
+    sens = np.column_stack([B**2 / C * f, 2 * A * B / C * f, -A * B**2 / C**2 * f])
+    first = analyse_matrix(sens, list(point), point=point).confounded()[0]
+    assert first == "the data inform only one combination of A, B, C: A·B^2·C^-1 (to first order)"
+    linear = analyse_matrix(np.column_stack([x, 2 * x, -x]), ["a", "b", "c"],
+                            point={"a": -1.0, "b": 0.5, "c": 3.0})  # fmt: skip
+    assert linear.confounded()[0].endswith(": a + 2·b - c (to first order)")

@@ -114,7 +114,8 @@ class IdentifiabilityReport:
         is claimed when none fits.
         """
         effect = "likelihood" if self.kind == "fisher" else "output"
-        out = []
+        informed = self.informed_combination()
+        out = [informed] if informed else []
         for direction in self.null_directions:
             names = list(direction)
             if len(names) == 1:
@@ -141,6 +142,57 @@ class IdentifiabilityReport:
                 text += _power_laws(direction, self.point)
             out.append(text)
         return out
+
+    def informed_combination(self) -> str:
+        """The one combination the data inform, when three or more parameters share it.
+
+        Over the parameters of the non-identifiable sets, the matrix (sensitivities, or
+        the Fisher information) restricted to them may have rank 1 although they are
+        three or more: the output depends on them through one combination only, which
+        pairwise confoundings state piecemeal (``A·B``, ``A·C``, ``B·C`` for an output
+        depending on ``A·B·C``).  For positive parameters it is named as the power law
+        whose log the output depends on (exponents from the sensitivities to ``ln x``,
+        the first parameter's made 1), otherwise as the linear combination in their own units.
+        Empty unless that rank is 1 and the set has three or more parameters.
+
+        Examples
+        --------
+        >>> A = np.outer(np.linspace(1.0, 2.0, 5), [1 / 2.0, 1 / 3.0, 1 / 4.0])  # y(a·b·c)
+        >>> report = analyse_matrix(A, ["a", "b", "c"], point={"a": 2.0, "b": 3.0, "c": 4.0})
+        >>> report.informed_combination()
+        'the data inform only one combination of a, b, c: a·b·c (to first order)'
+        """
+        group = sorted({n for names in self.non_identifiable_sets for n in names},
+                       key=self.names.index)  # fmt: skip
+        if len(group) < 3:
+            return ""
+        cols = [self.names.index(n) for n in group]
+        fisher = self.kind == "fisher"
+        block = self.matrix[np.ix_(cols, cols)] if fisher else self.matrix[:, cols]
+        point = np.array([float(self.point.get(n, 0.0)) for n in group])
+        positive = bool(np.all(point > 0)) and not any("log" in n for n in group)
+        if positive:  # sensitivities to ln x
+            block = block * point if not fisher else block * np.outer(point, point)
+        norms = np.linalg.norm(block, axis=0)
+        if not np.all(norms > 0):
+            return ""
+        singular = np.linalg.svd(block / norms, compute_uv=False)
+        if np.sum(singular > self.rtol * singular[0]) != 1:
+            return ""
+        weights = np.linalg.svd(block)[2][0]
+        first = np.flatnonzero(np.abs(weights) > 1e-6 * np.max(np.abs(weights)))[0]
+        weights = weights / weights[first]
+        if positive:
+            combo = "·".join(
+                _power(n, int(round(w))) if np.isclose(w, round(w), atol=1e-3) else f"{n}^{w:.3g}"
+                for n, w in zip(group, weights, strict=True)
+                if abs(w) > 1e-6
+            )
+        else:
+            combo = _combination({n: w for n, w in zip(group, weights, strict=True)})
+        return (
+            f"the data inform only one combination of {', '.join(group)}: {combo} (to first order)"
+        )
 
     def weakly_informed(self) -> str:
         """The weakest direction of a full-rank but ill-conditioned matrix, in words.

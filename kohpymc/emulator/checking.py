@@ -554,13 +554,14 @@ def check_emulators_at_data(
             parts[k], max_shift, f"{_where(target, theta)} its error moves the {joint}"
         )
     total = {p: float(sum(part[p] for part in parts.values())) for p in theta}
-    result = OutputsCheck(checks, theta, total, widening=_widening_at(target, theta))
+    widening = _widening_at(target, theta)
+    result = OutputsCheck(checks, theta, total, widening=widening)
     if len(checks) > 1:
         together = f"{_where(target, theta)} the outputs' errors together move the joint "
         result.joint_problems = _moved(total, max_shift, together)
-    widened = _widened(result.widening, max_widening, _where(target, theta))
+    widened = _widened(widening, max_widening, _where(target, theta))
     if target.single:
-        checks[SINGLE].widening = result.widening
+        checks[SINGLE].widening = widening
         checks[SINGLE].problems += widened
     else:
         result.joint_problems += widened

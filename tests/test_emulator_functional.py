@@ -275,6 +275,78 @@ def test_a_poor_pca_emulator_widens_rather_than_shifts(direct_posterior):
         assert abs(poor[name][0] - _TRUTH[name]) < 2.5 * poor[name][1]
 
 
+@pytest.mark.slow
+def test_sequential_rounds_move_a_poor_pca_emulator_to_the_direct_posterior(direct_posterior):
+    """20 curves: the first posterior lies 1-4 direct sds off and 2-3.4x wider; rounds of
+    curves at posterior draws (3 draws × the data's 3 settings of x) until the means move
+    less than 0.1 sd: measured 3 rounds (47 curves; round 1 moved the posterior away,
+    round 2 back, round 3 0.05 sd), then within 0.07 direct sd, sds 1.02-1.04x."""
+    from kohpymc.emulator import sequential_design
+
+    em, physics = _emulator(20)
+    result = sequential_design(physics, _data(), emulator=em, rounds=3, warn=False, **_SAMPLING)
+    table = result.table()
+    first = table.iloc[0]
+    assert max(abs(first[f"{k}_mean"] - m) / sd for k, (m, sd) in direct_posterior.items()) > 1.0
+    assert result.converged and table["shift_sd"].iloc[-1] < 0.1
+    assert np.all(np.diff(table["runs"]) == 9) and result.emulator.n_runs == table["runs"].iloc[-1]
+    final = _posterior(result.calibration)
+    for name, (mean, sd) in direct_posterior.items():
+        assert abs(final[name][0] - mean) < 0.25 * sd, (name, final[name], mean, sd)
+        assert 0.8 < final[name][1] / sd < 1.25, (name, final[name], sd)
+
+
+class _Posterior:
+    """A stand-in calibration: draws of (a, k, c) with exactly the given means and sd 0.01."""
+
+    def __init__(self, means, seed):
+        z = np.random.default_rng(seed).normal(size=(2, 50))
+        z = (z - z.mean()) / z.std()  # mean and sd exact
+        self.posterior = {k: m + 0.01 * z for k, m in means.items()}
+
+
+def test_sequential_rounds_run_curves_at_posterior_draws_and_stop_when_settled(
+    tmp_path, monkeypatch
+):
+    """The rounds of a functional emulator with the sampler replaced by a stand-in whose
+    posterior mean of a moves 0.2, then 0.0005 (0.05 of its sd 0.01): two rounds, each
+    running 2 draws at the data's 3 settings of x (6 curves, cached), the second within
+    the 0.1 sd tolerance; every calibration sees the emulator refitted to all curves."""
+    import kohpymc.calibration
+    from kohpymc.emulator import sequential_design
+
+    means = [{"a": 1.5, "k": 0.8, "c": 0.4}, {"a": 1.7, "k": 0.8, "c": 0.4}]
+    means.append({"a": 1.7005, "k": 0.8, "c": 0.4})
+    seen = []
+
+    def calibrate(physics, data, discrepancy=None, **kwargs):
+        seen.append(physics.emulator.n_runs)
+        return _Posterior(means[len(seen) - 1], seed=len(seen))
+
+    monkeypatch.setattr(kohpymc.calibration, "calibrate", calibrate)
+    em, physics = _emulator(12)
+    result = sequential_design(physics, _data(), emulator=em, new_runs=6, cache=tmp_path)
+    assert seen == [12, 18, 24] and result.converged and len(result.rounds) == 3
+    assert len(list(tmp_path.glob("*.json"))) == 12  # the rounds' curves, each once
+    design = result.emulator.runs.design.iloc[12:]
+    assert sorted(set(design["x"])) == [0.0, 0.5, 1.0] and len(design) == 12
+    for block, mean in zip((design.iloc[:6], design.iloc[6:]), means, strict=False):
+        assert np.allclose(block["a"], mean["a"], atol=0.05)  # θ drawn from that posterior
+        np.testing.assert_allclose(
+            result.emulator.runs.curves[block.index], _curve_grid(block), rtol=1e-12
+        )
+    fresh = FunctionalEmulator(result.emulator.runs, physics, restarts=1, box=_BOX)
+    z = {"x": [0.3, 0.7], "t": [0.5, 2.0]}
+    for a, b in zip(fresh.predict(z, _TRUTH), result.emulator.predict(z, _TRUTH), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10)
+
+
+def _curve_grid(design):
+    """The simulator's curves on ``_GRID`` at the rows of ``design``, by hand."""
+    t = _GRID["t"]
+    return np.array([r.a * np.exp(-r.k * t) + r.c * r.x for r in design.itertuples()])
+
+
 def test_every_formulation_builds_with_the_functional_emulator():
     import kohpymc as kp
     from kohpymc.model import compose_model

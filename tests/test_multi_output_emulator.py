@@ -226,8 +226,9 @@ def test_the_joint_check_at_data_predicts_how_far_the_emulators_move_the_joint_f
 def test_refinement_brings_a_coarse_joint_fit_onto_the_simulators(tmp_path):
     """8 runs for (x, a, k): the emulators' joint best fit lies > 4 sds from the
     simulator's joint least-squares fit and the check fails; the rounds (θ̂ and 3 θ of
-    the joint local design, each at the 20 distinct rows of both outputs, one simulator
-    call per θ for both outputs) bring it within 0.25 sd, and the check passes."""
+    the joint local design, or 1 once the check nearly passed, each at the 20 distinct
+    rows of both outputs, one simulator call per θ for both outputs) bring it within 0.25
+    sd, and the check passes."""
     from kohpymc.emulator import refine_emulators_at_data
 
     counted = _Counted()
@@ -241,12 +242,13 @@ def test_refinement_brings_a_coarse_joint_fit_onto_the_simulators(tmp_path):
     assert not first.fit and np.max(np.abs(before)) > 4.0, before
     assert last.fit and np.max(np.abs(after)) < 0.25, after
     assert result.passed and result.stopped == "passed"
-    assert all(n == 4 * 20 for n in result.added), result.added  # 4 θ x 20 rows
+    assert result.added[0] == 4 * 20, result.added  # far off: 4 θ x 20 rows
+    assert all(n in (2 * 20, 4 * 20) for n in result.added), result.added
     for em in result.emulators.values():
         assert em.n_runs == 8 + sum(result.added)
-    # one call per θ, giving both outputs: the 8 design points, then per round 3 local θ
+    # one call per θ, giving both outputs: the 8 design points, then per round its local θ
     # and the next check's θ̂ (a round's own θ̂, the last check's, comes from the cache)
-    assert counted.calls == 8 + 1 + 4 * len(result.added)
+    assert counted.calls == 8 + 1 + sum(result.added) // 20
     rounds = result.to_dict()["rounds"]
     assert rounds[0]["check"]["problems"] and rounds[-1]["check"]["problems"] == []
 

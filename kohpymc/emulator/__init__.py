@@ -38,6 +38,8 @@ from kohpymc.emulator.functional import (
     FunctionalEmulatedPhysics,
     FunctionalEmulator,
     FunctionalRuns,
+    merged_curves,
+    posterior_curve_design,
     run_curves,
 )
 from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
@@ -80,6 +82,8 @@ __all__ = [
     "SequentialDesign",
     "emulate",
     "fit_emulator",
+    "merged_curves",
+    "posterior_curve_design",
     "posterior_design",
     "sequential_design",
     "Refinement",

@@ -93,6 +93,8 @@ __all__ = [
     "FunctionalEmulatedPhysics",
     "FunctionalEmulator",
     "FunctionalRuns",
+    "merged_curves",
+    "posterior_curve_design",
     "run_curves",
 ]
 
@@ -155,6 +157,79 @@ class FunctionalRuns:
             self.parameters,
             self.failed.iloc[:0],
         )
+
+
+def merged_curves(a: FunctionalRuns, b: FunctionalRuns) -> FunctionalRuns:
+    """The curves of ``a`` and ``b`` (on one grid) as one set of runs.
+
+    Examples
+    --------
+    >>> from kohpymc import PhysicsModel, Uniform
+    >>> line = PhysicsModel(lambda x, p: p["a"] * x["t"], {"a": Uniform(0, 1)}, inputs=["t"])
+    >>> grid = {"t": [0.0, 1.0]}
+    >>> one = run_curves(line, pd.DataFrame({"a": [0.2]}), grid)
+    >>> merged_curves(one, run_curves(line, pd.DataFrame({"a": [0.4]}), grid)).curves.tolist()
+    [[0.0, 0.2], [0.0, 0.4]]
+    """
+    if not a.grid.equals(b.grid) or (a.inputs, a.parameters) != (b.inputs, b.parameters):
+        raise ValueError("merged_curves: the runs differ in grid, scalar inputs or parameters")
+    return FunctionalRuns(
+        design=pd.concat([a.design, b.design], ignore_index=True),
+        grid=a.grid,
+        curves=np.vstack([a.curves, b.curves]),
+        inputs=a.inputs,
+        parameters=a.parameters,
+        failed=pd.concat([a.failed, b.failed], ignore_index=True),
+        simulated=a.simulated + b.simulated,
+        cached=a.cached + b.cached,
+        seconds=a.seconds + b.seconds,
+    )
+
+
+def posterior_curve_design(
+    draws: pd.DataFrame,
+    data: Any,
+    emulator: FunctionalEmulator,
+    n_new: int,
+    *,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """New curves: posterior draws of θ, each at every scalar setting of the data.
+
+    The curve counterpart of :func:`~kohpymc.emulator.sequential.posterior_design`:
+    ``max(1, round(n_new / m))`` draws picked at random (``m`` distinct settings of the
+    scalar inputs among the calibration rows, 1 without scalar inputs), each run at
+    every setting, a whole curve per run (about ``n_new`` curves).
+
+    Examples
+    --------
+    >>> from kohpymc import CalibrationData, PhysicsModel, Uniform
+    >>> from kohpymc.emulator import space_filling_design
+    >>> f = PhysicsModel(lambda x, p: p["a"] * x["t"] + x["s"], {"a": Uniform(0, 1)},
+    ...                  inputs=["s", "t"])
+    >>> box = {"s": (0, 1), "a": (0, 1)}
+    >>> em = FunctionalEmulator(run_curves(f, space_filling_design(box, 6), {"t": [0, 1, 2]}), f)
+    >>> data = CalibrationData({"s": [0.0, 0.0, 1.0], "t": [0.5, 1.5, 1.0]}, [0.1, 0.3, 1.2])
+    >>> posterior_curve_design(pd.DataFrame({"a": [0.2, 0.3]}), data, em, 4)
+    ...                                                       # doctest: +NORMALIZE_WHITESPACE
+         s    a
+    0  0.0  0.2
+    1  1.0  0.2
+    2  0.0  0.3
+    3  1.0  0.3
+    """
+    params = list(emulator.runs.parameters)
+    scalar = list(emulator.scalar_inputs)
+    missing = [k for k in params if k not in draws.columns]
+    if missing:
+        raise KeyError(f"posterior_curve_design: the draws lack parameter(s) {missing}")
+    settings = np.unique(data.matrix(tuple(scalar)), axis=0) if scalar else np.empty((1, 0))
+    m = len(settings)
+    k = min(len(draws), max(1, int(round(n_new / m))))
+    rng = np.random.default_rng(seed)
+    picked = draws[params].to_numpy(float)[rng.choice(len(draws), size=k, replace=False)]
+    rows = [np.column_stack([settings, np.tile(theta, (m, 1))]) for theta in picked]
+    return pd.DataFrame(np.vstack(rows), columns=[*scalar, *params])
 
 
 def run_curves(
@@ -502,6 +577,12 @@ class FunctionalEmulator(SharedTrainingData):
         seed: int = 0,
     ) -> None:
         functional = _check_emulator_arguments(runs, physics, kernel, variance)
+        #: the fit's settings, kept by :meth:`refitted`
+        self.options: dict[str, Any] = {
+            "variance": variance, "n_components": n_components, "log_output": log_output,
+            "kernel": kernel, "box": box, "log_parameters": tuple(log_parameters),
+            "rotation": rotation, "restarts": restarts,
+        }  # fmt: skip
         self.physics = physics
         self.runs = runs
         self.kernel = kernel
@@ -513,6 +594,30 @@ class FunctionalEmulator(SharedTrainingData):
         Y = self._standardized_curves(np.asarray(runs.curves, dtype=float), log_output)
         self._set_basis(Y, variance, n_components)
         self._fit_weight_gps(restarts, seed)
+
+    def refitted(self, new: FunctionalRuns, *, seed: int = 0) -> FunctionalEmulator:
+        """The emulator fitted again to its curves and ``new`` ones, with its settings.
+
+        The basis is recomputed from all curves (``K`` by ``variance``, unless
+        ``n_components`` was given); with ``log_output`` and a new curve ``<= 0``
+        somewhere, the refit is on the linear scale.
+
+        Examples
+        --------
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> decay = PhysicsModel(lambda x, p: p["a"] * np.exp(-p["k"] * x["t"]),
+        ...                      {"a": Uniform(1, 2), "k": Uniform(0.5, 1)}, inputs=["t"])
+        >>> box, grid = {"a": (1, 2), "k": (0.5, 1)}, {"t": np.linspace(0, 3, 16)}
+        >>> em = FunctionalEmulator(run_curves(decay, space_filling_design(box, 8), grid), decay)
+        >>> more = run_curves(decay, pd.DataFrame({"a": [1.5], "k": [0.7]}), grid)
+        >>> em.refitted(more).n_runs
+        9
+        """
+        runs = merged_curves(self.runs, new)
+        options = dict(self.options)
+        options["log_output"] = bool(options["log_output"]) and bool(np.all(runs.curves > 0))
+        return FunctionalEmulator(runs, self.physics, seed=seed, **options)
 
     def _set_unit_box(
         self,

@@ -11,9 +11,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -24,6 +23,9 @@ from kohpymc.emulator.design import DesignMethod, design_box, log_scaled, space_
 from kohpymc.emulator.gp import Emulator
 from kohpymc.emulator.runs import SimulatorRuns, run_design
 from kohpymc.physics import PhysicsModel
+
+if TYPE_CHECKING:
+    from kohpymc.emulator.functional import FunctionalEmulator
 
 __all__ = [
     "SequentialDesign",
@@ -216,7 +218,7 @@ class SequentialDesign:
 
     Attributes
     ----------
-    emulator : Emulator
+    emulator : Emulator or FunctionalEmulator
         The last emulator (fitted to all runs).
     calibration : Calibration
         The last calibration through it.
@@ -228,7 +230,7 @@ class SequentialDesign:
         Whether the last shift is below the tolerance.
     """
 
-    emulator: Emulator
+    emulator: Any
     calibration: Any
     rounds: list[dict[str, Any]] = field(default_factory=list)
     converged: bool = False
@@ -249,7 +251,7 @@ def sequential_design(
     data: CalibrationData,
     discrepancy: Discrepancy | None = None,
     *,
-    emulator: Emulator | None = None,
+    emulator: Emulator | FunctionalEmulator | None = None,
     runs: int = 100,
     design: DesignMethod = "maximin-lhs",
     new_runs: int | None = None,
@@ -271,11 +273,16 @@ def sequential_design(
         Calibration data.
     discrepancy : Discrepancy, optional
         Formulation of the calibrations (default M0).
-    emulator : Emulator, optional
-        A first emulator; default :func:`emulate` with ``runs`` and ``design``.
+    emulator : Emulator or FunctionalEmulator, optional
+        A first emulator; default :func:`emulate` with ``runs`` and ``design``.  A
+        :class:`~kohpymc.emulator.functional.FunctionalEmulator` gets whole curves on
+        its grid at posterior draws × the data's scalar settings
+        (:func:`~kohpymc.emulator.functional.posterior_curve_design`, ``run_curves``),
+        refitted by :meth:`~kohpymc.emulator.functional.FunctionalEmulator.refitted`;
+        the same stopping rule.
     new_runs : int, optional
-        About how many runs each round adds (default ``runs // 2``); see
-        :func:`posterior_design`.
+        About how many runs (curves, for a functional emulator) each round adds
+        (default half the first emulator's); see :func:`posterior_design`.
     rounds : int
         Most rounds of added runs (0: just the first calibration).
     tolerance : float
@@ -311,10 +318,44 @@ def sequential_design(
             scheduler=scheduler,
         )
     add = int(new_runs) if new_runs is not None else max(1, emulator.n_runs // 2)
-    run = partial(run_design, physics, cache=cache, workers=workers, scheduler=scheduler)
+    where = {"cache": cache, "workers": workers, "scheduler": scheduler}
+    rounds_of = _curve_rounds if _functional(emulator) else _run_rounds
+    extend = rounds_of(physics, data, add, seed, where)
     return _design_rounds(
-        emulator, physics, data, discrepancy, rounds, tolerance, add, seed, run, calibrate_kwargs
+        emulator, physics, data, discrepancy, rounds, tolerance, extend, calibrate_kwargs
     )
+
+
+def _functional(emulator: Any) -> bool:
+    from kohpymc.emulator.functional import FunctionalEmulator
+
+    return isinstance(emulator, FunctionalEmulator)
+
+
+def _run_rounds(
+    physics: PhysicsModel, data: CalibrationData, add: int, seed: int, where: dict[str, Any]
+) -> Callable[[Any, pd.DataFrame, int], Any]:
+    """An emulator's round: runs at posterior draws × the data's rows, refitted."""
+
+    def extend(emulator: Any, draws: pd.DataFrame, round_: int) -> Any:
+        points = posterior_design(draws, data, physics, add, seed=seed + round_ + 1)
+        return refit(emulator, run_design(physics, points, **where), seed=seed)
+
+    return extend
+
+
+def _curve_rounds(
+    physics: PhysicsModel, data: CalibrationData, add: int, seed: int, where: dict[str, Any]
+) -> Callable[[Any, pd.DataFrame, int], Any]:
+    """A functional emulator's round: curves at posterior draws × settings, refitted."""
+    from kohpymc.emulator.functional import posterior_curve_design, run_curves
+
+    def extend(emulator: Any, draws: pd.DataFrame, round_: int) -> Any:
+        design = posterior_curve_design(draws, data, emulator, add, seed=seed + round_ + 1)
+        curves = run_curves(physics, design, emulator.runs.grid, **where)
+        return emulator.refitted(curves, seed=seed)
+
+    return extend
 
 
 def _check_schedule(rounds: int, tolerance: float) -> None:
@@ -326,18 +367,16 @@ def _check_schedule(rounds: int, tolerance: float) -> None:
 
 
 def _design_rounds(
-    emulator: Emulator,
+    emulator: Any,
     physics: PhysicsModel,
     data: CalibrationData,
     discrepancy: Discrepancy | None,
     rounds: int,
     tolerance: float,
-    add: int,
-    seed: int,
-    run: Callable[[pd.DataFrame], SimulatorRuns],
+    extend: Callable[[Any, pd.DataFrame, int], Any],
     calibrate_kwargs: dict[str, Any],
 ) -> SequentialDesign:
-    """The rounds: calibrate, record, stop when settled, else add ``add`` runs and refit."""
+    """The rounds: calibrate, record, stop when settled, else ``extend`` (runs, refit)."""
     from kohpymc.calibration import calibrate
 
     params = list(physics.parameters)
@@ -353,8 +392,7 @@ def _design_rounds(
         if result.converged or round_ == rounds:
             break
         previous = record["means"]
-        points = posterior_design(draws, data, physics, add, seed=seed + round_ + 1)
-        emulator = refit(emulator, run(points), seed=seed)
+        emulator = extend(emulator, draws, round_)
     assert result is not None
     return result
 
@@ -412,7 +450,7 @@ def emulator_box(emulator: Emulator) -> dict[str, tuple[float, float]]:
 
 
 def _round_record(
-    emulator: Emulator,
+    emulator: Any,
     draws: pd.DataFrame,
     params: list[str],
     previous: dict[str, float] | None,

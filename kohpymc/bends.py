@@ -577,17 +577,26 @@ def _mode_path(
     k: int,
     bent: list[int],
     nodes: np.ndarray = _CURVE_NODES,
+    guesses: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Shifts of the others' conditional modes at ``nodes`` of ``z_k`` (which hold 0).
 
     Relative to the mode at ``z_k = 0``, with the other bent axes held at 0 (where the
-    map leaves them); None where a mode is not found.
+    map leaves them); each search starts from the centre plus ``guesses`` (shifts, one row
+    per node; default none).  None where a mode is not found.
     """
-    modes = [_conditional_mode(space, plan, k, float(t), bent) for t in nodes]
-    if any(m is None for m in modes):
+    centre = _conditional_mode(space, plan, k, 0.0, bent)
+    if centre is None:
         return None
-    centre = modes[int(np.flatnonzero(nodes == 0.0)[0])]
-    shifts = np.array([m - centre for m in modes])
+    shifts = np.zeros((nodes.size, plan.ndim))
+    for i, t in enumerate(nodes):
+        guess = None if guesses is None else centre + guesses[i]
+        mode = (
+            centre if t == 0.0 else _conditional_mode(space, plan, k, float(t), bent, guess=guess)
+        )
+        if mode is None:
+            return None
+        shifts[i] = mode - centre
     shifts[:, bent] = 0.0
     return shifts
 
@@ -602,8 +611,9 @@ def _refined_paths(
     """Nodes and the bent axes' paths, with midpoints added where the splines miss.
 
     Starting from :data:`_CURVE_NODES`, the conditional modes are found at the midpoints
-    of the intervals; where one lies more than ``_MIN_SHIFT`` sds from the spline through
-    the nodes, the midpoint becomes a node (for every bent axis), for at most
+    of the intervals, each search starting on the spline through the nodes (so that it
+    stays on the ridge the path follows); where a mode lies more than ``_MIN_SHIFT`` sds
+    from the spline, the midpoint becomes a node (for every bent axis), for at most
     :data:`_REFINE_ROUNDS` rounds.  The Gaussian score probes ±1.5 sds, which are nodes,
     so it cannot see a spline that swings between them: Nusselt-correlation M3's ridge
     curve, whose others' conditional modes turn within 0.5 sd of its narrow end, was
@@ -616,20 +626,20 @@ def _refined_paths(
         if any(p is None for p in paths):
             return None
         mids = 0.5 * (nodes[1:] + nodes[:-1])
-        at = np.concatenate([[0.0], mids])
-        found = [_mode_path(space, plan, k, bent, at) for k in bent]
+        splines = [CubicSpline(nodes, p, axis=0, bc_type="natural") for p in paths]
+        found = [
+            _mode_path(space, plan, k, bent, mids, s(mids))
+            for k, s in zip(bent, splines, strict=True)
+        ]
         if any(f is None for f in found):
             return None
-        splines = [CubicSpline(nodes, p, axis=0, bc_type="natural") for p in paths]
-        miss = [np.abs(f[1:] - s(mids)).max(axis=1) for f, s in zip(found, splines, strict=True)]
+        miss = [np.abs(f - s(mids)).max(axis=1) for f, s in zip(found, splines, strict=True)]
         added = np.max(miss, axis=0) > _MIN_SHIFT
         if not added.any():
             break
         order = np.argsort(np.concatenate([nodes, mids[added]]), kind="stable")
         nodes = np.concatenate([nodes, mids[added]])[order]
-        paths = [
-            np.concatenate([p, f[1:][added]])[order] for p, f in zip(paths, found, strict=True)
-        ]
+        paths = [np.concatenate([p, f[added]])[order] for p, f in zip(paths, found, strict=True)]
     return nodes, np.array(paths)
 
 

@@ -39,6 +39,7 @@ from kohpymc.reparameterization import (
     _axis_errors,
     _gaussian_score,
 )
+from kohpymc.ridge_width import Widths, widen_plan
 from kohpymc.value_space import ValueSpace
 
 __all__ = [
@@ -532,7 +533,9 @@ class BentCoordinatesPlan(Reparameterization):
     """A plan with its own map (e.g. a ridge curve) bent in its sampling coordinates.
 
     ``z' = z + Σ_k φ_k(z_k)`` (a :class:`CurveBend`) before ``inner``'s map:
-    unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.
+    unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.  With ``widths``
+    (:class:`kohpymc.ridge_width.Widths`) the other coordinates are first scaled along
+    the bent axes, and its log-Jacobian is added.
     """
 
     #: ``inner``'s own map has no symbolic form (nutpie calls this plan from Python)
@@ -540,23 +543,30 @@ class BentCoordinatesPlan(Reparameterization):
     curved: ClassVar[bool] = True
     inner: Any = None
     bend: CurveBend = field(default_factory=lambda: CurveBend((), np.zeros(2), np.zeros((0, 2, 0))))
+    widths: Widths | None = None
+
+    def _widened(self, z: np.ndarray) -> np.ndarray:
+        z = np.asarray(z, float)
+        return z if self.widths is None else self.widths.forward(z)
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
-        return self.inner.to_value(self.bend.forward(np.asarray(z, float)))
+        return self.inner.to_value(self.bend.forward(self._widened(z)))
 
     def explained(self, white: Reparameterization) -> BentCoordinatesPlan:
         """The plan with ``white``'s reason (the unbent plan's) extended, and its warnings."""
+        widths = "" if self.widths is None else ", the others' widths scaled along them"
         reason = white.reason.removesuffix(")") + (
             f"; {len(self.bend.axes)} whitened axis/axes followed along the path of the "
-            f"others' conditional modes, Gaussian score {white.gaussian_score:.3g} -> "
+            f"others' conditional modes{widths}, Gaussian score {white.gaussian_score:.3g} -> "
             f"{self.gaussian_score:.3g})"
         )
         return replace(self, reason=reason, warnings=white.warnings)
 
     def from_value(self, v: np.ndarray) -> np.ndarray:
         """Sampling coordinates of a value-space vector."""
-        return self.bend.inverse(self.inner.from_value(v))
+        u = self.bend.inverse(self.inner.from_value(v))
+        return u if self.widths is None else self.widths.inverse(u)
 
     def laplace_value_sd(self) -> np.ndarray:
         """``inner``'s."""
@@ -567,8 +577,13 @@ class BentCoordinatesPlan(Reparameterization):
     ) -> tuple[float, np.ndarray]:
         """Log density of ``z`` (exact up to a constant) and its gradient."""
         z = np.asarray(z, float)
-        logp, grad = self.inner.logp_dlogp(space, self.bend.forward(z), safe=safe)
-        return logp, self.bend.pull_back(z, grad)
+        u = self._widened(z)
+        logp, grad = self.inner.logp_dlogp(space, self.bend.forward(u), safe=safe)
+        grad = self.bend.pull_back(u, grad)
+        if self.widths is None:
+            return logp, grad
+        logjac, dlogjac = self.widths.log_jacobian(z)
+        return logp + logjac, self.widths.pull_back(z, grad) + dlogjac
 
 
 def _mode_path(
@@ -601,6 +616,23 @@ def _mode_path(
     return shifts
 
 
+def _paths(
+    space: ValueSpace,
+    plan: Reparameterization,
+    bent: list[int],
+    nodes: np.ndarray,
+    guesses: Sequence[np.ndarray] | None = None,
+) -> list[np.ndarray] | None:
+    """:func:`_mode_path` of every bent axis (None if one is not found)."""
+    paths = []
+    for j, k in enumerate(bent):
+        path = _mode_path(space, plan, k, bent, nodes, None if guesses is None else guesses[j])
+        if path is None:
+            return None
+        paths.append(path)
+    return paths
+
+
 #: rounds of midpoints added to :data:`_CURVE_NODES` where a path bends between its nodes
 _REFINE_ROUNDS = 3
 
@@ -621,17 +653,14 @@ def _refined_paths(
     2 × 1000 draws: 30 divergences there, bulk ESS 40).  None where a mode is not found.
     """
     nodes = _CURVE_NODES.copy()
-    paths = [_mode_path(space, plan, k, bent, nodes) for k in bent]
+    paths = _paths(space, plan, bent, nodes)
     for _ in range(_REFINE_ROUNDS):
-        if any(p is None for p in paths):
+        if paths is None:
             return None
         mids = 0.5 * (nodes[1:] + nodes[:-1])
         splines = [CubicSpline(nodes, p, axis=0, bc_type="natural") for p in paths]
-        found = [
-            _mode_path(space, plan, k, bent, mids, s(mids))
-            for k, s in zip(bent, splines, strict=True)
-        ]
-        if any(f is None for f in found):
+        found = _paths(space, plan, bent, mids, [s(mids) for s in splines])
+        if found is None:
             return None
         miss = [np.abs(f - s(mids)).max(axis=1) for f, s in zip(found, splines, strict=True)]
         added = np.max(miss, axis=0) > _MIN_SHIFT
@@ -640,6 +669,8 @@ def _refined_paths(
         order = np.argsort(np.concatenate([nodes, mids[added]]), kind="stable")
         nodes = np.concatenate([nodes, mids[added]])[order]
         paths = [np.concatenate([p, f[added]])[order] for p, f in zip(paths, found, strict=True)]
+    if paths is None:
+        return None
     return nodes, np.array(paths)
 
 
@@ -806,7 +837,7 @@ def bend_coordinates(
     surfaces = _pair_surfaces(space, candidate, bent)
     if surfaces:
         candidate = replace(candidate, bend=replace(bend, surfaces=surfaces))
-    return replace(candidate, gaussian_score=score)
+    return widen_plan(space, replace(candidate, gaussian_score=score))
 
 
 #: where :func:`follow_plan` finds the conditional modes along an axis (and at minus these):

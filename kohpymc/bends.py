@@ -39,7 +39,6 @@ from kohpymc.reparameterization import (
     _axis_errors,
     _gaussian_score,
 )
-from kohpymc.ridge_width import Widths, widen_plan
 from kohpymc.value_space import ValueSpace
 
 __all__ = [
@@ -533,9 +532,7 @@ class BentCoordinatesPlan(Reparameterization):
     """A plan with its own map (e.g. a ridge curve) bent in its sampling coordinates.
 
     ``z' = z + Σ_k φ_k(z_k)`` (a :class:`CurveBend`) before ``inner``'s map:
-    unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.  With ``widths``
-    (:class:`kohpymc.ridge_width.Widths`) the other coordinates are first scaled along
-    the bent axes, and its log-Jacobian is added.
+    unit-triangular, so the density of ``z`` is ``inner``'s at ``z'``.
     """
 
     #: ``inner``'s own map has no symbolic form (nutpie calls this plan from Python)
@@ -543,30 +540,23 @@ class BentCoordinatesPlan(Reparameterization):
     curved: ClassVar[bool] = True
     inner: Any = None
     bend: CurveBend = field(default_factory=lambda: CurveBend((), np.zeros(2), np.zeros((0, 2, 0))))
-    widths: Widths | None = None
-
-    def _widened(self, z: np.ndarray) -> np.ndarray:
-        z = np.asarray(z, float)
-        return z if self.widths is None else self.widths.forward(z)
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
-        return self.inner.to_value(self.bend.forward(self._widened(z)))
+        return self.inner.to_value(self.bend.forward(np.asarray(z, float)))
 
     def explained(self, white: Reparameterization) -> BentCoordinatesPlan:
         """The plan with ``white``'s reason (the unbent plan's) extended, and its warnings."""
-        widths = "" if self.widths is None else ", the others' widths scaled along them"
         reason = white.reason.removesuffix(")") + (
             f"; {len(self.bend.axes)} whitened axis/axes followed along the path of the "
-            f"others' conditional modes{widths}, Gaussian score {white.gaussian_score:.3g} -> "
+            f"others' conditional modes, Gaussian score {white.gaussian_score:.3g} -> "
             f"{self.gaussian_score:.3g})"
         )
         return replace(self, reason=reason, warnings=white.warnings)
 
     def from_value(self, v: np.ndarray) -> np.ndarray:
         """Sampling coordinates of a value-space vector."""
-        u = self.bend.inverse(self.inner.from_value(v))
-        return u if self.widths is None else self.widths.inverse(u)
+        return self.bend.inverse(self.inner.from_value(v))
 
     def laplace_value_sd(self) -> np.ndarray:
         """``inner``'s."""
@@ -577,13 +567,8 @@ class BentCoordinatesPlan(Reparameterization):
     ) -> tuple[float, np.ndarray]:
         """Log density of ``z`` (exact up to a constant) and its gradient."""
         z = np.asarray(z, float)
-        u = self._widened(z)
-        logp, grad = self.inner.logp_dlogp(space, self.bend.forward(u), safe=safe)
-        grad = self.bend.pull_back(u, grad)
-        if self.widths is None:
-            return logp, grad
-        logjac, dlogjac = self.widths.log_jacobian(z)
-        return logp + logjac, self.widths.pull_back(z, grad) + dlogjac
+        logp, grad = self.inner.logp_dlogp(space, self.bend.forward(z), safe=safe)
+        return logp, self.bend.pull_back(z, grad)
 
 
 def _mode_path(
@@ -837,7 +822,7 @@ def bend_coordinates(
     surfaces = _pair_surfaces(space, candidate, bent)
     if surfaces:
         candidate = replace(candidate, bend=replace(bend, surfaces=surfaces))
-    return widen_plan(space, replace(candidate, gaussian_score=score))
+    return replace(candidate, gaussian_score=score)
 
 
 #: where :func:`follow_plan` finds the conditional modes along an axis (and at minus these):

@@ -446,13 +446,37 @@ def _compiled_space(model: pm.Model, mode: str | None, report: SamplingReport) -
         space.logp_dlogp(space.initial)
     except Exception as err:  # noqa: BLE001 - decided by whether the C backend runs
         fallback = value_space(model)
-        if not np.isfinite(fallback.logp_dlogp_or_nan(fallback.initial)[0]):
+        point = _regular_value(fallback)
+        if point is None:
             raise
+        if point is not fallback.initial and np.isfinite(space.logp_dlogp_or_nan(point)[0]):
+            report.compile_mode = "NUMBA"  # the initial point is singular, not NUMBA
+            return space
         first_line = (str(err).splitlines() or [""])[0][:200]
         report.compile_mode = f"C (NUMBA failed: {type(err).__name__}: {first_line})"
         return fallback
     report.compile_mode = "NUMBA"
     return space
+
+
+def _regular_value(space: ValueSpace) -> np.ndarray | None:
+    """PyMC's initial point, or one next to it, where the log density is finite (or None).
+
+    The initial point (each prior's centre) can be a removable singularity of a correct
+    model: ``ka / (ka - ke)`` when ``ka`` and ``ke`` have the same prior.  The value
+    vector is then moved by ``step`` (1e-3, 1e-2, 0.1) times a weight of each element's
+    own (``+1/n, -2/n, +3/n, ...``), so equal elements part.
+    """
+    initial = space.initial
+    if np.isfinite(space.logp_dlogp_or_nan(initial)[0]):
+        return initial
+    n = initial.size
+    weights = np.array([(k + 1) / n * (-1) ** k for k in range(n)])
+    for step in (1e-3, 1e-2, 1e-1):
+        moved = initial + step * weights
+        if np.isfinite(space.logp_dlogp_or_nan(moved)[0]):
+            return moved
+    return None
 
 
 def _run_nutpie(

@@ -153,3 +153,28 @@ def test_a_compiled_space_is_reused_with_new_shared_data():
         pm.Normal("mu", 0.0, 1.0)
     with pytest.raises(ValueError, match="value_space"):
         sample_posterior(other, space=space)
+
+
+def _oral_dose(inputs, params):
+    """0/0 where ka = ke: at PyMC's initial point when both have the same prior."""
+    ka, ke, t = np.float64(params["ka"]), np.float64(params["ke"]), inputs["t"]
+    with np.errstate(all="ignore"):
+        return ka / (ka - ke) * (np.exp(-ke * t) - np.exp(-ka * t))
+
+
+def test_a_removable_singularity_at_the_initial_point_does_not_stop_compilation():
+    """The NUMBA/C probe at PyMC's initial point (ka = ke) moves next to it instead of raising."""
+    from kohpymc.model import compose_model
+    from kohpymc.sampling import SamplingReport, _compiled_space
+
+    prior = kp.LogUniform(0.01, 10)
+    physics = kp.PhysicsModel(_oral_dose, {"ka": prior, "ke": prior}, inputs=["t"])
+    t = np.linspace(0.25, 24, 12)
+    y = _oral_dose({"t": t}, {"ka": 1.0, "ke": 0.1})
+    built = compose_model(physics, kp.CalibrationData({"t": t}, y, noise_sd=0.01))
+    report = SamplingReport(sampler="nutpie", requested="nutpie")
+    space = _compiled_space(built.model, None, report)  # raised PhysicsModelError before
+    assert report.compile_mode == "NUMBA"
+    assert not np.isfinite(space.logp_dlogp_or_nan(space.initial)[0])
+    moved = space.initial + 1e-3 * np.array([0.5, -1.0])
+    assert np.isfinite(space.logp_dlogp(moved)[0])

@@ -18,6 +18,7 @@ import numpy as np
 
 from kohpymc.identifiability.rank import RTOL, IdentifiabilityReport, analyse_matrix
 from kohpymc.model import compose_model
+from kohpymc.physics.errors import PhysicsModelError
 
 __all__ = ["check_formulation", "model_taylor_check"]
 
@@ -188,6 +189,30 @@ def _design_point(model, point, start=None):
     return values
 
 
+def _off_singularity(model, mu, rvs, values):
+    """``(values, mean, A)`` next to ``values`` where the mean is finite, or ``None``.
+
+    The default point can fall on a removable singularity of a correct model
+    (``ka / (ka - ke)`` where ``ka`` and ``ke`` have the same prior); each free variable
+    is moved by ``step`` (1e-3, 1e-2, 0.1) times a relative weight of its own, so equal
+    values part, and the first move inside the priors with a finite mean is taken.
+    """
+    weights = {rv.name: (k + 1) / len(rvs) * (-1) ** k for k, rv in enumerate(rvs)}
+    for step in (1e-3, 1e-2, 1e-1):
+        moved = {name: v * (1.0 + step * weights.get(name, 0.0)) for name, v in values.items()}
+        try:
+            _check_support(model, moved)
+        except ValueError:
+            continue
+        try:
+            ((mu_val, A),) = _jacobians(model, [mu], rvs, moved, mode=_one_shot_mode())
+        except PhysicsModelError:
+            continue
+        if np.all(np.isfinite(mu_val)) and np.all(np.isfinite(A)):
+            return moved, mu_val, A
+    return None
+
+
 def check_formulation(
     physics: Any,
     data: Any,
@@ -257,7 +282,17 @@ def model_taylor_check(
             f"design has {n} points for {len(entries)} mean parameters: the rank check "
             "needs at least as many points as parameters"
         )
-    ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
+    try:
+        ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
+    except PhysicsModelError:
+        if point is not None:
+            raise
+        found = _off_singularity(model, mu, rvs, values)
+        if found is None:
+            raise
+        values, mu_val, A = found
+    if point is None and not np.all(np.isfinite(mu_val)):
+        values, mu_val, A = _off_singularity(model, mu, rvs, values) or (values, mu_val, A)
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the model mean is non-finite at the expansion point")
     flat_point = _flat_point(entries, values)

@@ -330,7 +330,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         for name in outputs:
             try:
-                physics.output(name).evaluate(data_set[name].inputs, physics.prior_mean())
+                physics.output(name).regular_point(data_set[name].inputs)
             except Exception as err:  # noqa: BLE001 - any failure is reported with its key
                 raise _err(path, f"data.{key}", f"output {name!r}: {err}") from err
     val = doc["validation"]

@@ -302,7 +302,8 @@ def _names(path: Path, key: str, value: Any) -> list[str]:
     if isinstance(value, str):
         value = [value]
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
-        raise _err(path, key, f"must be a list of input names, got {value!r}")
+        what = "output column names" if key.endswith("output") else "input names"
+        raise _err(path, key, f"must be a list of {what}, got {value!r}")
     repeated = sorted({v for v in value if value.count(v) > 1})
     if repeated:
         raise _err(path, key, f"names {repeated} more than once")

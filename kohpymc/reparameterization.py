@@ -1406,7 +1406,11 @@ def _named_point(space: ValueSpace, value: np.ndarray, most: int = 6) -> str:
         expanded = space.expand(value)
     except Exception:  # noqa: BLE001 - only words for a warning
         return "(values not available)"
-    scalars = [(k, float(v)) for k, v in expanded.items() if np.ndim(v) == 0 or np.size(v) == 1]
+    scalars = [  # "<name>_white": a formulation's non-centred auxiliary, not a parameter
+        (k, float(np.ravel(v)[0]))
+        for k, v in expanded.items()
+        if np.size(v) == 1 and not k.endswith("_white")
+    ]
     text = ", ".join(f"{k}={v:.3g}" for k, v in scalars[:most])
     return "{" + text + (", ..." if len(scalars) > most else "") + "}"
 

@@ -44,7 +44,13 @@ from kohpymc.funnel import funnel_plan
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
-from kohpymc.value_space import ValueSpace, quiet_density_errors, transformed_value, value_space
+from kohpymc.value_space import (
+    ValueSpace,
+    nudged,
+    quiet_density_errors,
+    transformed_value,
+    value_space,
+)
 
 __all__ = [
     "CURVED_TARGET_ACCEPT",
@@ -460,22 +466,13 @@ def _compiled_space(model: pm.Model, mode: str | None, report: SamplingReport) -
 
 
 def _regular_value(space: ValueSpace) -> np.ndarray | None:
-    """PyMC's initial point, or one next to it, where the log density is finite (or None).
+    """The initial point or one next to it where the log density is finite (else None).
 
-    The initial point (each prior's centre) can be a removable singularity of a correct
-    model: ``ka / (ka - ke)`` when ``ka`` and ``ke`` have the same prior.  The value
-    vector is then moved by ``step`` (1e-3, 1e-2, 0.1) times a weight of each element's
-    own (``+1/n, -2/n, +3/n, ...``), so equal elements part.
+    The points are :func:`~kohpymc.value_space.nudged`'s.
     """
-    initial = space.initial
-    if np.isfinite(space.logp_dlogp_or_nan(initial)[0]):
-        return initial
-    n = initial.size
-    weights = np.array([(k + 1) / n * (-1) ** k for k in range(n)])
-    for step in (1e-3, 1e-2, 1e-1):
-        moved = initial + step * weights
-        if np.isfinite(space.logp_dlogp_or_nan(moved)[0]):
-            return moved
+    for point in nudged(space.initial):
+        if np.isfinite(space.logp_dlogp_or_nan(point)[0]):
+            return point
     return None
 
 

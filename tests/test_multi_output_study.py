@@ -361,3 +361,13 @@ def test_reliability_weights_come_from_the_combined_rows_and_make_the_mixture(st
     np.testing.assert_array_equal(
         saved.posterior["E"].values, result.combined.posterior["E"].values
     )
+
+
+def test_an_output_list_that_is_not_names_is_called_output_names(tmp_path):
+    """``output = ["u", 3]`` was reported as "must be a list of input names"."""
+    path = _write(tmp_path)
+    text = path.read_text()
+    assert 'output = ["u", "strain"]' in text
+    path.write_text(text.replace('output = ["u", "strain"]', 'output = ["u", 3]'))
+    with pytest.raises(StudyConfigError, match=r"\[physics\.output\] must be a list of output"):
+        load_multi_output_study(path)

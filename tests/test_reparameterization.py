@@ -486,8 +486,8 @@ def test_separated_modes_counted_once_each_and_named_in_the_parameters_units():
     y = np.array([4.0, 4.02, 3.98])
     with pm.Model() as model:
         a = pm.Normal("a", 0.0, 3.0)
-        b = pm.Normal("b", 0.0, 1.0)
-        pm.Normal("y", a**2 + b * np.array([-1.0, 0.0, 1.0]), 0.05, observed=y)
+        b = pm.Normal("b", 0.0, 1.0, shape=(1,))  # a length-1 vector is named as a scalar
+        pm.Normal("y", a**2 + b[0] * np.array([-1.0, 0.0, 1.0]), 0.05, observed=y)
     reparam = plan(value_space(model), seed=SEED, n_design=16)
     (text,) = [w for w in reparam.warnings if "separated modes" in w]
     assert "has 2 separated modes" in text

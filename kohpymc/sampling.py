@@ -733,8 +733,36 @@ def _smc_stats_per_stage(idata: az.InferenceData) -> az.InferenceData:
     if "sample_stats" not in idata.groups():
         return idata
     stats = idata["sample_stats"]
+    if any(_ragged(v.values) for v in stats.data_vars.values()):
+        stats = _padded_stages(stats)
     stats = stats.assign({k: v.astype(float) for k, v in stats.data_vars.items()})
     if "draw" in stats.dims:
         stats = stats.rename({"draw": "stage"})
     idata["sample_stats"] = stats
     return idata
+
+
+def _ragged(values: np.ndarray) -> bool:
+    """Whether ``values`` holds one sequence per cell (chains that took different stages)."""
+    return values.dtype == object and all(np.ndim(cell) == 1 for cell in values.ravel())
+
+
+def _padded_stages(stats: Any) -> Any:
+    """``(chain, stage)`` floats, NaN-padded, from PyMC's one-list-per-chain statistics.
+
+    When the chains took different numbers of tempering stages (11 and 12 on a bimodal
+    pharmacokinetic posterior with 4000 particles) PyMC stores each statistic as a
+    ``(1, chains)`` object array of lists, which no float cast takes ("setting an array
+    element with a sequence"), and the whole calibration failed after sampling.
+    """
+    import xarray as xr
+
+    def padded(values: np.ndarray) -> np.ndarray:
+        rows = [np.asarray(cell, dtype=float) for cell in values.ravel()]
+        out = np.full((len(rows), max(row.size for row in rows)), np.nan)
+        for i, row in enumerate(rows):
+            out[i, : row.size] = row
+        return out
+
+    data = {k: (("chain", "stage"), padded(v.values)) for k, v in stats.data_vars.items()}
+    return xr.Dataset(data, attrs=stats.attrs)

@@ -178,3 +178,27 @@ def test_a_removable_singularity_at_the_initial_point_does_not_stop_compilation(
     assert not np.isfinite(space.logp_dlogp_or_nan(space.initial)[0])
     moved = space.initial + 1e-3 * np.array([0.5, -1.0])
     assert np.isfinite(space.logp_dlogp(moved)[0])
+
+
+def test_smc_statistics_of_chains_with_different_numbers_of_stages_are_padded(tmp_path):
+    """PyMC's layout when SMC chains take 3 and 4 stages: a (1, 2) object array of lists.
+
+    Seen with 4000 particles on a bimodal posterior ("setting an array element with a
+    sequence" after sampling, every result lost).  Now (chain, stage) floats, NaN-padded,
+    that NetCDF stores.
+    """
+    import xarray as xr
+
+    from kohpymc.sampling import _smc_stats_per_stage
+
+    stages = [[0.0, 0.2, 1.0], [0.0, 0.1, 0.5, 1.0]]
+    cells = np.empty((1, 2), dtype=object)
+    cells[0, 0], cells[0, 1] = stages
+    stats = xr.Dataset({"beta": (("chain", "draw"), cells)})
+    posterior = xr.Dataset({"a": (("chain", "draw"), np.zeros((2, 5)))})
+    idata = _smc_stats_per_stage(az.InferenceData(posterior=posterior, sample_stats=stats))
+    beta = idata.sample_stats["beta"]
+    assert beta.dims == ("chain", "stage") and beta.dtype == float
+    np.testing.assert_array_equal(beta.values[0], [0.0, 0.2, 1.0, np.nan])
+    np.testing.assert_array_equal(beta.values[1], stages[1])
+    idata.to_netcdf(str(tmp_path / "smc.nc"))

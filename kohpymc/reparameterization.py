@@ -1395,8 +1395,9 @@ def _separated_modes(space: ValueSpace, best: Reparameterization, mode: Mode) ->
         f"the posterior has {len(kept) + 1} separated modes (log density within 10 of the "
         f"best, {nearest:.0f}+ Laplace sds apart): the best at "
         f"{_named_point(space, mode.value)}, {others}{more}; NUTS chains may each stay in "
-        "one mode, so the posterior may describe only one: compare chains, narrow the "
-        "priors to one mode if the physics allows it, or use sampler='smc'",
+        "one mode, so the posterior may describe only one: narrow the priors to one mode if "
+        "the physics allows it (an order between two rates), or try sampler='smc' and "
+        "check that its chains agree",
     )
 
 

@@ -189,6 +189,24 @@ def _design_point(model, point, start=None):
     return values
 
 
+def mean_and_jacobian(model, mu, rvs, values, *, default: bool):
+    """``(values, mean, ∂mean/∂rvs)`` at ``values`` (moved off a singularity if ``default``).
+
+    At the default point, next to it when the model is singular there
+    (:func:`_off_singularity`); a point the caller chose is used as it is.
+    """
+    try:
+        ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
+    except PhysicsModelError:
+        found = _off_singularity(model, mu, rvs, values) if default else None
+        if found is None:
+            raise
+        return found
+    if default and not np.all(np.isfinite(mu_val)):
+        return _off_singularity(model, mu, rvs, values) or (values, mu_val, A)
+    return values, mu_val, A
+
+
 def _off_singularity(model, mu, rvs, values):
     """``(values, mean, A)`` next to ``values`` where the mean is finite, or ``None``.
 
@@ -282,17 +300,7 @@ def model_taylor_check(
             f"design has {n} points for {len(entries)} mean parameters: the rank check "
             "needs at least as many points as parameters"
         )
-    try:
-        ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
-    except PhysicsModelError:
-        if point is not None:
-            raise
-        found = _off_singularity(model, mu, rvs, values)
-        if found is None:
-            raise
-        values, mu_val, A = found
-    if point is None and not np.all(np.isfinite(mu_val)):
-        values, mu_val, A = _off_singularity(model, mu, rvs, values) or (values, mu_val, A)
+    values, mu_val, A = mean_and_jacobian(model, mu, rvs, values, default=point is None)
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the model mean is non-finite at the expansion point")
     flat_point = _flat_point(entries, values)

@@ -124,8 +124,9 @@ def check_physics_runs(physics: PhysicsModel, data: CalibrationData, what: str) 
             f"{what} data{_where(data)} lack input column(s) {missing} of the physics model "
             f"{physics.name!r}"
         )
-    inputs, centre = {k: data.inputs[k] for k in physics.inputs}, physics.prior_mean()
+    inputs = {k: data.inputs[k] for k in physics.inputs}
     try:
+        centre = physics.regular_point(inputs)  # the prior centre unless singular there
         output = np.asarray(physics.evaluate(inputs, centre), dtype=float)
     except (Exception, SystemExit) as err:  # SystemExit: a function calling sys.exit()
         raise ValueError(

@@ -89,6 +89,21 @@ def _checked_build(spec, formulations, compose=None) -> None:
         raise StudyConfigError(f"{spec.source}: [formulations.{err.label}] {err}") from err
 
 
+def _output_rows(spec: Any) -> str:
+    """``calibration rows u 30, strain 28; validation rows ...``, saying why they differ.
+
+    An empty or NaN cell of an output leaves that row out for that output only; the
+    counts make such cells visible rather than silent.
+    """
+    parts, uneven = [], False
+    for what, data in (("calibration", spec.calibration), ("validation", spec.validation)):
+        sizes = data.sizes
+        uneven |= len(set(sizes.values())) > 1
+        parts.append(f"{what} rows " + ", ".join(f"{k} {n}" for k, n in sizes.items()))
+    why = " (an empty or NaN cell leaves its row out for that output only)" if uneven else ""
+    return "; ".join(parts) + why
+
+
 def _checked_multi_output_build(spec) -> None:
     """Every formulation's joint model composes on the calibration data (before sampling)."""
     from kohpymc.multi_output.model import compose_multi_output_model
@@ -258,7 +273,8 @@ def _multi_output_study(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(
             f"dry run: {spec.source} is a multi-output study (outputs {outputs}; "
-            f"parameters {', '.join(spec.physics.parameter_names)}); formulations "
+            f"parameters {', '.join(spec.physics.parameter_names)}; {_output_rows(spec)}); "
+            "formulations "
             f"{', '.join(spec.formulations)} (each builds on the calibration data)\n"
             + (
                 f"[emulator]: {spec.emulator.runs} simulator runs (each giving every output), "
@@ -269,7 +285,10 @@ def _multi_output_study(args: argparse.Namespace) -> int:
             + f"would write to {out}; nothing sampled, nothing written"
         )
         return 0
-    print(f"study {spec.source}: outputs {outputs}, formulations {', '.join(spec.formulations)}")
+    print(
+        f"study {spec.source}: outputs {outputs} ({_output_rows(spec)}), formulations "
+        f"{', '.join(spec.formulations)}"
+    )
     display = task_display(sys.stdout, quiet=args.quiet)
     try:
         if spec.emulator is not None:

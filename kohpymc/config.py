@@ -106,11 +106,14 @@ class StudyConfigError(ValueError):
     """A study file is wrong; the message names the file and the key."""
 
 
+#: ``[physics]`` keys passed on to :class:`~kohpymc.PhysicsModel` as they are
+PHYSICS_OPTIONS = ("backend", "fd_scheme", "on_nonfinite", "name")
+
 _SECTIONS: dict[str, set[str] | None] = {
     "study": {"name"},
     "physics": {
         "function", "inputs", "output", "parameters", "jacobian", "backend", "fd_scheme",
-        "time", "name",
+        "on_nonfinite", "time", "name",
     },
     "data": {"calibration", "validation", "noise_sd", "replicates", "units"},
     "validation": {"tolerance", "weights"},
@@ -302,7 +305,8 @@ def _names(path: Path, key: str, value: Any) -> list[str]:
     if isinstance(value, str):
         value = [value]
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
-        raise _err(path, key, f"must be a list of input names, got {value!r}")
+        what = "output column names" if key.endswith("output") else "input names"
+        raise _err(path, key, f"must be a list of {what}, got {value!r}")
     repeated = sorted({v for v in value if value.count(v) > 1})
     if repeated:
         raise _err(path, key, f"names {repeated} more than once")
@@ -512,11 +516,11 @@ def _physics_section(path: Path, base: Path, phys: dict):
     time = _time_input(path, phys, inputs)
     if not isinstance(phys.get("name", ""), str):
         raise _err(path, "physics.name", f"must be text, got {phys['name']!r}")
-    kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
+    kwargs = {k: phys[k] for k in PHYSICS_OPTIONS if k in phys}
     try:
         physics = PhysicsModel(function, priors, inputs, jacobian=jacobian, **kwargs)
     except (TypeError, ValueError, KeyError) as err:
-        where = next((f"physics.{k}" for k in ("backend", "fd_scheme") if k in str(err)), None)
+        where = next((f"physics.{k}" for k in PHYSICS_OPTIONS if k in str(err)), None)
         raise _err(path, where or "physics", str(err)) from err
     return physics, inputs, output, time
 

@@ -110,8 +110,7 @@ def _check_physics(physics: PhysicsModel, data: CalibrationData) -> None:
     checked = _CHECKED.setdefault(data, weakref.WeakSet())
     if physics in checked:
         return
-    point = physics.prior_mean()
-    physics.evaluate({k: data.inputs[k] for k in physics.inputs}, point)
+    physics.regular_point({k: data.inputs[k] for k in physics.inputs})
     checked.add(physics)
 
 

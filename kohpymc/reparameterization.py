@@ -1258,7 +1258,7 @@ def _unwhitened_plan(
         condition_number=best.condition_number,
         max_correlation=best.max_correlation,
         gaussian_score=best.gaussian_score,
-        warnings=_separated_modes(best, mode) + _gradient_mismatch(space, best, seed),
+        warnings=_separated_modes(space, best, mode) + _gradient_mismatch(space, best, seed),
         value_sd=best.value_sd,
     )
 
@@ -1283,7 +1283,7 @@ def _whitened_plan(
         **{
             **best.__dict__,
             "reason": reason,
-            "warnings": _separated_modes(best, mode) + _gradient_mismatch(space, best, seed),
+            "warnings": _separated_modes(space, best, mode) + _gradient_mismatch(space, best, seed),
         }
     )
 
@@ -1373,22 +1373,58 @@ def _gradient_mismatch(
     )
 
 
-def _separated_modes(best: Reparameterization, mode: Mode) -> tuple[str, ...]:
-    """A warning when other optima nearly as high lie many Laplace sds from the best."""
-    distances = []
+#: optima this many Laplace sds (of the best mode) from the best, and from each other, are
+#: separate modes; closer ones are the same optimum found from several starts
+MODE_SEPARATION = 6.0
+
+
+def _separated_modes(space: ValueSpace, best: Reparameterization, mode: Mode) -> tuple[str, ...]:
+    """A warning naming the other optima nearly as high, many Laplace sds from the best.
+
+    Optima found from several starts near one another count once, and the warning gives
+    the parameter values at the best mode and at the others (the user's units), so a
+    symmetry of the model (two rate constants that can swap) shows in the numbers.
+    """
+    kept: list[tuple[float, np.ndarray, np.ndarray]] = []  # (logp, z, value) per mode
     for logp, value in mode.optima[1:]:
         if logp < mode.logp - 10.0:
             continue
-        distance = float(np.linalg.norm(best.from_value(value)))
-        if np.isfinite(distance) and distance > 6.0:
-            distances.append(distance)
-    if not distances:
+        z = best.from_value(value)
+        if not np.isfinite(np.linalg.norm(z)) or np.linalg.norm(z) <= MODE_SEPARATION:
+            continue
+        if all(np.linalg.norm(z - other) > MODE_SEPARATION for _, other, _ in kept):
+            kept.append((logp, z, value))
+    if not kept:
         return ()
-    return (
-        f"the posterior has at least {len(distances) + 1} separated modes (log density "
-        f"within 10 of the best, {min(distances):.0f}+ Laplace sds apart): NUTS chains may "
-        "each stay in one mode; compare chains, or use sampler='smc'",
+    nearest = min(float(np.linalg.norm(z)) for _, z, _ in kept)
+    others = ", ".join(
+        f"another at {_named_point(space, value)} (log density {mode.logp - logp:.2g} lower)"
+        for logp, _, value in kept[:3]
     )
+    more = "" if len(kept) <= 3 else f" and {len(kept) - 3} more"
+    return (
+        f"the posterior has {len(kept) + 1} separated modes (log density within 10 of the "
+        f"best, {nearest:.0f}+ Laplace sds apart): the best at "
+        f"{_named_point(space, mode.value)}, {others}{more}; NUTS chains may each stay in "
+        "one mode, so the posterior may describe only one: narrow the priors to one mode if "
+        "the physics allows it (an order between two rates), or try sampler='smc' and "
+        "check that its chains agree",
+    )
+
+
+def _named_point(space: ValueSpace, value: np.ndarray, most: int = 6) -> str:
+    """``{a=1.17, b=0.122}``: the scalar parameters at a value-space point (at most ``most``)."""
+    try:
+        expanded = space.expand(value)
+    except Exception:  # noqa: BLE001 - only words for a warning
+        return "(values not available)"
+    scalars = [  # "<name>_white": a formulation's non-centred auxiliary, not a parameter
+        (k, float(np.ravel(v)[0]))
+        for k, v in expanded.items()
+        if np.size(v) == 1 and not k.endswith("_white")
+    ]
+    text = ", ".join(f"{k}={v:.3g}" for k, v in scalars[:most])
+    return "{" + text + (", ..." if len(scalars) > most else "") + "}"
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,13 @@ from kohpymc.funnel import funnel_plan
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
-from kohpymc.value_space import ValueSpace, quiet_density_errors, transformed_value, value_space
+from kohpymc.value_space import (
+    ValueSpace,
+    nudged,
+    quiet_density_errors,
+    transformed_value,
+    value_space,
+)
 
 __all__ = [
     "CURVED_TARGET_ACCEPT",
@@ -446,13 +452,28 @@ def _compiled_space(model: pm.Model, mode: str | None, report: SamplingReport) -
         space.logp_dlogp(space.initial)
     except Exception as err:  # noqa: BLE001 - decided by whether the C backend runs
         fallback = value_space(model)
-        if not np.isfinite(fallback.logp_dlogp_or_nan(fallback.initial)[0]):
+        point = _regular_value(fallback)
+        if point is None:
             raise
+        if point is not fallback.initial and np.isfinite(space.logp_dlogp_or_nan(point)[0]):
+            report.compile_mode = "NUMBA"  # the initial point is singular, not NUMBA
+            return space
         first_line = (str(err).splitlines() or [""])[0][:200]
         report.compile_mode = f"C (NUMBA failed: {type(err).__name__}: {first_line})"
         return fallback
     report.compile_mode = "NUMBA"
     return space
+
+
+def _regular_value(space: ValueSpace) -> np.ndarray | None:
+    """The initial point or one next to it where the log density is finite (else None).
+
+    The points are :func:`~kohpymc.value_space.nudged`'s.
+    """
+    for point in nudged(space.initial):
+        if np.isfinite(space.logp_dlogp_or_nan(point)[0]):
+            return point
+    return None
 
 
 def _run_nutpie(
@@ -712,8 +733,36 @@ def _smc_stats_per_stage(idata: az.InferenceData) -> az.InferenceData:
     if "sample_stats" not in idata.groups():
         return idata
     stats = idata["sample_stats"]
+    if any(_ragged(v.values) for v in stats.data_vars.values()):
+        stats = _padded_stages(stats)
     stats = stats.assign({k: v.astype(float) for k, v in stats.data_vars.items()})
     if "draw" in stats.dims:
         stats = stats.rename({"draw": "stage"})
     idata["sample_stats"] = stats
     return idata
+
+
+def _ragged(values: np.ndarray) -> bool:
+    """Whether ``values`` holds one sequence per cell (chains that took different stages)."""
+    return values.dtype == object and all(np.ndim(cell) == 1 for cell in values.ravel())
+
+
+def _padded_stages(stats: Any) -> Any:
+    """``(chain, stage)`` floats, NaN-padded, from PyMC's one-list-per-chain statistics.
+
+    When the chains took different numbers of tempering stages (11 and 12 on a bimodal
+    pharmacokinetic posterior with 4000 particles) PyMC stores each statistic as a
+    ``(1, chains)`` object array of lists, which no float cast takes ("setting an array
+    element with a sequence"), and the whole calibration failed after sampling.
+    """
+    import xarray as xr
+
+    def padded(values: np.ndarray) -> np.ndarray:
+        rows = [np.asarray(cell, dtype=float) for cell in values.ravel()]
+        out = np.full((len(rows), max(row.size for row in rows)), np.nan)
+        for i, row in enumerate(rows):
+            out[i, : row.size] = row
+        return out
+
+    data = {k: (("chain", "stage"), padded(v.values)) for k, v in stats.data_vars.items()}
+    return xr.Dataset(data, attrs=stats.attrs)

@@ -332,7 +332,11 @@ def _check_identifiability(physics, calibration, formulations, say):
             continue
         reports[label] = report.to_dict()
         if report.identifiable:
-            say(f"  {label}: identifiable (rank {report.rank} of {len(report.names)})")
+            weak = report.weakly_informed()  # full rank, but a direction barely informed
+            say(
+                f"  {label}: identifiable (rank {report.rank} of {len(report.names)})"
+                + (f", weakly: {weak}" if weak else "")
+            )
         else:
             text = "; ".join(report.confounded())
             say(

@@ -21,7 +21,7 @@ import functools
 import hashlib
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -629,7 +629,7 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
                 [flat_e], expand_outputs, on_unused_input="ignore",
                 **({} if expand_mode is None else {"mode": expand_mode}),
             )  # fmt: skip
-    expanded_shapes = tuple(tuple(np.shape(v)) for v in expand(initial))
+    expanded_shapes = tuple(tuple(np.shape(v)) for v in _expand_near(expand, initial))
     return ValueSpace(
         model=model,
         names=names,
@@ -644,6 +644,39 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
         _expand=expand,
         _expand_rows=rows_map,
     )
+
+
+def nudged(initial: np.ndarray) -> Iterator[np.ndarray]:
+    """``initial``, then points next to it where equal elements part.
+
+    The initial point (each prior's centre) can be a removable singularity of a correct
+    model: ``ka / (ka - ke)`` when ``ka`` and ``ke`` have the same prior.  Each element
+    moves by ``step`` (1e-3, 1e-2, 0.1) times a weight of its own (``+1/n, -2/n, ...``).
+
+    Examples
+    --------
+    >>> [p.round(4).tolist() for p in nudged(np.zeros(2))][:2]
+    [[0.0, 0.0], [0.0005, -0.001]]
+    """
+    initial = np.asarray(initial, dtype=float)
+    yield initial
+    n = initial.size
+    weights = np.array([(k + 1) / n * (-1) ** k for k in range(n)])
+    for step in (1e-3, 1e-2, 1e-1):
+        yield initial + step * weights
+
+
+def _expand_near(expand: Callable[..., Any], initial: np.ndarray) -> list[Any]:
+    """``expand`` at the initial point, or next to it when the model fails there."""
+    error: Exception | None = None
+    for point in nudged(initial):
+        try:
+            with np.errstate(all="ignore"):
+                return list(expand(point))
+        except Exception as err:  # noqa: BLE001 - the first error is raised if none runs
+            error = error or err
+    assert error is not None
+    raise error
 
 
 def _first_row(rows_map: Callable[..., Any], x: np.ndarray) -> list[np.ndarray]:

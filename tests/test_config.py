@@ -278,3 +278,13 @@ def test_validation_without_replicated_settings_takes_the_calibrations_pooled_sd
     (tmp_path / "calib.csv").write_text("\n".join(once) + "\n")
     with pytest.raises(StudyConfigError, match=r"\[data\.calibration\] .*no setting has two"):
         load_study(path)
+
+
+def test_on_nonfinite_is_read_and_checked(tmp_path, write_study):
+    """``[physics] on_nonfinite``: the option the non-finite error suggests, in a study file."""
+    assert load_study(write_study(tmp_path)).physics.on_nonfinite == "raise"
+    reject = {'output = "u"': 'output = "u"\non_nonfinite = "reject"'}
+    assert load_study(write_study(tmp_path, **reject)).physics.on_nonfinite == "reject"
+    bad = write_study(tmp_path, **{'output = "u"': 'output = "u"\non_nonfinite = "skip"'})
+    with pytest.raises(StudyConfigError, match=r"\[physics\.on_nonfinite\].*'skip'"):
+        load_study(bad)

@@ -441,3 +441,33 @@ def test_one_combination_of_three_parameters_is_named_whole():
     linear = analyse_matrix(np.column_stack([x, 2 * x, -x]), ["a", "b", "c"],
                             point={"a": -1.0, "b": 0.5, "c": 3.0})  # fmt: skip
     assert linear.confounded()[0].endswith(": a + 2·b - c (to first order)")
+
+
+@pytest.mark.parametrize("scalar", [float, np.float64], ids=["python-floats", "numpy-floats"])
+def test_taylor_check_steps_off_a_removable_singularity_of_the_default_point(scalar):
+    """``ka/(ka - ke)`` with equal priors is 0/0 at the default point; the check moves off it.
+
+    The rank found next to the singularity is the rank of finite-difference sensitivities
+    at a generic point (an independent computation), 2 of 2.
+    """
+    from kohpymc import CalibrationData, LogUniform, PhysicsModel, check_formulation
+
+    def oral(inputs, params):  # ZeroDivisionError (float) or NaN (np.float64) at ka = ke
+        ka, ke, t = scalar(params["ka"]), scalar(params["ke"]), inputs["t"]
+        return ka / (ka - ke) * (np.exp(-ke * t) - np.exp(-ka * t))
+
+    prior = LogUniform(0.01, 10)
+    physics = PhysicsModel(oral, {"ka": prior, "ke": prior}, inputs=["t"])
+    t = np.linspace(0.25, 24, 12)
+    data = CalibrationData({"t": t}, oral({"t": t}, {"ka": 1.0, "ke": 0.1}), noise_sd=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        report = check_formulation(physics, data)  # raised "non-finite at the expansion point"
+    theta = {"ka": 1.7, "ke": 0.4}
+    h = 1e-6
+    up = [oral({"t": t}, {**theta, k: theta[k] + h}) for k in theta]
+    down = [oral({"t": t}, {**theta, k: theta[k] - h}) for k in theta]
+    fd = (np.array(up) - np.array(down)).T / (2 * h)
+    assert report.rank == np.linalg.matrix_rank(fd) == 2
+    assert report.identifiable
+    assert report.point["ka"] != report.point["ke"]

@@ -170,6 +170,41 @@ def test_stacked_check_sees_shared_confounding():
     assert not report.identifiable and report.rank == 1
 
 
+def test_stacked_check_steps_off_a_removable_singularity_of_the_default_point():
+    """Two outputs of ``ka/(ka - ke)`` with equal priors: 0/0 at the default point.
+
+    The rank next to it is that of finite-difference sensitivities at a generic point.
+    """
+    from kohpymc import LogUniform
+
+    def oral(inputs, params):
+        ka, ke, t = np.float64(params["ka"]), np.float64(params["ke"]), inputs["t"]
+        with np.errstate(all="ignore"):
+            c = ka / (ka - ke) * (np.exp(-ke * t) - np.exp(-ka * t))
+        return {"plasma": c, "urine": 1.0 - c}
+
+    prior = LogUniform(0.01, 10)
+    physics = MultiOutputPhysics(
+        oral, {"ka": prior, "ke": prior}, inputs=["t"], outputs=["plasma", "urine"]
+    )
+    t = {"t": np.linspace(0.25, 24, 8)}
+    data = MultiOutputData(
+        {k: CalibrationData(t, np.zeros(8), noise_sd=0.1) for k in ("plasma", "urine")}
+    )
+    built = compose_multi_output_model(physics, data, marginalize=False)
+    report = stacked_taylor_check(built)  # raised "non-finite at the expansion point" before
+    theta, h = {"ka": 1.7, "ke": 0.4}, 1e-6
+    fd = np.column_stack(
+        [
+            np.concatenate(list(oral(t, {**theta, k: theta[k] + h}).values()))
+            - np.concatenate(list(oral(t, {**theta, k: theta[k] - h}).values()))
+            for k in theta
+        ]
+    ) / (2 * h)
+    assert report.rank == np.linalg.matrix_rank(fd) == 2
+    assert report.point["ka"] != report.point["ke"]
+
+
 # --------------------------------------------------------------------- recovery
 def test_joint_recovery_matches_gaussian_combination(physics, exact_data):
     """M0 on two exact outputs: E covers the truth and its sd is the combined Fisher sd.

@@ -361,3 +361,31 @@ def test_reliability_weights_come_from_the_combined_rows_and_make_the_mixture(st
     np.testing.assert_array_equal(
         saved.posterior["E"].values, result.combined.posterior["E"].values
     )
+
+
+def test_an_output_list_that_is_not_names_is_called_output_names(tmp_path):
+    """``output = ["u", 3]`` was reported as "must be a list of input names"."""
+    path = _write(tmp_path)
+    text = path.read_text()
+    assert 'output = ["u", "strain"]' in text
+    path.write_text(text.replace('output = ["u", "strain"]', 'output = ["u", 3]'))
+    with pytest.raises(StudyConfigError, match=r"\[physics\.output\] must be a list of output"):
+        load_multi_output_study(path)
+
+
+def test_dry_run_counts_each_outputs_rows_so_empty_and_nan_cells_show(tmp_path, capsys):
+    """An empty or ``nan`` output cell leaves that row out for that output only, visibly."""
+    import pandas as pd
+
+    from kohpymc.cli import main
+
+    path = _write(tmp_path)
+    frame = pd.read_csv(tmp_path / "cal.csv")
+    row = int(np.flatnonzero(frame["strain"].notna())[0])
+    frame.loc[row, "strain"] = np.nan
+    frame.to_csv(tmp_path / "cal.csv", index=False, na_rep="nan")
+    n_u, n_strain = (int(frame[k].notna().sum()) for k in ("u", "strain"))
+    assert main(["study", str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"calibration rows u {n_u}, strain {n_strain}" in out
+    assert "an empty or NaN cell leaves its row out for that output only" in out

@@ -193,3 +193,47 @@ def test_a_function_changing_its_inputs_in_place_changes_neither_the_data_nor_la
     )
     np.testing.assert_array_equal(f(), first)
     np.testing.assert_array_equal(f(), first)
+
+
+def _oral_dose(inputs, params):
+    """One-compartment oral dose: 0/0 where ka = ke (a removable singularity)."""
+    ka, ke, t = params["ka"], params["ke"], inputs["t"]
+    return ka / (ka - ke) * (np.exp(-ke * t) - np.exp(-ka * t))
+
+
+def _oral_dose_numpy(inputs, params):
+    """The same with numpy scalars: NaN (not ZeroDivisionError) where ka = ke."""
+    ka, ke = np.float64(params["ka"]), np.float64(params["ke"])
+    return _oral_dose(inputs, {"ka": ka, "ke": ke})
+
+
+@pytest.mark.parametrize(
+    ("function", "fault"),
+    [(_oral_dose, "ZeroDivisionError"), (_oral_dose_numpy, "non-finite")],
+    ids=["python-floats", "numpy-floats"],
+)
+def test_check_point_moves_off_a_removable_singularity_at_the_prior_centre(function, fault):
+    """Two parameters with the same prior are equal at the prior centre, where 0/0."""
+    from kohpymc import CalibrationData, LogUniform
+    from kohpymc.checks import check_physics_runs
+
+    prior = LogUniform(0.01, 10)
+    physics = PhysicsModel(function, {"ka": prior, "ke": prior}, inputs=["t"])
+    t = np.linspace(0.25, 24, 12)
+    centre = physics.prior_mean()
+    with np.errstate(all="ignore"), pytest.raises(PhysicsModelError, match=fault):
+        physics.evaluate({"t": t}, centre)
+    point = physics.regular_point({"t": t})
+    assert np.all(np.isfinite(physics.evaluate({"t": t}, point)))
+    sd = {k: p.sd() for k, p in physics.parameters.items()}
+    # the nearest of the moves (1e-3 prior sd), and the parameters part
+    assert all(0 < abs(point[k] - centre[k]) <= 1.01e-3 * sd[k] for k in centre)
+    assert point["ka"] != point["ke"]
+    data = CalibrationData({"t": t}, _oral_dose({"t": t}, {"ka": 1.0, "ke": 0.1}), noise_sd=0.01)
+    check_physics_runs(physics, data, "calibration")  # raised "36 non-finite value(s)" before
+
+
+def test_check_point_of_a_model_non_finite_everywhere_names_the_prior_centre():
+    physics = PhysicsModel(lambda x, p: p["a"] * x["t"] / 0.0, {"a": Uniform(1, 2)}, inputs=["t"])
+    with np.errstate(all="ignore"), pytest.raises(PhysicsModelError, match=r"a=1\.5\b"):
+        physics.regular_point({"t": np.array([1.0, 2.0])})

@@ -478,6 +478,25 @@ def test_separated_modes_are_reported():
     assert any("separated modes" in w for w in reparam.warnings), reparam.warnings
 
 
+def test_separated_modes_counted_once_each_and_named_in_the_parameters_units():
+    """Two modes (a = ±2 of y = a² + noise), each found from several starts: "2 modes", both named.
+
+    The modes are ±sqrt(mean(y)) = ±2.0 (computed here, not by the code); the warning
+    gives a at each to 3 significant digits, and the other parameter (b, the same at both).
+    """
+    y = np.array([4.0, 4.02, 3.98])
+    with pm.Model() as model:
+        a = pm.Normal("a", 0.0, 3.0)
+        b = pm.Normal("b", 0.0, 1.0, shape=(1,))  # a length-1 vector is named as a scalar
+        pm.Normal("y", a**2 + b[0] * np.array([-1.0, 0.0, 1.0]), 0.05, observed=y)
+    reparam = plan(value_space(model), seed=SEED, n_design=16)
+    (text,) = [w for w in reparam.warnings if "separated modes" in w]
+    assert "has 2 separated modes" in text
+    root = np.sqrt(y.mean())
+    assert f"a={root:.3g}" in text and f"a={-root:.3g}" in text, text
+    assert text.count("b=") == 2
+
+
 def test_variance_share_map_is_volume_preserving_with_the_right_gradient():
     """(t, u) -> (ln a, ln b): round trip, a² + b² = e^{2t}, b/a = e^u, Jacobian det 1, and
     the pulled-back gradient against finite differences of a test function."""

@@ -153,3 +153,52 @@ def test_a_compiled_space_is_reused_with_new_shared_data():
         pm.Normal("mu", 0.0, 1.0)
     with pytest.raises(ValueError, match="value_space"):
         sample_posterior(other, space=space)
+
+
+def _oral_dose(inputs, params):
+    """0/0 where ka = ke: at PyMC's initial point when both have the same prior."""
+    ka, ke, t = np.float64(params["ka"]), np.float64(params["ke"]), inputs["t"]
+    with np.errstate(all="ignore"):
+        return ka / (ka - ke) * (np.exp(-ke * t) - np.exp(-ka * t))
+
+
+def test_a_removable_singularity_at_the_initial_point_does_not_stop_compilation():
+    """The NUMBA/C probe at PyMC's initial point (ka = ke) moves next to it instead of raising."""
+    from kohpymc.model import compose_model
+    from kohpymc.sampling import SamplingReport, _compiled_space
+
+    prior = kp.LogUniform(0.01, 10)
+    physics = kp.PhysicsModel(_oral_dose, {"ka": prior, "ke": prior}, inputs=["t"])
+    t = np.linspace(0.25, 24, 12)
+    y = _oral_dose({"t": t}, {"ka": 1.0, "ke": 0.1})
+    built = compose_model(physics, kp.CalibrationData({"t": t}, y, noise_sd=0.01))
+    report = SamplingReport(sampler="nutpie", requested="nutpie")
+    space = _compiled_space(built.model, None, report)  # raised PhysicsModelError before
+    assert report.compile_mode == "NUMBA"
+    assert not np.isfinite(space.logp_dlogp_or_nan(space.initial)[0])
+    moved = space.initial + 1e-3 * np.array([0.5, -1.0])
+    assert np.isfinite(space.logp_dlogp(moved)[0])
+
+
+def test_smc_statistics_of_chains_with_different_numbers_of_stages_are_padded(tmp_path):
+    """PyMC's layout when SMC chains take 3 and 4 stages: a (1, 2) object array of lists.
+
+    Seen with 4000 particles on a bimodal posterior ("setting an array element with a
+    sequence" after sampling, every result lost).  Now (chain, stage) floats, NaN-padded,
+    that NetCDF stores.
+    """
+    import xarray as xr
+
+    from kohpymc.sampling import _smc_stats_per_stage
+
+    stages = [[0.0, 0.2, 1.0], [0.0, 0.1, 0.5, 1.0]]
+    cells = np.empty((1, 2), dtype=object)
+    cells[0, 0], cells[0, 1] = stages
+    stats = xr.Dataset({"beta": (("chain", "draw"), cells)})
+    posterior = xr.Dataset({"a": (("chain", "draw"), np.zeros((2, 5)))})
+    idata = _smc_stats_per_stage(az.InferenceData(posterior=posterior, sample_stats=stats))
+    beta = idata.sample_stats["beta"]
+    assert beta.dims == ("chain", "stage") and beta.dtype == float
+    np.testing.assert_array_equal(beta.values[0], [0.0, 0.2, 1.0, np.nan])
+    np.testing.assert_array_equal(beta.values[1], stages[1])
+    idata.to_netcdf(str(tmp_path / "smc.nc"))

@@ -308,3 +308,31 @@ def test_changed_prior_recomputes_only_the_formulation_that_uses_it(
     third = run(ConstantBias(prior=Normal(0.0, 2.0)), fresh=True)
     assert third.reused == []
     pd.testing.assert_frame_equal(second.table, third.table)
+
+
+def test_identifiability_line_names_a_weakly_informed_direction():
+    """Full rank but nearly collinear (x and x + 1e-3 x²): "identifiable ..., weakly: ...".
+
+    The direction a : b ≈ 1 : -1 is the one the two columns nearly share (an independent
+    check: the columns' difference is 1e-3 x², tiny against either).
+    """
+    from kohpymc import CalibrationData, PhysicsModel, Uniform
+    from kohpymc.study import _check_identifiability
+
+    def model(inputs, params):
+        x = inputs["x"]
+        return params["a"] * x + params["b"] * (x + 1e-3 * x**2)
+
+    physics = PhysicsModel(model, {"a": Uniform(0.5, 2), "b": Uniform(0.5, 2)}, inputs=["x"])
+    x = np.linspace(0.0, 1.0, 12)
+    data = CalibrationData({"x": x}, model({"x": x}, {"a": 1.0, "b": 1.0}), noise_sd=0.01)
+    lines: list[str] = []
+    _check_identifiability(physics, data, {"M0": NoDiscrepancy()}, lines.append)
+    (line,) = [text for text in lines if text.startswith("  M0:")]
+    assert "identifiable (rank 2 of 2), weakly: weakest direction" in line
+    assert "Δa : Δb = 1 : -0.999" in line
+    lines.clear()
+    _check_identifiability(
+        beam.physics_model(), beam.generate_data(seed=1), {"M0": NoDiscrepancy()}, lines.append
+    )
+    assert "weakly" not in " ".join(lines)

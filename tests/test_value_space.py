@@ -173,3 +173,28 @@ def test_numba_density_is_one_c_function_with_integer_data_and_errors_reported()
         c.logp_dlogp(bad)
     with np.testing.assert_raises(Exception):
         numba.logp_dlogp(bad)
+
+
+def test_value_space_of_a_model_singular_at_its_initial_point():
+    """``ka/(ka - ke)`` with equal priors: 0/0 at the initial point, where the expand map ran.
+
+    A formulation with a deterministic of the physics (M1's ``y_model``) raised there; the
+    shapes are now taken next to it, and the map still gives the physics there exactly.
+    """
+    import kohpymc as kp
+    from kohpymc.model import compose_model
+
+    def oral(inputs, params):
+        ka, ke, t = np.float64(params["ka"]), np.float64(params["ke"]), inputs["t"]
+        with np.errstate(all="ignore"):
+            return ka / (ka - ke) * (np.exp(-ke * t) - np.exp(-ka * t))
+
+    prior = kp.LogUniform(0.01, 10)
+    physics = kp.PhysicsModel(oral, {"ka": prior, "ke": prior}, inputs=["t"])
+    t = np.linspace(0.25, 24, 12)
+    data = kp.CalibrationData({"t": t}, oral({"t": t}, {"ka": 1.0, "ke": 0.1}), noise_sd=0.01)
+    space = value_space(compose_model(physics, data, kp.ConstantBias()).model)
+    x = space.initial + np.linspace(0.01, 0.02, space.ndim)
+    values = space.expand(x)
+    assert np.isfinite(space.logp_dlogp(x)[0])
+    assert values["ka"] != values["ke"]

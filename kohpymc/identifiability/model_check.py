@@ -18,6 +18,7 @@ import numpy as np
 
 from kohpymc.identifiability.rank import RTOL, IdentifiabilityReport, analyse_matrix
 from kohpymc.model import compose_model
+from kohpymc.physics.errors import PhysicsModelError
 
 __all__ = ["check_formulation", "model_taylor_check"]
 
@@ -188,6 +189,48 @@ def _design_point(model, point, start=None):
     return values
 
 
+def mean_and_jacobian(model, mu, rvs, values, *, default: bool):
+    """``(values, mean, ∂mean/∂rvs)`` at ``values`` (moved off a singularity if ``default``).
+
+    At the default point, next to it when the model is singular there
+    (:func:`_off_singularity`); a point the caller chose is used as it is.
+    """
+    try:
+        ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
+    except PhysicsModelError:
+        found = _off_singularity(model, mu, rvs, values) if default else None
+        if found is None:
+            raise
+        return found
+    if default and not np.all(np.isfinite(mu_val)):
+        return _off_singularity(model, mu, rvs, values) or (values, mu_val, A)
+    return values, mu_val, A
+
+
+def _off_singularity(model, mu, rvs, values):
+    """``(values, mean, A)`` next to ``values`` where the mean is finite, or ``None``.
+
+    The default point can fall on a removable singularity of a correct model
+    (``ka / (ka - ke)`` where ``ka`` and ``ke`` have the same prior); each free variable
+    is moved by ``step`` (1e-3, 1e-2, 0.1) times a relative weight of its own, so equal
+    values part, and the first move inside the priors with a finite mean is taken.
+    """
+    weights = {rv.name: (k + 1) / len(rvs) * (-1) ** k for k, rv in enumerate(rvs)}
+    for step in (1e-3, 1e-2, 1e-1):
+        moved = {name: v * (1.0 + step * weights.get(name, 0.0)) for name, v in values.items()}
+        try:
+            _check_support(model, moved)
+        except ValueError:
+            continue
+        try:
+            ((mu_val, A),) = _jacobians(model, [mu], rvs, moved, mode=_one_shot_mode())
+        except PhysicsModelError:
+            continue
+        if np.all(np.isfinite(mu_val)) and np.all(np.isfinite(A)):
+            return moved, mu_val, A
+    return None
+
+
 def check_formulation(
     physics: Any,
     data: Any,
@@ -257,7 +300,7 @@ def model_taylor_check(
             f"design has {n} points for {len(entries)} mean parameters: the rank check "
             "needs at least as many points as parameters"
         )
-    ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
+    values, mu_val, A = mean_and_jacobian(model, mu, rvs, values, default=point is None)
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the model mean is non-finite at the expansion point")
     flat_point = _flat_point(entries, values)

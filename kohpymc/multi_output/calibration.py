@@ -26,8 +26,7 @@ from kohpymc.identifiability import IdentifiabilityReport, IdentifiabilityWarnin
 from kohpymc.identifiability.model_check import (
     _design_point,
     _free_names,
-    _jacobians,
-    _one_shot_mode,
+    mean_and_jacobian,
 )
 from kohpymc.identifiability.rank import RTOL, analyse_matrix
 from kohpymc.loo import compute_log_likelihood
@@ -154,7 +153,7 @@ def stacked_taylor_check(
     upstream = set(pg.ancestors([mu]))
     rvs = [rv for rv in model.free_RVs if rv in upstream]
     entries = _free_names(model, rvs, start)
-    ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
+    values, mu_val, A = mean_and_jacobian(model, mu, rvs, values, default=point is None)
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the stacked model mean is non-finite at the expansion point")
     if A.shape[0] < A.shape[1]:

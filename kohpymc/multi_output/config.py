@@ -61,6 +61,7 @@ import pandas as pd
 
 from kohpymc.checks import check_positive_number, check_tolerance
 from kohpymc.config import (
+    PHYSICS_OPTIONS,
     _emulator_section,
     _err,
     _execution_section,
@@ -302,7 +303,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
         if "jacobian" in phys
         else None
     )
-    kwargs = {k: phys[k] for k in ("backend", "fd_scheme", "name") if k in phys}
+    kwargs = {k: phys[k] for k in PHYSICS_OPTIONS if k in phys}
     try:
         physics = MultiOutputPhysics(function, priors, inputs, outputs, jacobian=jacobian, **kwargs)
     except (TypeError, ValueError, KeyError) as err:
@@ -330,7 +331,7 @@ def load_multi_output_study(path: str | Path) -> MultiOutputStudySpec:
     for key, data_set in (("calibration", calibration), ("validation", validation)):
         for name in outputs:
             try:
-                physics.output(name).evaluate(data_set[name].inputs, physics.prior_mean())
+                physics.output(name).regular_point(data_set[name].inputs)
             except Exception as err:  # noqa: BLE001 - any failure is reported with its key
                 raise _err(path, f"data.{key}", f"output {name!r}: {err}") from err
     val = doc["validation"]

@@ -65,8 +65,9 @@ class _PhysicsOp(_PhysicsOpBase):
             if physics.on_nonfinite == "raise":
                 raise PhysicsModelError(
                     f"physics function {physics.name!r} returned non-finite values at "
-                    f"parameters {format_params(params)} (pass on_nonfinite='reject' to "
-                    "treat such points as having zero likelihood)"
+                    f"parameters {format_params(params)} (pass on_nonfinite='reject', "
+                    'in a study file [physics] on_nonfinite = "reject", to treat such points '
+                    "as having zero likelihood)"
                 )
             out = np.where(np.isfinite(out), out, np.inf)
         outputs[0][0] = out

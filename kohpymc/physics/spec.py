@@ -130,6 +130,54 @@ class PhysicsModel:
         """Prior mean of every parameter (the default expansion/check point)."""
         return {k: p.mean() for k, p in self.parameters.items()}
 
+    def regular_point(
+        self, inputs: Mapping[str, Any], point: Mapping[str, float] | None = None
+    ) -> dict[str, float]:
+        """``point`` (default the prior centre), or a point next to it where the model is finite.
+
+        A check point of the library can fall on a removable singularity of a correct
+        model: ``ka / (ka - ke)`` at the prior centre when ``ka`` and ``ke`` have the same
+        prior.  Then each parameter is moved by ``step`` (1e-3, 1e-2, 0.1) times its prior sd
+        times a weight of its own (``+1/p, -2/p, +3/p, ...``), so parameters with the same
+        prior part, and the first such point (inside the priors) where the model is finite
+        is returned.  When there is none, the error at ``point`` is raised.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from kohpymc import PhysicsModel, LogUniform
+        >>> def conc(x, p):
+        ...     return p["ka"] / (p["ka"] - p["ke"]) * (np.exp(-p["ke"] * x["t"])
+        ...                                            - np.exp(-p["ka"] * x["t"]))
+        >>> prior = LogUniform(0.01, 10)
+        >>> physics = PhysicsModel(conc, {"ka": prior, "ke": prior}, inputs=["t"])
+        >>> point = physics.regular_point({"t": [1.0, 2.0]})
+        >>> point["ka"] != point["ke"]
+        True
+        """
+        point = self.prior_mean() if point is None else self._as_params(point)
+        try:
+            with np.errstate(all="ignore"):  # 0/0 there is reported only if nothing else runs
+                self.evaluate(inputs, point)
+            return point
+        except PhysicsModelError as err:
+            first = err
+        names = list(self.parameters)
+        weights = [(k + 1) / len(names) * (-1) ** k for k in range(len(names))]
+        for step in (1e-3, 1e-2, 1e-1):
+            moved = {
+                k: point[k] + step * w * self.parameters[k].sd()
+                for k, w in zip(names, weights, strict=True)
+            }
+            if not all(self.parameters[k].in_support(v) for k, v in moved.items()):
+                continue
+            try:
+                self.evaluate(inputs, moved)
+            except PhysicsModelError:
+                continue
+            return moved
+        raise first
+
     def _as_inputs(self, inputs: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], int]:
         missing = [k for k in self.inputs if k not in inputs]
         if missing:

@@ -1621,9 +1621,31 @@ def _ridge_segment(
     segment = segment_plan(space, mode, seed, shares)
     if segment is None or not segment.gaussian_score < best.gaussian_score:
         return None
+    if _has_flat_axis(space, segment):
+        return None
     # a walled element with a tiny component along the ridge empties the segment wherever
     # the whitened centre lies beyond its wall (box-ridge-log on dielectric M2): never used
     return None if _has_holes(space, segment, seed) else segment_reason(space, segment, best)
+
+
+def _has_flat_axis(space: ValueSpace, plan: Reparameterization, reach: float = 3.0) -> bool:
+    """Whether some axis of ``plan`` has lost its scale.
+
+    Its log density changes by less than 0.01 at ±``reach`` (a Gaussian's drops 4.5 at
+    ±3), so NUTS would wander along it (Steinhart–Hart with a constant bias: the ridge
+    segment's position axis dropped 0.0 at ±3; 201 divergences in 2 × 1000 draws).
+    """
+    base, _ = plan.logp_dlogp(space, np.zeros(plan.ndim), safe=True)
+    for i in range(plan.ndim):
+        drops = []
+        for sign in (-reach, reach):
+            z = np.zeros(plan.ndim)
+            z[i] = sign
+            logp, _ = plan.logp_dlogp(space, z, safe=True)
+            drops.append(base - logp if np.isfinite(logp) else np.inf)
+        if max(abs(d) for d in drops) < 0.01:
+            return True
+    return False
 
 
 def _ridge_curve_reason(space: ValueSpace, curve: Any, best: Reparameterization):

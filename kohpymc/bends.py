@@ -37,6 +37,7 @@ from kohpymc.reparameterization import (
     ArrayMath,
     Reparameterization,
     _axis_errors,
+    _drop,
     _gaussian_score,
 )
 from kohpymc.value_space import ValueSpace
@@ -695,10 +696,7 @@ def _drop_at(space: ValueSpace, plan: Reparameterization, point: dict[int, float
     z = np.zeros(plan.ndim)
     for i, value in point.items():
         z[i] = value
-    base, _ = plan.logp_dlogp(space, np.zeros(plan.ndim), safe=True)
-    with np.errstate(all="ignore"):
-        logp, _ = plan.logp_dlogp(space, z, safe=True)
-    return base - logp if np.isfinite(logp) else np.inf
+    return _drop(space, plan, z)
 
 
 def _joint_excess(space: ValueSpace, plan: Reparameterization, k: int, j: int) -> float:

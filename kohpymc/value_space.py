@@ -37,6 +37,7 @@ from pymc.logprob.utils import replace_rvs_by_values
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
 from kohpymc.batched_map import rows_function
+from kohpymc.physics.spec import singularity_offsets
 
 __all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_logp", "value_space"]
 
@@ -651,7 +652,7 @@ def nudged(initial: np.ndarray) -> Iterator[np.ndarray]:
 
     The initial point (each prior's centre) can be a removable singularity of a correct
     model: ``ka / (ka - ke)`` when ``ka`` and ``ke`` have the same prior.  Each element
-    moves by ``step`` (1e-3, 1e-2, 0.1) times a weight of its own (``+1/n, -2/n, ...``).
+    moves by :func:`~kohpymc.physics.spec.singularity_offsets`.
 
     Examples
     --------
@@ -660,10 +661,8 @@ def nudged(initial: np.ndarray) -> Iterator[np.ndarray]:
     """
     initial = np.asarray(initial, dtype=float)
     yield initial
-    n = initial.size
-    weights = np.array([(k + 1) / n * (-1) ** k for k in range(n)])
-    for step in (1e-3, 1e-2, 1e-1):
-        yield initial + step * weights
+    for offsets in singularity_offsets(initial.size):
+        yield initial + offsets
 
 
 def _expand_near(expand: Callable[..., Any], initial: np.ndarray) -> list[Any]:

@@ -19,6 +19,7 @@ import numpy as np
 from kohpymc.identifiability.rank import RTOL, IdentifiabilityReport, analyse_matrix
 from kohpymc.model import compose_model
 from kohpymc.physics.errors import PhysicsModelError
+from kohpymc.physics.spec import singularity_offsets
 
 __all__ = ["check_formulation", "model_taylor_check"]
 
@@ -212,12 +213,12 @@ def _off_singularity(model, mu, rvs, values):
 
     The default point can fall on a removable singularity of a correct model
     (``ka / (ka - ke)`` where ``ka`` and ``ke`` have the same prior); each free variable
-    is moved by ``step`` (1e-3, 1e-2, 0.1) times a relative weight of its own, so equal
-    values part, and the first move inside the priors with a finite mean is taken.
+    is moved by :func:`~kohpymc.physics.spec.singularity_offsets` relative to its value,
+    so equal values part, and the first move inside the priors with a finite mean is taken.
     """
-    weights = {rv.name: (k + 1) / len(rvs) * (-1) ** k for k, rv in enumerate(rvs)}
-    for step in (1e-3, 1e-2, 1e-1):
-        moved = {name: v * (1.0 + step * weights.get(name, 0.0)) for name, v in values.items()}
+    for offsets in singularity_offsets(len(rvs)):
+        relative = {rv.name: float(o) for rv, o in zip(rvs, offsets, strict=True)}
+        moved = {name: v * (1.0 + relative.get(name, 0.0)) for name, v in values.items()}
         try:
             _check_support(model, moved)
         except ValueError:

@@ -18,7 +18,25 @@ from kohpymc.physics.errors import PhysicsModelError
 from kohpymc.physics.finite_differences import default_relative_step, finite_difference_jacobian
 from kohpymc.priors import Prior, as_prior
 
-__all__ = ["PhysicsModel", "PhysicsModelError"]
+__all__ = ["PhysicsModel", "PhysicsModelError", "singularity_offsets"]
+
+
+def singularity_offsets(n: int) -> list[np.ndarray]:
+    """Relative moves off a removable singularity of ``n`` parameters, smallest first.
+
+    A check point of the library (the prior centre, PyMC's initial point) can fall on a
+    removable singularity of a correct model: ``ka / (ka - ke)`` when ``ka`` and ``ke``
+    have the same prior.  Each parameter moves by ``step`` (1e-3, 1e-2, 0.1) times a
+    weight of its own (``+1/n, -2/n, +3/n, ...``), so parameters at equal values part;
+    callers scale the moves to their coordinates.
+
+    Examples
+    --------
+    >>> [m.tolist() for m in singularity_offsets(2)][0]
+    [0.0005, -0.001]
+    """
+    weights = np.array([(k + 1) / n * (-1) ** k for k in range(n)])
+    return [step * weights for step in (1e-3, 1e-2, 1e-1)]
 
 
 class PhysicsModel:
@@ -137,10 +155,10 @@ class PhysicsModel:
 
         A check point of the library can fall on a removable singularity of a correct
         model: ``ka / (ka - ke)`` at the prior centre when ``ka`` and ``ke`` have the same
-        prior.  Then each parameter is moved by ``step`` (1e-3, 1e-2, 0.1) times its prior sd
-        times a weight of its own (``+1/p, -2/p, +3/p, ...``), so parameters with the same
-        prior part, and the first such point (inside the priors) where the model is finite
-        is returned.  When there is none, the error at ``point`` is raised.
+        prior.  Then each parameter is moved by :func:`singularity_offsets` times its prior
+        sd, so parameters with the same prior part, and the first such point (inside the
+        priors) where the model is finite is returned.  When there is none, the error at
+        ``point`` is raised.
 
         Examples
         --------
@@ -163,11 +181,10 @@ class PhysicsModel:
         except PhysicsModelError as err:
             first = err
         names = list(self.parameters)
-        weights = [(k + 1) / len(names) * (-1) ** k for k in range(len(names))]
-        for step in (1e-3, 1e-2, 1e-1):
+        for offsets in singularity_offsets(len(names)):
             moved = {
-                k: point[k] + step * w * self.parameters[k].sd()
-                for k, w in zip(names, weights, strict=True)
+                k: point[k] + float(w) * self.parameters[k].sd()
+                for k, w in zip(names, offsets, strict=True)
             }
             if not all(self.parameters[k].in_support(v) for k, v in moved.items()):
                 continue

@@ -49,6 +49,10 @@ __all__ = [
     "warn_at_data",
 ]
 
+#: largest widening of a parameter's (linearised) posterior sd that the emulator's own
+#: uncertainty may cause, over the design and at the data
+MAX_WIDENING = 1.25
+
 
 @dataclass
 class EmulatorCheck:
@@ -245,7 +249,7 @@ def check_emulator(
     coverage_tolerance: float | None = None,
     max_relative_rmse: float = 0.1,
     data: CalibrationData | None = None,
-    max_widening: float = 1.25,
+    max_widening: float = MAX_WIDENING,
     warn: bool = True,
 ) -> EmulatorCheck:
     """Score an emulator on runs it did not see and warn when it is not fit.
@@ -361,7 +365,7 @@ def check_at_data(
     cache: str | Path | None = None,
     level: float = 0.9,
     max_shift: float = 0.25,
-    max_widening: float = 1.25,
+    max_widening: float = MAX_WIDENING,
     warn: bool = True,
     workers: int = 1,
     scheduler: Any = None,
@@ -503,7 +507,7 @@ def check_emulators_at_data(
     cache: str | Path | None = None,
     level: float = 0.9,
     max_shift: float = 0.25,
-    max_widening: float = 1.25,
+    max_widening: float = MAX_WIDENING,
     workers: int = 1,
     scheduler: Any = None,
 ) -> OutputsCheck:

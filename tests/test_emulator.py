@@ -997,6 +997,47 @@ def test_the_emulators_best_fit_finds_an_arrhenius_least_squares_fit():
         assert np.all(np.abs(z) < 0.5), (seed, best, z)
 
 
+def _cliff(inputs, params):
+    """The decay plus a cliff near the top of k's prior box, far from the data's k = 0.8."""
+    cliff = 3.0 / (1.0 + np.exp(-(params["k"] - 1.8) * 60.0))
+    return params["a"] * np.exp(-params["k"] * inputs["x"]) + cliff
+
+
+# refined: two rounds, 36 s at load 8
+@pytest.mark.parametrize("refine", [pytest.param(2, marks=pytest.mark.slow), 0])
+def test_a_misfit_over_the_design_is_warned_only_when_the_check_at_the_data_fails(tmp_path, refine):
+    """A stationary GP cannot follow the cliff, so leave-one-out over the design fails
+    however many runs go near the data; refined there, the emulator matches the
+    simulator where the calibration needs it (the check at the data passes), and a
+    design-wide warning would only mislead (an isotherm study printed one).  Without
+    refinement the check at the data fails and its warning names the design's misfit."""
+    import json
+    import warnings
+
+    from kohpymc import CalibrationData
+    from kohpymc.emulator import EmulatorWarning
+    from kohpymc.emulator.study import EmulatorSettings, study_physics
+
+    physics = PhysicsModel(_cliff, _PRIORS, inputs=["x"], name="cliff")
+    rng = np.random.default_rng(1)
+    y = _cliff({"x": _X_OBS}, _TRUTH) + rng.normal(0.0, _NOISE, _X_OBS.size)
+    data = CalibrationData({"x": _X_OBS}, y, noise_sd=_NOISE)
+    settings = EmulatorSettings(runs=40, seed=1, refine_at_data=refine)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        study_physics(settings, physics, data, tmp_path)
+    folder = tmp_path / "emulator"
+    design = json.loads((folder / "check.json").read_text())["problems"]
+    at_data = json.loads((folder / "check_at_data.json").read_text())["problems"]
+    assert any("leave-one-out RMSE" in p for p in design)  # recorded either way
+    warned = [str(w.message) for w in seen if issubclass(w.category, EmulatorWarning)]
+    if refine:
+        assert at_data == [] and warned == []
+    else:
+        assert at_data and len(warned) == 1
+        assert "over its design, leave-one-out RMSE" in warned[0]
+
+
 @pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")
 def test_a_study_refines_a_coarse_emulator_and_a_rerun_reuses_the_rounds(tmp_path, monkeypatch):
     import json

@@ -22,6 +22,7 @@ the bands, and the histogram of the standardised errors.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -599,10 +600,13 @@ def warn_at_data(
     emulator: Emulator | EmulatorsAtData | None,
     check: EmulatorCheck | OutputsCheck,
     advice: str = "add runs ([emulator] runs, refine_at_data, or sequential rounds)",
+    *,
+    design_problems: Sequence[str] = (),
 ) -> None:
     """The :class:`EmulatorWarning` of a failed :func:`check_at_data` (none if it passed).
 
     ``emulator`` is the emulator, or for several outputs their :class:`EmulatorsAtData`.
+    ``design_problems`` (from :func:`check_emulator` over the design) are named too.
 
     Examples
     --------
@@ -618,8 +622,9 @@ def warn_at_data(
         what = f"emulators of {emulator.simulator.name!r} ({emulator.n_runs} runs) are"
     else:
         what = f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is"
+    design = f"; over its design, {'; '.join(design_problems)}" if design_problems else ""
     warn_user(
-        f"{what} not fit for this calibration: {'; '.join(check.problems)}; {advice}",
+        f"{what} not fit for this calibration: {'; '.join(check.problems)}{design}; {advice}",
         EmulatorWarning,
     )
 

@@ -402,11 +402,25 @@ def _refined(
         scheduler=scheduler,
     )
     _write_json(folder / REFINEMENT_RECORD, result.to_dict())
+    design = _design_problems(folder, target)
     if result.added:
-        _write_design_checks(folder, result.target)
+        design = _write_design_checks(folder, result.target)
         _write_json(folder / "check_at_data.json", result.checks[-1].to_dict())
-    warn_at_data(result.target, result.checks[-1], _refinement_advice(settings, result))
+    warn_at_data(
+        result.target, result.checks[-1], _refinement_advice(settings, result),
+        design_problems=design,
+    )  # fmt: skip
     return result.target
+
+
+def _design_problems(folder: Path, target: EmulatorsAtData) -> list[str]:
+    """The problems recorded in the outputs' ``check.json`` (:func:`_write_design_checks`)."""
+    problems: list[str] = []
+    for k in target.emulators:
+        part = folder if target.single else folder / k
+        recorded = json.loads((part / "check.json").read_text()).get("problems", [])
+        problems += [p if target.single else f"{k}: {p}" for p in recorded]
+    return problems
 
 
 def _refinement_advice(settings: EmulatorSettings, result: Refinement) -> str:
@@ -595,25 +609,34 @@ def _write_checks(
     rows (cached in ``folder/runs`` like the design), since leave-one-out over the prior
     box can pass an emulator that is many noise sds off where the data are.  Returns it.
     """
-    _write_design_checks(folder, target)
+    design = _write_design_checks(folder, target)
     at_data = check_target_at_data(
         target, cache=folder / "runs", workers=workers, scheduler=scheduler
     )
     if warn:
-        warn_at_data(target, at_data)
+        warn_at_data(target, at_data, design_problems=design)
     _write_json(folder / "check_at_data.json", at_data.to_dict())
     return at_data
 
 
-def _write_design_checks(folder: Path, target: EmulatorsAtData) -> None:
-    """Each output's :func:`check_emulator` (with its data's predicted widening).
+def _write_design_checks(folder: Path, target: EmulatorsAtData) -> list[str]:
+    """Each output's :func:`check_emulator` (with its data's predicted widening); its problems.
 
-    One output: ``folder/check.json``; several: ``folder/<output>/check.json``.
+    One output: ``folder/check.json``; several: ``folder/<output>/check.json``.  Written,
+    not warned: whether an emulator is fit for *this* calibration is the check at the
+    data's verdict, and leave-one-out over the whole design can fail far from the data
+    (an isotherm study warned of a design-wide misfit although the emulator matched the
+    simulator at the data).  The problems returned join that check's warning when it
+    fails (:func:`~kohpymc.emulator.checking.warn_at_data`).
     """
+    problems: list[str] = []
     for k, emulator in target.emulators.items():
         part = folder if target.single else folder / k
         part.mkdir(parents=True, exist_ok=True)
-        write_check(part, check_emulator(emulator, data=target.data.get(k)))
+        check = check_emulator(emulator, data=target.data.get(k), warn=False)
+        write_check(part, check)
+        problems += [p if target.single else f"{k}: {p}" for p in check.problems]
+    return problems
 
 
 def _calibrate_settings(sampling: Mapping[str, Any]) -> dict[str, Any]:

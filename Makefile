@@ -22,7 +22,7 @@ demo: $(STAMP)
 	$(VENV)/bin/kohpymc study kohpymc/examples/beam_study.toml --out out/beam_study
 
 test: $(STAMP)
-	$(PY) -m pytest --durations=20
+	$(PY) -m pytest -n 2 --dist loadfile --durations=20
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow

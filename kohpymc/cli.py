@@ -163,7 +163,11 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
         scheduler=kwargs.get("scheduler"),
         validation=kwargs["validation"],
     )
-    print(f"emulator: {physics.emulator!r} (checks in {out}/emulator/)")
+    runs = physics.emulator.runs
+    print(
+        f"emulator: {physics.emulator!r}; {runs.simulated} run(s) simulated now, "
+        f"{runs.cached} from {out}/emulator/runs/ (checks in {out}/emulator/)"
+    )
     _say_refinement(spec.emulator, out / "emulator")
     return physics
 

@@ -121,6 +121,7 @@ class EmulatorSettings:
     seed: int = 0
     refine_at_data: int = 2
     refine_runs: int | None = None
+    functional: tuple[str, ...] = ()
 
     def design_options(self) -> dict[str, Any]:
         """The keywords of :func:`~kohpymc.emulator.emulate` these settings fix.
@@ -172,7 +173,35 @@ class EmulatorSettings:
             raise _bad("log_output", f'must be true, false or "auto", got {values["log_output"]!r}')
         if "formulation" in values and not isinstance(values["formulation"], str):
             raise _bad("formulation", "must be a formulation label (a string)")
+        if "functional" in values:
+            values["functional"] = _functional_inputs(values)
+            values["refine_at_data"] = 0  # no refinement rounds for curves
         return cls(**values)
+
+
+def _functional_inputs(values: Mapping[str, Any]) -> tuple[str, ...]:
+    """``functional``: a non-empty list of distinct names; no refinement keys beside it."""
+    names = values["functional"]
+    if (
+        not isinstance(names, list)
+        or not names
+        or not all(isinstance(k, str) and k for k in names)
+        or len(set(names)) < len(names)
+    ):
+        raise _bad(
+            "functional",
+            "must be a list of the distinct physics inputs a run's curve spans "
+            f'(e.g. ["t"]), got {names!r}',
+        )
+    for key in ("refine_at_data", "refine_runs"):
+        if values.get(key):
+            raise _bad(
+                key,
+                f"is {values[key]!r}, but refinement rounds at the data are for the scalar "
+                "emulator; a functional one (functional = [...]) adds runs by sequential "
+                "rounds only (sequential = N)",
+            )
+    return tuple(names)
 
 
 def _bad(key: str, why: str) -> KeyError:
@@ -228,6 +257,13 @@ def study_physics(
     >>> physics.emulator.n_runs
     30
     """
+    if settings.functional:
+        from kohpymc.emulator.functional_study import study_functional_physics
+
+        return study_functional_physics(
+            settings, physics, calibration, out_dir, formulations=formulations,
+            sampling=sampling, workers=workers, scheduler=scheduler, validation=validation,
+        )  # fmt: skip
     folder = Path(out_dir) / "emulator"
     key = (
         rounds_key(settings, physics, calibration, formulations, sampling)
@@ -436,8 +472,11 @@ def rounds_key(
     their data) enters output by output.
     """
     outputs = tuple(getattr(physics, "outputs", ()))
+    table = asdict(settings)
+    if not settings.functional:  # keys recorded before the field existed stay valid
+        del table["functional"]
     parts: dict[str, Any] = {
-        "settings": asdict(settings),
+        "settings": table,
         "physics": (
             {k: physics_fingerprint(physics.output(k)) for k in outputs}
             if outputs

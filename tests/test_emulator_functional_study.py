@@ -191,9 +191,11 @@ def test_a_functional_study_file_gives_the_direct_posterior_and_resumes_without_
         assert main(["study", str(path), "--out", str(folder / "out"), *args]) == 0
         posteriors[label] = az.from_netcdf(folder / "out" / "M0.nc").posterior
     direct, emulated = posteriors["direct"], posteriors["emulated"]
+    measured = []
     for name in ("A", "k", "sigma_obs"):
         mean, sd = float(direct[name].mean()), float(direct[name].std())
         em_mean, em_sd = float(emulated[name].mean()), float(emulated[name].std())
+        measured.append(f"{name}: {em_mean:.5g} ± {em_sd:.4g}, direct {mean:.5g} ± {sd:.4g}")
         assert abs(em_mean - mean) < 0.25 * sd, (name, em_mean, mean, sd)
         assert 0.8 < em_sd / sd < 1.25, (name, em_sd, sd)
 
@@ -210,4 +212,5 @@ def test_a_functional_study_file_gives_the_direct_posterior_and_resumes_without_
     said = capsys.readouterr().out
     assert "0 run(s) simulated now" in said, said
     manifest = json.loads((folder / "out" / "study.json").read_text())
-    assert manifest["reused"] == ["M0"]
+    assert manifest["formulations"]["M0"]["status"] == "reused"
+    print("\n".join([*measured, rounds.to_string()]))  # shown by pytest -rP

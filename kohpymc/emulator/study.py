@@ -18,6 +18,8 @@
     # log_output = "auto"       # emulate ln y: true, false, or "auto" (positive runs
     #                           # spanning two decades or more)
     # seed = 0
+    # functional = ["t"]        # a curve per run over these inputs: a FunctionalEmulator
+    #                           # (kohpymc.emulator.functional_study; no refinement rounds)
 
 With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
 runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses them),

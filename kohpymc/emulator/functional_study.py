@@ -51,14 +51,12 @@ from kohpymc.emulator.functional import (
     run_curves,
 )
 from kohpymc.emulator.gp import EmulatorWarning
-from kohpymc.emulator.sequential import sequential_design
 from kohpymc.emulator.study import (
     ROUNDS_RECORD,
     EmulatorSettings,
-    _calibrate_settings,
-    _round_formulation,
     _write_json,
     rounds_key,
+    run_rounds,
     write_check,
     write_settings,
 )
@@ -196,41 +194,15 @@ def study_functional_physics(
     if emulator is None:
         emulator = study.fit(study.run(study.design(settings.runs, settings.design, settings.seed)))
         if settings.sequential > 0:
-            emulator = _rounds(study, emulator, calibration, folder, formulations, sampling)
+            emulator = run_rounds(
+                settings, physics, calibration, emulator, folder, formulations=formulations,
+                sampling=sampling, workers=workers, scheduler=scheduler,
+            )  # fmt: skip
             _write_record(folder, key, emulator)
     _write_held_out_check(study, emulator, folder)
     write_settings(folder, settings)
     write_functional_emulator(folder, emulator)
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
-
-
-def _rounds(
-    study: CurveStudy,
-    emulator: FunctionalEmulator,
-    calibration: CalibrationData,
-    folder: Path,
-    formulations: Mapping[str, Discrepancy] | None,
-    sampling: Mapping[str, Any] | None,
-) -> FunctionalEmulator:
-    """The sequential rounds of curves (``rounds.csv``); the last emulator."""
-    settings = study.settings
-    result = sequential_design(
-        study.physics,
-        calibration,
-        _round_formulation(settings, formulations),
-        emulator=emulator,
-        new_runs=settings.new_runs,
-        rounds=settings.sequential,
-        tolerance=settings.tolerance,
-        cache=study.cache,
-        seed=settings.seed,
-        workers=study.workers,
-        scheduler=study.scheduler,
-        **_calibrate_settings(sampling or {}),
-    )
-    table = result.table()
-    write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    return result.emulator
 
 
 def _write_record(folder: Path, key: str, emulator: FunctionalEmulator) -> None:

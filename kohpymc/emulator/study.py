@@ -652,6 +652,32 @@ def _sequential_rounds(
     scheduler: Any,
 ) -> Emulator:
     """Run the sequential rounds; write their table and the new check; the last emulator."""
+    emulator = run_rounds(
+        settings, physics, calibration, emulator, folder, formulations=formulations,
+        sampling=sampling, workers=workers, scheduler=scheduler,
+    )  # fmt: skip
+    target = EmulatorsAtData.of(emulator, calibration)
+    _write_checks(folder, target, workers=workers, scheduler=scheduler)
+    return emulator
+
+
+def run_rounds(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    emulator: Any,
+    folder: Path,
+    *,
+    formulations: Mapping[str, Discrepancy] | None,
+    sampling: Mapping[str, Any] | None,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> Any:
+    """:func:`sequential_design` with the settings' rounds; ``rounds.csv``; the last emulator.
+
+    ``emulator`` is an :class:`Emulator` or a ``FunctionalEmulator``; new runs are cached
+    in ``folder/runs``.
+    """
     result = sequential_design(
         physics,
         calibration,
@@ -668,8 +694,6 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    target = EmulatorsAtData.of(result.emulator, calibration)
-    _write_checks(folder, target, workers=workers, scheduler=scheduler)
     return result.emulator
 
 

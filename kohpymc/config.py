@@ -48,6 +48,7 @@ formulations and sampler settings::
     runs = 200                        # (keys: kohpymc.emulator.study, docs/emulator.md)
     design = "maximin-lhs"
     sequential = 2
+    # functional = ["t"]              # a curve per run over these inputs (FunctionalEmulator)
 
     [check]                           # optional: settings of `kohpymc check` (kohpymc.sbc)
     formulation = "M0"

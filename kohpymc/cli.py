@@ -163,9 +163,26 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
         scheduler=kwargs.get("scheduler"),
         validation=kwargs["validation"],
     )
-    print(f"emulator: {physics.emulator!r} (checks in {out}/emulator/)")
+    runs = physics.emulator.runs
+    print(
+        f"emulator: {physics.emulator!r}; {runs.simulated} run(s) simulated now, "
+        f"{runs.cached} from {out}/emulator/runs/ (checks in {out}/emulator/)"
+    )
     _say_refinement(spec.emulator, out / "emulator")
+    _say_skipped_rounds(out / "emulator")
     return physics
+
+
+def _say_skipped_rounds(folder: Path) -> None:
+    """One line when the sequential rounds were skipped (``rounds.csv``'s reason)."""
+    import pandas as pd
+
+    path = folder / "rounds.csv"
+    if not path.is_file():
+        return
+    table = pd.read_csv(path)
+    if "skipped" in table.columns:
+        print(f"sequential rounds skipped: {table['skipped'].iloc[0]} ({path})")
 
 
 def _say_refinement(settings: Any, folder: Path) -> None:

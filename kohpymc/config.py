@@ -48,6 +48,7 @@ formulations and sampler settings::
     runs = 200                        # (keys: kohpymc.emulator.study, docs/emulator.md)
     design = "maximin-lhs"
     sequential = 2
+    # functional = ["t"]              # a curve per run over these inputs (FunctionalEmulator)
 
     [check]                           # optional: settings of `kohpymc check` (kohpymc.sbc)
     formulation = "M0"
@@ -70,7 +71,7 @@ import importlib.util
 import math
 import sys
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -394,7 +395,7 @@ def load_study(path: str | Path) -> StudySpec:
         execution=execution,
         check=check,
         units=_units_table(path, doc["data"].get("units"), inputs, output),
-        emulator=_emulator_section(path, doc, formulations),
+        emulator=_emulator_section(path, doc, formulations, inputs),
     )
 
 
@@ -436,8 +437,17 @@ def _weight_column(
         raise _err(path, key, f"{err} ({source})") from err
 
 
-def _emulator_section(path: Path, doc: dict, formulations: Mapping[str, Any]) -> Any:
-    """``[emulator]``: :class:`kohpymc.emulator.study.EmulatorSettings`, or None."""
+def _emulator_section(
+    path: Path,
+    doc: dict,
+    formulations: Mapping[str, Any],
+    inputs: Sequence[str] | None = None,
+) -> Any:
+    """``[emulator]``: :class:`kohpymc.emulator.study.EmulatorSettings`, or None.
+
+    ``inputs`` (the physics inputs) must contain the ``functional`` ones; without
+    ``inputs`` (several outputs) ``functional`` is an error.
+    """
     from kohpymc.emulator.study import EmulatorSettings
 
     if "emulator" not in doc:
@@ -454,7 +464,26 @@ def _emulator_section(path: Path, doc: dict, formulations: Mapping[str, Any]) ->
             "emulator.formulation",
             f"{label!r} is not one of the formulations {list(formulations)}",
         )
+    if settings.functional:
+        _check_functional(path, settings.functional, inputs)
     return settings
+
+
+def _check_functional(path: Path, names: Sequence[str], inputs: Sequence[str] | None) -> None:
+    """``[emulator] functional`` names physics inputs (a single-output study only)."""
+    if inputs is None:
+        raise _err(
+            path,
+            "emulator.functional",
+            f"is {list(names)}, but a functional emulator is for single-output studies",
+        )
+    unknown = [k for k in names if k not in inputs]
+    if unknown:
+        raise _err(
+            path,
+            "emulator.functional",
+            f"{unknown} are not inputs of the physics (inputs: {list(inputs)})",
+        )
 
 
 def _read_document(path: Path) -> dict:

@@ -446,6 +446,7 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
         ('[emulator]\nkernel = "rbf"\n', 'M0 = "none"', "emulator.kernel"),
         ("[emulator]\nsequential = 1\n", 'M0 = "none"', "emulator.sequential"),
         ('[emulator]\nformulation = "M9"\n', 'M0 = "none"', "emulator.formulation"),
+        ('[emulator]\nfunctional = ["x"]\n', 'M0 = "none"', "emulator.functional"),
         (
             "[emulator]\nruns = 20\n",
             'ICM = { type = "coregionalized", inputs = ["x"] }',

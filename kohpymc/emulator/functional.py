@@ -61,9 +61,9 @@ import pytensor.tensor as pt
 from pymc.pytensorf import constant_fold
 from pytensor.graph.basic import Constant
 from pytensor.graph.traversal import graph_inputs
-from scipy import linalg, stats
+from scipy import linalg
 
-from kohpymc.emulator.checking import fit_problems
+from kohpymc.emulator.checking import EmulatorCheck, fit_problems
 from kohpymc.emulator.design import log_scaled
 from kohpymc.emulator.gp import (
     KERNELS,
@@ -93,6 +93,8 @@ __all__ = [
     "FunctionalEmulatedPhysics",
     "FunctionalEmulator",
     "FunctionalRuns",
+    "at_settings",
+    "distinct_rows",
     "merged_curves",
     "posterior_curve_design",
     "run_curves",
@@ -223,13 +225,50 @@ def posterior_curve_design(
     missing = [k for k in params if k not in draws.columns]
     if missing:
         raise KeyError(f"posterior_curve_design: the draws lack parameter(s) {missing}")
-    settings = np.unique(data.matrix(tuple(scalar)), axis=0) if scalar else np.empty((1, 0))
-    m = len(settings)
-    k = min(len(draws), max(1, int(round(n_new / m))))
+    settings = distinct_rows(scalar, data)
+    k = min(len(draws), max(1, int(round(n_new / len(settings)))))
     rng = np.random.default_rng(seed)
-    picked = draws[params].to_numpy(float)[rng.choice(len(draws), size=k, replace=False)]
-    rows = [np.column_stack([settings, np.tile(theta, (m, 1))]) for theta in picked]
-    return pd.DataFrame(np.vstack(rows), columns=[*scalar, *params])
+    picked = draws[params].iloc[rng.choice(len(draws), size=k, replace=False)]
+    return at_settings(picked, settings, scalar, params)
+
+
+def distinct_rows(columns: Sequence[str], *data: Any) -> np.ndarray:
+    """The distinct rows of the input ``columns`` over the data sets, sorted.
+
+    No columns: one empty row (a curve design without scalar inputs has one setting).
+
+    Examples
+    --------
+    >>> from kohpymc import CalibrationData
+    >>> a = CalibrationData({"s": [1.0, 0.0, 1.0], "t": [0.0, 1.0, 2.0]}, [0.0, 0.0, 0.0])
+    >>> b = CalibrationData({"s": [2.0], "t": [1.0]}, [0.0])
+    >>> distinct_rows(["s"], a, b).ravel().tolist(), distinct_rows([], a).shape
+    ([0.0, 1.0, 2.0], (1, 0))
+    """
+    if not columns:
+        return np.empty((1, 0))
+    return np.unique(np.vstack([d.matrix(tuple(columns)) for d in data]), axis=0)
+
+
+def at_settings(
+    thetas: pd.DataFrame, settings: np.ndarray, scalar: Sequence[str], parameters: Sequence[str]
+) -> pd.DataFrame:
+    """A curve design: every θ (a row of ``thetas``) at every setting of the scalar inputs.
+
+    Examples
+    --------
+    >>> at_settings(pd.DataFrame({"a": [0.2, 0.3]}), np.array([[0.0], [1.0]]), ["s"], ["a"])
+    ...                                                       # doctest: +NORMALIZE_WHITESPACE
+         s    a
+    0  0.0  0.2
+    1  1.0  0.2
+    2  0.0  0.3
+    3  1.0  0.3
+    """
+    m = len(settings)
+    values = thetas[list(parameters)].to_numpy(float)
+    rows = [np.column_stack([settings, np.tile(theta, (m, 1))]) for theta in values]
+    return pd.DataFrame(np.vstack(rows), columns=[*scalar, *parameters])
 
 
 def run_curves(
@@ -881,26 +920,51 @@ class FunctionalEmulator(SharedTrainingData):
         >>> bool(em.held_out(test)["rmse_sd"] < 0.01)
         True
         """
-        mean, sd = self.predict_curves(runs.design)
-        truth = np.log(runs.curves) if self.log_output else np.asarray(runs.curves, float)
-        z = (truth - mean) / np.maximum(sd, 1e-300)
-        half = stats.norm.ppf(0.5 + level / 2.0)
+        check = self.held_out_check(runs, level)
+        z = check.standardized_errors
         scores = {
-            "coverage": float(np.mean(np.abs(z) <= half)),
-            "rmse_sd": float(np.sqrt(np.mean((truth - mean) ** 2)) / max(np.std(truth), 1e-300)),
+            "coverage": check.coverage,
+            "rmse_sd": check.relative_rmse,
             "mean_z2": float(np.mean(z**2)),
-            "n_curves": float(len(truth)),
+            "n_curves": float(len(runs.curves)),
         }
-        problems = fit_problems(
-            "held-out", scores["coverage"], scores["rmse_sd"], z.size, level=level
-        )
-        if warn and problems:
+        if warn and check.problems:
             warn_user(
                 f"emulator of {self.physics.name!r} ({len(self.runs.design)} curves) is not "
-                "fit for calibration: " + "; ".join(problems),
+                "fit for calibration: " + "; ".join(check.problems),
                 EmulatorWarning,
             )
         return scores
+
+    def held_out_check(self, runs: FunctionalRuns, level: float = 0.9) -> EmulatorCheck:
+        """The held-out curves' grid values scored as an :class:`EmulatorCheck`.
+
+        Simulated values, means and sds are latent (ln output with ``log_output``), one
+        per grid point of every held-out curve; ``problems`` as in :meth:`held_out`.  Its
+        ``to_dict`` and ``figure`` are those of :func:`kohpymc.emulator.check_emulator`.
+
+        Examples
+        --------
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> line = PhysicsModel(lambda x, p: p["a"] * x["t"], {"a": Uniform(0, 1)},
+        ...                     inputs=["t"])
+        >>> grid = {"t": [0.0, 1.0, 2.0]}
+        >>> em = FunctionalEmulator(run_curves(line, space_filling_design({"a": (0, 1)}, 6),
+        ...                                    grid), line)
+        >>> check = em.held_out_check(run_curves(line, pd.DataFrame({"a": [0.5]}), grid))
+        >>> check.kind, check.simulated.size, check.fit
+        ('held-out', 3, True)
+        """
+        mean, sd = self.predict_curves(runs.design)
+        truth = np.log(runs.curves) if self.log_output else np.asarray(runs.curves, float)
+        check = EmulatorCheck(
+            "held-out", truth.ravel(), mean.ravel(), np.maximum(sd, 1e-300).ravel(), level
+        )
+        check.problems += fit_problems(
+            "held-out", check.coverage, check.relative_rmse, truth.size, level=level
+        )
+        return check
 
     # ----------------------------------------------------------------- pytensor
     #: evaluate the weight GPs' ``k`` and ``kᵀ K⁻¹ k`` by one compiled op,

@@ -18,6 +18,8 @@
     # log_output = "auto"       # emulate ln y: true, false, or "auto" (positive runs
     #                           # spanning two decades or more)
     # seed = 0
+    # functional = ["t"]        # a curve per run over these inputs: a FunctionalEmulator
+    #                           # (kohpymc.emulator.functional_study; no refinement rounds)
 
 With it, :func:`study_physics` replaces the study's physics by the emulator: simulator
 runs are cached in ``<output>/emulator/runs/`` (a resumed or extended study reuses them),
@@ -27,7 +29,9 @@ the validation of the emulator goes to ``<output>/emulator/check.json`` and ``ch
 that check fails, up to ``refine_at_data`` rounds add runs around the best fit
 (:func:`~kohpymc.emulator.refinement.refine_at_data`; no sampling), refit and check again;
 ``refine_at_data.json`` has every round's check, and the ``EmulatorWarning`` stays, saying
-so, when the last check still fails.  These rounds come before the sequential ones; the
+so, when the last check still fails.  These rounds come before the sequential ones, which
+are skipped when the last check passed with a predicted move below ``tolerance``
+(:func:`rounds_not_needed`; the reason in ``rounds.csv``); the
 sequential rounds to ``rounds.csv``, the fitted hyperparameters to ``emulator.json`` and
 every run (failures with their error) to ``runs.csv``. The rounds' final design goes to
 ``rounds.json`` (also after refinement rounds alone) with a key of the settings,
@@ -79,6 +83,7 @@ from kohpymc.warning_filters import warn_user
 __all__ = [
     "EmulatorSettings",
     "rounds_key",
+    "rounds_not_needed",
     "study_emulators",
     "study_physics",
     "warn_if_extrapolating",
@@ -121,6 +126,7 @@ class EmulatorSettings:
     seed: int = 0
     refine_at_data: int = 2
     refine_runs: int | None = None
+    functional: tuple[str, ...] = ()
 
     def design_options(self) -> dict[str, Any]:
         """The keywords of :func:`~kohpymc.emulator.emulate` these settings fix.
@@ -172,7 +178,35 @@ class EmulatorSettings:
             raise _bad("log_output", f'must be true, false or "auto", got {values["log_output"]!r}')
         if "formulation" in values and not isinstance(values["formulation"], str):
             raise _bad("formulation", "must be a formulation label (a string)")
+        if "functional" in values:
+            values["functional"] = _functional_inputs(values)
+            values["refine_at_data"] = 0  # no refinement rounds for curves
         return cls(**values)
+
+
+def _functional_inputs(values: Mapping[str, Any]) -> tuple[str, ...]:
+    """``functional``: a non-empty list of distinct names; no refinement keys beside it."""
+    names = values["functional"]
+    if (
+        not isinstance(names, list)
+        or not names
+        or not all(isinstance(k, str) and k for k in names)
+        or len(set(names)) < len(names)
+    ):
+        raise _bad(
+            "functional",
+            "must be a list of the distinct physics inputs a run's curve spans "
+            f'(e.g. ["t"]), got {names!r}',
+        )
+    for key in ("refine_at_data", "refine_runs"):
+        if values.get(key):
+            raise _bad(
+                key,
+                f"is {values[key]!r}, but refinement rounds at the data are for the scalar "
+                "emulator; a functional one (functional = [...]) adds runs by sequential "
+                "rounds only (sequential = N)",
+            )
+    return tuple(names)
 
 
 def _bad(key: str, why: str) -> KeyError:
@@ -228,6 +262,13 @@ def study_physics(
     >>> physics.emulator.n_runs
     30
     """
+    if settings.functional:
+        from kohpymc.emulator.functional_study import study_functional_physics
+
+        return study_functional_physics(
+            settings, physics, calibration, out_dir, formulations=formulations,
+            sampling=sampling, workers=workers, scheduler=scheduler, validation=validation,
+        )  # fmt: skip
     folder = Path(out_dir) / "emulator"
     key = (
         rounds_key(settings, physics, calibration, formulations, sampling)
@@ -243,7 +284,11 @@ def study_physics(
         )  # fmt: skip
         return EmulatorsAtData.of(emulator, calibration)
 
-    def sequential(target: EmulatorsAtData) -> EmulatorsAtData:
+    def sequential(target: EmulatorsAtData, last_check: Any) -> EmulatorsAtData:
+        reason = rounds_not_needed(settings, last_check)
+        if reason:
+            _write_skipped_rounds(folder, target.first, reason)
+            return target
         emulator = _sequential_rounds(
             settings, physics, calibration, target.first, folder, formulations=formulations,
             sampling=sampling, workers=workers, scheduler=scheduler,
@@ -269,7 +314,7 @@ def study_emulators(
     first: Callable[[], EmulatorsAtData],
     *,
     key: str = "",
-    more_rounds: Callable[[EmulatorsAtData], EmulatorsAtData] | None = None,
+    more_rounds: Callable[[EmulatorsAtData, Any], EmulatorsAtData] | None = None,
     workers: int = 1,
     scheduler: Any = None,
 ) -> dict[str, Emulator]:
@@ -294,7 +339,8 @@ def study_emulators(
     key : str
         What the rounds depend on (empty: nothing recorded or restored).
     more_rounds : callable, optional
-        Rounds after the refinement (the sequential ones).
+        Rounds after the refinement (the sequential ones), given the emulators and the
+        last check at the data.
     workers, scheduler :
         Where the simulator runs go.
 
@@ -322,9 +368,9 @@ def study_emulators(
     at_data = _write_checks(
         folder, target, warn=settings.refine_at_data == 0, workers=workers, scheduler=scheduler
     )
-    target = _refined(settings, target, at_data, folder, workers, scheduler)
+    target, last_check = _refined(settings, target, at_data, folder, workers, scheduler)
     if more_rounds is not None:
-        target = more_rounds(target)
+        target = more_rounds(target, last_check)
     if key:
         _write_rounds_record(folder, key, target.emulators)
     return target.emulators
@@ -381,15 +427,15 @@ def _refined(
     folder: Path,
     workers: int,
     scheduler: Any,
-) -> EmulatorsAtData:
+) -> tuple[EmulatorsAtData, Any]:
     """The refinement rounds at the data (if any and if the check failed); files and warning.
 
     ``refine_at_data.json`` records every round; with runs added, the checks over the
     design (``check.json``) and ``check_at_data.json`` are rewritten for the refitted
-    emulators.
+    emulators.  Returns the emulators and the last check at the data.
     """
     if settings.refine_at_data == 0:
-        return target
+        return target, at_data
     result = refine_emulators_at_data(
         target,
         rounds=settings.refine_at_data,
@@ -410,7 +456,50 @@ def _refined(
         result.target, result.checks[-1], _refinement_advice(settings, result),
         design_problems=design,
     )  # fmt: skip
-    return result.target
+    return result.target, result.checks[-1]
+
+
+def rounds_not_needed(settings: EmulatorSettings, check: Any) -> str:
+    """Why the sequential rounds would be idle (empty: they are not).
+
+    The rounds stop once the posterior moves less than ``tolerance`` posterior sds.  When
+    the last check at the data passed (after any refinement rounds) and predicts that the
+    emulator's error moves the least-squares θ by less than ``tolerance`` posterior sds
+    for every parameter, the first round's posterior would already be the last: on the
+    Langmuir isotherm (``runs = 40``, one refinement round to 112 runs, check passed) the
+    round added 54 runs and two calibrations, and the posterior through the refined
+    emulator was already within 0.02 direct sds of the direct one (the round moved it
+    0.07 sds).  A lower ``tolerance`` runs them.
+
+    Examples
+    --------
+    >>> empty = np.empty(0)
+    >>> check = EmulatorCheck("at the calibration data", empty, empty, empty,
+    ...                       shift={"E": 0.03})
+    >>> rounds_not_needed(EmulatorSettings(sequential=2), check)[:36]
+    'the check at the data passed and its'
+    >>> rounds_not_needed(EmulatorSettings(sequential=2, tolerance=0.01), check)
+    ''
+    """
+    shift = getattr(check, "shift", None)
+    if not check.fit or not shift:
+        return ""
+    largest = max(abs(v) for v in shift.values())
+    if largest >= settings.tolerance:
+        return ""
+    return (
+        f"the check at the data passed and its emulator error moves the least-squares θ by "
+        f"at most {largest:.2g} posterior sds (< tolerance = {settings.tolerance}): the "
+        "rounds' posterior would not move (lower tolerance to run them)"
+    )
+
+
+def _write_skipped_rounds(folder: Path, emulator: Emulator, reason: str) -> None:
+    """``rounds.csv`` of rounds not run: the emulator's runs and the reason."""
+    table = pd.DataFrame(
+        {"round": [0], "runs": [emulator.n_runs], "shift_sd": [float("nan")], "skipped": [reason]}
+    ).set_index("round")
+    write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
 
 
 def _design_problems(folder: Path, target: EmulatorsAtData) -> list[str]:
@@ -450,8 +539,11 @@ def rounds_key(
     their data) enters output by output.
     """
     outputs = tuple(getattr(physics, "outputs", ()))
+    table = asdict(settings)
+    if not settings.functional:  # keys recorded before the field existed stay valid
+        del table["functional"]
     parts: dict[str, Any] = {
-        "settings": asdict(settings),
+        "settings": table,
         "physics": (
             {k: physics_fingerprint(physics.output(k)) for k in outputs}
             if outputs
@@ -574,6 +666,32 @@ def _sequential_rounds(
     scheduler: Any,
 ) -> Emulator:
     """Run the sequential rounds; write their table and the new check; the last emulator."""
+    emulator = run_rounds(
+        settings, physics, calibration, emulator, folder, formulations=formulations,
+        sampling=sampling, workers=workers, scheduler=scheduler,
+    )  # fmt: skip
+    target = EmulatorsAtData.of(emulator, calibration)
+    _write_checks(folder, target, workers=workers, scheduler=scheduler)
+    return emulator
+
+
+def run_rounds(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    emulator: Any,
+    folder: Path,
+    *,
+    formulations: Mapping[str, Discrepancy] | None,
+    sampling: Mapping[str, Any] | None,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> Any:
+    """:func:`sequential_design` with the settings' rounds; ``rounds.csv``; the last emulator.
+
+    ``emulator`` is an :class:`Emulator` or a ``FunctionalEmulator``; new runs are cached
+    in ``folder/runs``.
+    """
     result = sequential_design(
         physics,
         calibration,
@@ -590,8 +708,6 @@ def _sequential_rounds(
     )
     table = result.table()
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-    target = EmulatorsAtData.of(result.emulator, calibration)
-    _write_checks(folder, target, workers=workers, scheduler=scheduler)
     return result.emulator
 
 

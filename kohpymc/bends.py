@@ -828,6 +828,15 @@ def bend_coordinates(
 #: others' conditional mode 0.5, 7.8, 49 and 177 transverse sds off at z = 0.05, 0.2, 0.5, 1)
 _FOLLOW_NODES = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.5])
 
+#: past the follow nodes a side of the path goes on through these while the log density at
+#: its last conditional mode is less than ``_FAR_DROP`` below the mode's (a Gaussian's at
+#: 5 sds; one draw in 2000 of a 5-dimensional Gaussian lies 11 below its mode): a ridge
+#: that a bound ends far out (Steinhart-Hart with a constant bias, measured from C near its
+#: upper bound: drop 8.0 at 4.5 sds, 12.3 at 14; continued straight from 4.5, the path was
+#: 250 transverse sds off at 14, and draws went to 12.9)
+_FAR_NODES = np.array([6.0, 8.0, 10.5, 14.0, 18.0, 24.0])
+_FAR_DROP = 12.5
+
 #: an axis is followed when its drop at ±1.5 sd misses a Gaussian's (1.125) by more than this
 _FOLLOW_ERROR = 1.0
 
@@ -837,19 +846,24 @@ _FOLLOW_OPTIONS = {"maxiter": 3000, "ftol": 1e-13, "gtol": 1e-8}
 
 def _marched_path(
     space: ValueSpace, plan: Reparameterization, k: int, held: list[int]
-) -> np.ndarray | None:
-    """The others' conditional modes at ``±_FOLLOW_NODES`` of ``z_k``, marched outwards.
+) -> dict[float, np.ndarray] | None:
+    """The others' conditional modes at ``±`` the follow nodes of ``z_k``, marched outwards.
 
     Each optimisation starts from the linear extrapolation of the two previous modes: from
     0, L-BFGS stops short of a mode that lies hundreds of sds away (dielectric M3, where
     :func:`bend_plan`'s parabolas scored 45–62 against the unbent 22.5).  The axes ``held``
-    stay at 0 and are not moved.  Rows follow ``_follow_nodes()``; None where a mode is not
-    found.
+    stay at 0 and are not moved.  Past ``_FOLLOW_NODES`` a side goes on through
+    ``_FAR_NODES`` while the log density at its last mode is less than ``_FAR_DROP`` below
+    the mode's.  Returns the modes (``z_k`` and ``held`` zeroed) by node; None where a
+    mode is not found.
     """
     modes = {0.0: np.zeros(plan.ndim)}
-    for side in (_FOLLOW_NODES, -_FOLLOW_NODES):
+    base, _ = plan.logp_dlogp(space, np.zeros(plan.ndim), safe=True)
+    for sign in (1.0, -1.0):
         previous = [(0.0, np.zeros(plan.ndim))]
-        for t in side:
+        for t in sign * np.concatenate([_FOLLOW_NODES, _FAR_NODES]):
+            if abs(t) > _FOLLOW_NODES[-1] and _far_enough(space, plan, k, previous[-1], base):
+                break
             guess = previous[-1][1]
             if len(previous) > 1:
                 (ta, xa), (tb, xb) = previous[-2], previous[-1]
@@ -859,15 +873,44 @@ def _marched_path(
             )
             if mode is None:
                 return None
+            mode[[k, *held]] = 0.0
             modes[float(t)] = mode
             previous.append((float(t), mode))
-    path = np.array([modes[float(t)] for t in _follow_nodes()])
-    path[:, [k, *held]] = 0.0
-    return path
+    return modes
 
 
-def _follow_nodes() -> np.ndarray:
-    return np.concatenate([-_FOLLOW_NODES[::-1], [0.0], _FOLLOW_NODES])
+def _far_enough(
+    space: ValueSpace, plan: Reparameterization, k: int, node: tuple[float, np.ndarray], base
+) -> bool:
+    """Whether the log density at the conditional mode ``node`` is ``_FAR_DROP`` below ``base``."""
+    t, mode = node
+    z = mode.copy()
+    z[k] = t
+    return _drop(space, plan, z, base) > _FAR_DROP
+
+
+def _path_at(modes: dict[float, np.ndarray], nodes: np.ndarray) -> np.ndarray:
+    """The marched modes at ``nodes`` (rows).
+
+    A node past the last mode marched on its side (where the log density is already
+    ``_FAR_DROP`` down) continues the straight line through the last two, as
+    :class:`CurveBend` does beyond its outer node.
+    """
+    rows = []
+    for t in (float(t) for t in nodes):
+        if t in modes:
+            rows.append(modes[t])
+            continue
+        outer = sorted((s for s in modes if s * t > 0), key=abs)[-2:]
+        (ta, xa), (tb, xb) = ((s, modes[s]) for s in outer)
+        rows.append(xb + (xb - xa) * (t - tb) / (tb - ta))
+    return np.array(rows)
+
+
+def _follow_nodes(reach: float = 0.0) -> np.ndarray:
+    """The follow nodes and the far ones up to ``reach``, on both sides of 0."""
+    side = np.concatenate([_FOLLOW_NODES, _FAR_NODES[_FAR_NODES <= reach]])
+    return np.concatenate([-side[::-1], [0.0], side])
 
 
 def follow_plan(space: ValueSpace, plan: Reparameterization) -> BentCoordinatesPlan | None:
@@ -890,20 +933,95 @@ def follow_plan(space: ValueSpace, plan: Reparameterization) -> BentCoordinatesP
     axes = [int(k) for k in np.argsort(-errors, kind="stable") if errors[k] > _FOLLOW_ERROR]
     if not axes or len(axes) == plan.ndim:
         return None
-    paths = [_marched_path(space, plan, k, [a for a in axes if a != k]) for k in axes]
-    if any(p is None for p in paths):
+    # every bad axis followed, and the ridge followed along its own direction: one ridge
+    # that two whitened axes cross is not followed by their two paths, each taken with
+    # the other axis at 0 (Steinhart-Hart with a constant bias: draws 30-150 transverse sds
+    # off the summed paths; along the ridge's direction, 15 degrees off the worst axis,
+    # score 0.191 -> 0.129 and drops 4.5 at ±3 sds across it, 3.3-6.4 before)
+    # The two are compared also along the diagonals of the two worst axes' plane, where
+    # summed paths miss a ridge that moves both and the axes' own drops do not look.
+    candidates = [_followed(space, plan, axes)]
+    if len(axes) > 1:
+        turned = _turned_to_ridge(space, plan, axes[0], axes[1])
+        candidates.append(None if turned is None else _followed(space, turned, [axes[0]]))
+    choices = [c for c in candidates if c is not None]
+    if not choices:
         return None
+    plane = axes[:2]
+    best = min(choices, key=lambda c: c.gaussian_score + _diagonal_error(space, c, plane))
+    return best if best.gaussian_score < plan.gaussian_score else None
+
+
+def _diagonal_error(space: ValueSpace, plan: Reparameterization, axes: list[int]) -> float:
+    """Mean |drop − 1.125| at ±1.5 along the diagonals of two axes' plane (0 for one axis)."""
+    if len(axes) < 2:
+        return 0.0
+    base, _ = plan.logp_dlogp(space, np.zeros(plan.ndim), safe=True)
+    errors = []
+    for second in (1.0, -1.0):
+        for sign in (1.0, -1.0):
+            z = np.zeros(plan.ndim)
+            z[axes] = sign * 1.5 * np.array([1.0, second]) / np.sqrt(2.0)
+            errors.append(min(abs(_drop(space, plan, z, base) - 1.125), 100.0))
+    return float(np.mean(errors))
+
+
+def _turned_to_ridge(
+    space: ValueSpace, plan: Reparameterization, a: int, b: int, reach: float = 1.5
+) -> Reparameterization | None:
+    """``plan`` with whitened axes ``a`` and ``b`` turned so that ``a`` runs along the ridge.
+
+    The others' conditional modes at ``±reach`` along a unit direction ``u`` of the
+    ``(a, b)`` plane move by ``uᵀ M u`` (their symmetric part, projected on its value along
+    ``a``); the ridge runs along the leading eigenvector of the 2 × 2 form ``M``, fitted
+    from the directions 0°, 45° and 90°.  The rotation is orthogonal in the whitened
+    coordinates, so the Laplace fit stays valid.  None where a mode is not found.
+    """
+    held = [a, b]
+    shifts = []
+    for angle in (0.0, 0.25 * np.pi, 0.5 * np.pi):
+        u = np.array([np.cos(angle), np.sin(angle)])
+        ends = []
+        for sign in (1.0, -1.0):
+            fixed = {a: sign * reach * u[0], b: sign * reach * u[1]}
+            mode = _conditional_mode(space, plan, a, fixed[a], [b], {b: fixed[b]})
+            if mode is None:
+                return None
+            mode[held] = 0.0
+            ends.append(mode)
+        shifts.append(0.5 * (ends[0] + ends[1]))
+    scale = np.linalg.norm(shifts[0])
+    if not scale > 0:
+        return None
+    f0, f45, f90 = (float(shift @ shifts[0]) / scale for shift in shifts)
+    form = np.array([[f0, f45 - 0.5 * (f0 + f90)], [f45 - 0.5 * (f0 + f90), f90]])
+    values, vectors = np.linalg.eigh(form)
+    c, s = vectors[:, int(np.argmax(np.abs(values)))]
+    turn = np.eye(plan.ndim)
+    turn[np.ix_(held, held)] = [[c, -s], [s, c]]
+    return replace(plan, chol=plan.chol @ turn)
+
+
+def _followed(
+    space: ValueSpace, plan: Reparameterization, axes: list[int]
+) -> BentCoordinatesPlan | None:
+    """``plan`` with ``axes`` followed along their marched paths, scored (None: no path)."""
+    marched = []
+    for k in axes:
+        modes = _marched_path(space, plan, k, [a for a in axes if a != k])
+        if modes is None:
+            return None
+        marched.append(modes)
+    nodes = _follow_nodes(max(max(abs(t) for t in modes) for modes in marched))
+    paths = [_path_at(modes, nodes) for modes in marched]
     # not-a-knot ends: a path that still curves at the outer nodes (y − κx² − cx³) is not
     # straightened there, as natural ends would
-    bend = CurveBend(tuple(axes), _follow_nodes(), np.array(paths), ends="not-a-knot")
+    bend = CurveBend(tuple(axes), nodes, np.array(paths), ends="not-a-knot")
     base = {f.name: getattr(plan, f.name) for f in fields(Reparameterization)}
     candidate = BentCoordinatesPlan(
         **{**base, "kind": f"followed-{plan.kind}"}, inner=plan, bend=bend
     )
-    score = _gaussian_score(space, candidate)
-    if not score < plan.gaussian_score:
-        return None
-    return replace(candidate, gaussian_score=score)
+    return replace(candidate, gaussian_score=_gaussian_score(space, candidate))
 
 
 #: an axis is light-tailed when its log density drops more than this at ±3 sd (mean of the

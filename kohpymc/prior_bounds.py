@@ -143,6 +143,7 @@ def against_bounds(
     sd: np.ndarray | None = None,
     draws: np.ndarray | None = None,
     evidence: str = "mode",
+    sds: float = MODE_SDS,
 ) -> list[BoundHit]:
     """Parameters whose posterior lies against a finite bound (see the module docstring).
 
@@ -157,6 +158,9 @@ def against_bounds(
     draws : ndarray, optional
         Posterior draws, shape ``(n, len(names))`` (``evidence="draws"``).
     evidence : {"mode", "draws"}
+    sds : float
+        At the mode: how many Laplace sds from a bound count as against it (default
+        :data:`MODE_SDS`).
 
     Returns
     -------
@@ -182,8 +186,8 @@ def against_bounds(
         ]
         # a posterior as wide as the box (±MODE_SDS sds do not fit in it) is the prior's
         # spread, not a pile-up at one side: it reaches both bounds
-        narrow = 2.0 * MODE_SDS * own_sd < own_upper - own_lower
-        near = [(m < MODE_SDS) & narrow for m, _ in measures]
+        narrow = 2.0 * sds * own_sd < own_upper - own_lower
+        near = [(m < sds) & narrow for m, _ in measures]
     else:
         x = np.asarray(draws, float).reshape(-1, len(names))
         value = np.median(x, axis=0)
@@ -293,7 +297,9 @@ def interval_labels(space: ValueSpace) -> dict[int, str]:
     return dict(zip(index.tolist(), labels, strict=True))
 
 
-def hits_at_mode(space: ValueSpace, mode: np.ndarray, value_sd: np.ndarray) -> list[BoundHit]:
+def hits_at_mode(
+    space: ValueSpace, mode: np.ndarray, value_sd: np.ndarray, *, sds: float = MODE_SDS
+) -> list[BoundHit]:
     """:func:`against_bounds` at the value-space ``mode`` with its Laplace sd ``value_sd``.
 
     Both are mapped to the parameters' units by the interval transform
@@ -316,7 +322,7 @@ def hits_at_mode(space: ValueSpace, mode: np.ndarray, value_sd: np.ndarray) -> l
     s = expit(np.asarray(mode, float)[index])
     x = a + (b - a) * s
     sd = np.asarray(value_sd, float)[index] * (b - a) * s * (1.0 - s)
-    hits = against_bounds(labels, a, b, mode=x, sd=sd, evidence="mode")
+    hits = against_bounds(labels, a, b, mode=x, sd=sd, evidence="mode", sds=sds)
     return [replace(hit, index=int(index[hit.index])) for hit in hits]
 
 

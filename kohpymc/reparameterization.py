@@ -52,7 +52,7 @@ import numpy as np
 from scipy import optimize, stats
 from scipy.special import expit
 
-from kohpymc.prior_bounds import hits_at_mode, interval_labels
+from kohpymc.prior_bounds import MODE_SDS, hits_at_mode, interval_labels
 from kohpymc.value_space import ValueSpace, transformed_value
 
 __all__ = [
@@ -84,6 +84,9 @@ _BEND_SCORE = 0.25
 #: Gaussian score above which a plan that no parabola improves has its worst axes followed
 #: along the others' conditional modes (:func:`kohpymc.bends.follow_plan`)
 _FOLLOW_SCORE = 5.0
+#: a bound this many Laplace sds from the mode may end the ridge of a plan that fits badly
+#: (the outer node of the path :func:`kohpymc.bends.follow_plan` follows)
+_FAR_BOUND_SDS = 4.5
 #: eigenvalues of the unit-diagonal Hessian below this share of the largest are raised to
 #: it for a provisional whitening, whose axes are then differenced again (:func:`_laplace`)
 _PROVISIONAL_FLOOR = 1e-9
@@ -1088,7 +1091,7 @@ def plan(
     plans = [p for p in (_whitened(space, c, mode.value, mode) for c in candidates) if p]
     plans = [p for p in plans if not p.coordinates.walls or _far_from_walls(space, p)]
     plans += _near_bound_plans(space, plans, mode)
-    plans += [p for p in (_bound_ridge_plan(space, p, mode) for p in plans) if p]
+    plans += _bound_ridge_plans(space, plans, mode)
     shared = _shares_text(shares)
     if not plans:
         return _flat_plan(space, pymc_coords, mode, shared)
@@ -1164,17 +1167,36 @@ def _followed(space: ValueSpace, best: Reparameterization) -> Any:
     return follow_plan(space, best)
 
 
+def _bound_ridge_plans(
+    space: ValueSpace, plans: list[Reparameterization], mode: Mode
+) -> list[Reparameterization]:
+    """Each of ``plans`` with a :class:`BoundRidge` where a bound is near (see below).
+
+    Near means within ``MODE_SDS`` Laplace sds of the mode; when no parameter is that near
+    and every plan fits badly (score above ``_FOLLOW_SCORE``), within ``_FAR_BOUND_SDS``:
+    a Laplace map that fits badly understates how far its ridge runs, and a bound further
+    out can still end it (Steinhart-Hart with a constant bias: C's upper bound 3.1 Laplace
+    sds from the mode; the ridge, followed in interval coordinates, ends on a wall there,
+    log density −77 at 3 sds; measured from C in its own units it runs on smoothly).
+    """
+    ridged = [p for p in (_bound_ridge_plan(space, p, mode) for p in plans) if p]
+    if ridged or not plans or min(p.gaussian_score for p in plans) <= _FOLLOW_SCORE:
+        return ridged
+    far = (_bound_ridge_plan(space, p, mode, sds=_FAR_BOUND_SDS) for p in plans)
+    return [p for p in far if p]
+
+
 def _bound_ridge_plan(
-    space: ValueSpace, laplace: Reparameterization, mode: Mode
+    space: ValueSpace, laplace: Reparameterization, mode: Mode, *, sds: float = MODE_SDS
 ) -> Reparameterization | None:
     """``laplace``'s coordinates with a :class:`BoundRidge`, or None.
 
-    For the parameters whose mode lies against a prior bound
+    For the parameters whose mode lies within ``sds`` Laplace sds of a prior bound
     (:func:`kohpymc.prior_bounds.hits_at_mode`); None when there are none.
     """
     if laplace.coordinates.walls or laplace.value_sd is None:
         return None
-    hits = hits_at_mode(space, mode.value, laplace.value_sd)
+    hits = hits_at_mode(space, mode.value, laplace.value_sd, sds=sds)
     bounded = np.unique(np.array([hit.index for hit in hits], dtype=int))
     if bounded.size == 0 or bounded.size == laplace.ndim:
         return None

@@ -620,12 +620,7 @@ def _paths(
 
 
 #: rounds of midpoints added to :data:`_CURVE_NODES` where a path bends between its nodes
-#: (each round halves the intervals it refines: 1.5 sds down to 0.023)
-_REFINE_ROUNDS = 6
-
-#: a midpoint becomes a node when the log density on the spline there lies this far below
-#: the conditional mode's: a Gaussian's drop at ``_MIN_SHIFT`` conditional sds
-_MAX_GAP = 0.5 * _MIN_SHIFT**2
+_REFINE_ROUNDS = 3
 
 
 def _refined_paths(
@@ -635,68 +630,34 @@ def _refined_paths(
 
     Starting from :data:`_CURVE_NODES`, the conditional modes are found at the midpoints
     of the intervals, each search starting on the spline through the nodes (so that it
-    stays on the ridge the path follows).  A midpoint becomes a node (for every bent axis)
-    where a mode lies more than ``_MIN_SHIFT`` sds from the spline, or where the log
-    density on the spline lies more than :data:`_MAX_GAP` below the mode's (the same miss
-    in the ridge's own transverse sds, where its width differs from the whitened one); the
-    next round looks only at the intervals next to the new nodes, for at most
+    stays on the ridge the path follows); where a mode lies more than ``_MIN_SHIFT`` sds
+    from the spline, the midpoint becomes a node (for every bent axis), for at most
     :data:`_REFINE_ROUNDS` rounds.  The Gaussian score probes ±1.5 sds, which are nodes,
     so it cannot see a spline that swings between them: Nusselt-correlation M3's ridge
     curve, whose others' conditional modes turn within 0.5 sd of its narrow end, was
     bent 10–12 sds off the ridge at ``z = 0.8–1.0`` (log density 200–300 below the path's;
-    2 × 1000 draws: 30 divergences there, bulk ESS 40).  Dielectric M2's ε_∞ path turns
-    at ``z = −3.1``, where E_A reaches its bound and ln γ takes over, and the ridge is
-    narrow: a spline 0.35 whitened sds off lay 2.0 below the mode (8 divergences in 4 ×
-    1000 draws).  None where a mode is not found.
+    2 × 1000 draws: 30 divergences there, bulk ESS 40).  None where a mode is not found.
     """
-    centres = [_conditional_mode(space, plan, k, 0.0, bent) for k in bent]
-    if any(c is None for c in centres):
-        return None
     nodes = _CURVE_NODES.copy()
     paths = _paths(space, plan, bent, nodes)
-    fresh = np.ones(nodes.size - 1, bool)
     for _ in range(_REFINE_ROUNDS):
         if paths is None:
             return None
-        mids = 0.5 * (nodes[1:] + nodes[:-1])[fresh]
+        mids = 0.5 * (nodes[1:] + nodes[:-1])
         splines = [CubicSpline(nodes, p, axis=0, bc_type="natural") for p in paths]
         found = _paths(space, plan, bent, mids, [s(mids) for s in splines])
         if found is None:
             return None
-        added = np.zeros(mids.size, bool)
-        for k, centre, f, s in zip(bent, centres, found, splines, strict=True):
-            added |= np.abs(f - s(mids)).max(axis=1) > _MIN_SHIFT
-            added |= _gaps(space, plan, k, mids, centre + f, centre + s(mids)) > _MAX_GAP
+        miss = [np.abs(f - s(mids)).max(axis=1) for f, s in zip(found, splines, strict=True)]
+        added = np.max(miss, axis=0) > _MIN_SHIFT
         if not added.any():
             break
-        nodes = np.concatenate([nodes, mids[added]])
-        order = np.argsort(nodes, kind="stable")
-        is_new = np.concatenate(
-            [np.zeros(nodes.size - added.sum(), bool), np.ones(added.sum(), bool)]
-        )[order]
-        nodes = nodes[order]
+        order = np.argsort(np.concatenate([nodes, mids[added]]), kind="stable")
+        nodes = np.concatenate([nodes, mids[added]])[order]
         paths = [np.concatenate([p, f[added]])[order] for p, f in zip(paths, found, strict=True)]
-        fresh = is_new[1:] | is_new[:-1]
     if paths is None:
         return None
     return nodes, np.array(paths)
-
-
-def _gaps(
-    space: ValueSpace, plan: Reparameterization, k: int, at: np.ndarray, modes, guesses
-) -> np.ndarray:
-    """Log density at the conditional ``modes`` less that at ``guesses`` (rows), ``z_k = at``."""
-    out = np.empty(at.size)
-    for i, t in enumerate(at):
-        best, guess = modes[i].copy(), guesses[i].copy()
-        best[k] = guess[k] = t
-        with np.errstate(all="ignore"):
-            gap = (
-                plan.logp_dlogp(space, best, safe=True)[0]
-                - plan.logp_dlogp(space, guess, safe=True)[0]
-            )
-        out[i] = gap if np.isfinite(gap) else np.inf
-    return out
 
 
 def _interactions(space: ValueSpace, plan: Reparameterization, bent: list[int], at: float = 2.0):

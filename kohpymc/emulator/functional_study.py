@@ -29,7 +29,6 @@ positive and they span two decades or more.  No refinement rounds at the data.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -55,6 +54,7 @@ from kohpymc.emulator.study import (
     ROUNDS_RECORD,
     EmulatorSettings,
     _write_json,
+    read_rounds_record,
     rounds_key,
     run_rounds,
     write_check,
@@ -222,14 +222,8 @@ def _restored(study: CurveStudy, folder: Path, key: str) -> FunctionalEmulator |
 
     None without rounds (empty ``key``), without a record or with another key.
     """
-    path = folder / ROUNDS_RECORD
-    if not key or not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(record, dict) or record.get("key") != key:
+    record = read_rounds_record(folder, key)
+    if record is None:
         return None
     design = pd.DataFrame(record["design"], columns=record["columns"])
     return study.fit(study.run(design), log_output=bool(record["log_output"]))

@@ -365,10 +365,10 @@ def study_emulators(
     if emulators is not None:
         return emulators
     target = first()
-    at_data = _write_checks(
+    at_data, design = _write_checks(
         folder, target, warn=settings.refine_at_data == 0, workers=workers, scheduler=scheduler
     )
-    target, last_check = _refined(settings, target, at_data, folder, workers, scheduler)
+    target, last_check = _refined(settings, target, at_data, design, folder, workers, scheduler)
     if more_rounds is not None:
         target = more_rounds(target, last_check)
     if key:
@@ -424,6 +424,7 @@ def _refined(
     settings: EmulatorSettings,
     target: EmulatorsAtData,
     at_data: Any,
+    design: list[str],
     folder: Path,
     workers: int,
     scheduler: Any,
@@ -432,7 +433,9 @@ def _refined(
 
     ``refine_at_data.json`` records every round; with runs added, the checks over the
     design (``check.json``) and ``check_at_data.json`` are rewritten for the refitted
-    emulators.  Returns the emulators and the last check at the data.
+    emulators.  ``design``: the problems of the first emulators' checks over the design,
+    named in the warning when the last check at the data fails.  Returns the emulators
+    and the last check at the data.
     """
     if settings.refine_at_data == 0:
         return target, at_data
@@ -448,7 +451,6 @@ def _refined(
         scheduler=scheduler,
     )
     _write_json(folder / REFINEMENT_RECORD, result.to_dict())
-    design = _design_problems(folder, target)
     if result.added:
         design = _write_design_checks(folder, result.target)
         _write_json(folder / "check_at_data.json", result.checks[-1].to_dict())
@@ -500,16 +502,6 @@ def _write_skipped_rounds(folder: Path, emulator: Emulator, reason: str) -> None
         {"round": [0], "runs": [emulator.n_runs], "shift_sd": [float("nan")], "skipped": [reason]}
     ).set_index("round")
     write_atomic(folder / "rounds.csv", lambda tmp: table.to_csv(tmp))
-
-
-def _design_problems(folder: Path, target: EmulatorsAtData) -> list[str]:
-    """The problems recorded in the outputs' ``check.json`` (:func:`_write_design_checks`)."""
-    problems: list[str] = []
-    for k in target.emulators:
-        part = folder if target.single else folder / k
-        recorded = json.loads((part / "check.json").read_text()).get("problems", [])
-        problems += [p if target.single else f"{k}: {p}" for p in recorded]
-    return problems
 
 
 def _refinement_advice(settings: EmulatorSettings, result: Refinement) -> str:
@@ -581,6 +573,32 @@ def _write_rounds_record(folder: Path, key: str, emulators: Mapping[str, Emulato
     write_atomic(folder / ROUNDS_RECORD, lambda tmp: tmp.write_text(text))
 
 
+def read_rounds_record(folder: Path, key: str) -> dict[str, Any] | None:
+    """``rounds.json`` of ``folder`` when it was written under ``key``, else None.
+
+    None also without rounds (empty ``key``) and for a missing or unreadable file (the
+    rounds then run again; their simulator runs still come from the cache).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> _write_json(folder / ROUNDS_RECORD, {"key": "a", "design": []})
+    >>> read_rounds_record(folder, "a")["design"], read_rounds_record(folder, "b")
+    ([], None)
+    """
+    path = folder / ROUNDS_RECORD
+    if not key or not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("key") != key:
+        return None
+    return record
+
+
 def _restored_rounds(
     folder: Path,
     key: str,
@@ -595,14 +613,8 @@ def _restored_rounds(
     differs (then the rounds run again; their simulator runs still come from the cache).
     A failed last check at the data (in ``check_at_data.json``) warns again.
     """
-    path = folder / ROUNDS_RECORD
-    if not key or not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(record, dict) or record.get("key") != key:
+    record = read_rounds_record(folder, key)
+    if record is None:
         return None
     design = pd.DataFrame(record["design"], columns=record["columns"])
     runs = run_design(
@@ -718,12 +730,13 @@ def _write_checks(
     warn: bool = True,
     workers: int = 1,
     scheduler: Any = None,
-) -> Any:
+) -> tuple[Any, list[str]]:
     """``check.json``/``.png`` over the design, and ``check_at_data.json`` at the data.
 
     The second runs the simulator once, at the emulators' best fit to the calibration
     rows (cached in ``folder/runs`` like the design), since leave-one-out over the prior
-    box can pass an emulator that is many noise sds off where the data are.  Returns it.
+    box can pass an emulator that is many noise sds off where the data are.  Returns it
+    and the problems over the design (:func:`_write_design_checks`).
     """
     design = _write_design_checks(folder, target)
     at_data = check_target_at_data(
@@ -732,7 +745,7 @@ def _write_checks(
     if warn:
         warn_at_data(target, at_data, design_problems=design)
     _write_json(folder / "check_at_data.json", at_data.to_dict())
-    return at_data
+    return at_data, design
 
 
 def _write_design_checks(folder: Path, target: EmulatorsAtData) -> list[str]:

@@ -376,7 +376,12 @@ def call_density(typingctx: Any, address: Any, x: Any, theta: Any, out: Any, log
 def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any, Any, Any] | None:
     """Nutpie's C function as ``map_in_z`` around the space's compiled density, or None.
 
-    Returns ``(C function, the map's compiled function, user data)``: the user data are
+    A plain plan (affine, with elementwise coordinates and variance shares, no bound
+    ridge) takes :func:`_affine_logp_c`, one C function whose user data hold the whole
+    map (:func:`_affine_user_data`): compiled once for every dimension and model (the
+    beam study's five formulations compiled five maps before, ~17 s from empty caches),
+    and no map function is returned.  Other plans compile their map:
+    returns ``(C function, the map's compiled function, user data)``: the user data are
     the plan's ``μ``, ``vec L`` and map constants, the address of the space's density
     (:attr:`~kohpymc.value_space.NumbaDensity.c_function`, its bits as one float64) and
     its shared values.  The C function holds the map only (the model's graph is
@@ -390,6 +395,9 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     density = space._logp_dlogp
     if not isinstance(density, NumbaDensity) or density.c_function is None:
         return None
+    user_data = _affine_user_data(mapping, density)
+    if user_data is not None:  # one compiled function for every plain plan
+        return _affine_logp_c(), None, user_data
     n = space.ndim
     z, m, g, outputs = map_in_z(mapping, n)
     function = pm.pytensorf.compile([z, m, g], outputs, mode="NUMBA")
@@ -560,3 +568,163 @@ def expand_draws(
     )
     idata.posterior = posterior
     return idata
+
+
+# --- one C function for every plain plan: the map's structure in the user data -------------
+
+#: :func:`_affine_user_data`'s header: total length, density address, dimension, walls flag,
+#: number of variance-share pairs, start of the density's shared values
+_HEADER = 6
+
+
+def _affine_user_data(mapping: Reparameterization, density: NumbaDensity) -> np.ndarray | None:
+    """The user data of :func:`_affine_logp_c` for ``mapping`` around ``density``, or None.
+
+    The plan's whole map is data: a header (:data:`_HEADER`), ``μ``, ``L`` (row-major),
+    the elementwise coordinates (log-scale flags, lower and upper bounds), the
+    variance-share pairs ``(i, j, c)``, then the density's shared values.  None for a
+    plan this generic map does not cover (a subclass with its own map or map constants,
+    a bound ridge): those compile their own map (:func:`_composed_logp`).
+    """
+    coords = mapping.coordinates
+    if type(mapping) is not Reparameterization or coords.ridge is not None:
+        return None
+    n = mapping.ndim
+    pairs = () if coords.shares is None else coords.shares.pairs
+    parts = [
+        np.ravel(mapping.mean), np.ravel(mapping.chol), coords.log_scale.astype(float),
+        np.nan_to_num(coords.lower, nan=1.0), np.nan_to_num(coords.upper, nan=2.0),
+        np.ravel(np.array(pairs, dtype=float)),
+    ]  # fmt: skip
+    start = _HEADER + sum(p.size for p in parts)
+    shared = density.theta()
+    address = np.array([density.c_function.address], dtype=np.int64).view(np.float64)[0]
+    header = [start + shared.size, address, n, float(coords.walls), len(pairs), start]
+    return np.ascontiguousarray(np.concatenate([header, *parts, shared]), dtype=float)
+
+
+@numba.njit(cache=True)
+def _expit(t):  # pragma: no cover - runs compiled
+    if t >= 0.0:
+        return 1.0 / (1.0 + np.exp(-t))
+    e = np.exp(t)
+    return e / (1.0 + e)
+
+
+@numba.njit(cache=True)
+def _softplus(t):  # pragma: no cover - runs compiled
+    return max(t, 0.0) + np.log1p(np.exp(-abs(t)))
+
+
+@numba.njit(error_model="numpy", cache=True)
+def _elementwise(theta, w, v, dv, dlogjac):  # pragma: no cover - runs compiled
+    """``v(w)``, ``dv/dw`` and ``d log|dv/dw| / dw`` in place; returns ``Σ log|dv/dw|``.
+
+    The formulas of :meth:`~kohpymc.reparameterization.Coordinates.to_value`; ``-inf``
+    outside a wall.
+    """
+    n = w.size
+    flags, lower, upper = _HEADER + n + n * n, _HEADER + 2 * n + n * n, _HEADER + 3 * n + n * n
+    walls = theta[3] != 0.0
+    logjac = 0.0
+    for i in range(n):
+        v[i], dv[i], dlogjac[i] = w[i], 1.0, 0.0
+        if theta[flags + i] == 0.0:
+            continue
+        a, b = theta[lower + i], theta[upper + i]
+        if walls:
+            x = np.exp(w[i])
+            above, below = x - a, b - x
+            if not (above > 0.0 and below > 0.0):
+                return -np.inf
+            g = x * (b - a) / (above * below)
+            dlogjac[i] = 1.0 - x / above + x / below
+        else:
+            c = np.log(b) - np.log(a)
+            s = _expit(w[i])
+            x = np.exp(np.log(a) + c * s)
+            above = a * np.expm1(c * s)
+            below = -b * np.expm1(-c * (1.0 - s))
+            ds = s * (1.0 - s)
+            g = (b - a) / (above * below) * x * c * ds
+            dlogjac[i] = (2 * x - a - b) / (above * below) * x * c * ds + c * ds + 1.0 - 2.0 * s
+        v[i], dv[i] = np.log(above) - np.log(below), g
+        logjac += np.log(g)
+    return logjac
+
+
+@numba.njit(error_model="numpy", cache=True)
+def _affine_body(x, theta, out):  # pragma: no cover - runs compiled
+    """``log p(v(z)) + log|dv/dz|`` at ``z = x``, its gradient into ``out``.
+
+    ``u = μ + L z``; the variance shares (:class:`~kohpymc.reparameterization.VarianceShare`)
+    take ``u`` to ``w``; the elementwise coordinates ``w`` to ``v``; the density's C
+    function (its address in ``theta``) gives ``log p(v)`` and ``∇ log p``, pulled back
+    to ``z`` as :meth:`Reparameterization.logp_dlogp` does.
+    """
+    n = x.size
+    mean, chol = _HEADER, _HEADER + n
+    u = np.empty(n)
+    for i in range(n):
+        total = theta[mean + i]
+        for j in range(n):
+            total += theta[chol + i * n + j] * x[j]
+        u[i] = total
+    pairs, n_pairs = _HEADER + 4 * n + n * n, int(theta[4])
+    w = u.copy()
+    for k in range(n_pairs):
+        i, j, c = int(theta[pairs + 3 * k]), int(theta[pairs + 3 * k + 1]), theta[pairs + 3 * k + 2]
+        log_a = u[i] - 0.5 * _softplus(2.0 * u[j])
+        w[i], w[j] = log_a, c * (log_a + u[j])
+    v, dv, dlogjac = np.empty(n), np.empty(n), np.empty(n)
+    logjac = _elementwise(theta, w, v, dv, dlogjac)
+    if logjac == -np.inf:  # outside a wall: zero density
+        out[:] = 0.0
+        return -np.inf
+    grad_v, value = np.empty(n), np.empty(1)
+    address = theta[1:2].view(np.int64)[0]
+    shared = theta.ctypes.data + 8 * int(theta[5])
+    if call_density(address, v.ctypes.data, shared, grad_v.ctypes.data, value.ctypes.data) != 1:
+        raise ValueError("the log density raised")
+    grad_w = grad_v * dv + dlogjac
+    grad_u = grad_w.copy()
+    for k in range(n_pairs):
+        i, j, c = int(theta[pairs + 3 * k]), int(theta[pairs + 3 * k + 1]), theta[pairs + 3 * k + 2]
+        s = _expit(2.0 * u[j])
+        grad_u[i] = grad_w[i] + c * grad_w[j]
+        grad_u[j] = -s * grad_w[i] + c * (1.0 - s) * grad_w[j]
+    for j in range(n):
+        total = 0.0
+        for i in range(n):
+            total += theta[chol + i * n + j] * grad_u[i]
+        out[j] = total
+    return value[0] + logjac
+
+
+def _affine_logp(dim, x_, out_, logp_, user_data_):  # pragma: no cover - runs compiled
+    """Nutpie's C function of :func:`_affine_body`; return codes as :data:`_LOGP_TEMPLATE`."""
+    header = numba.carray(user_data_, (_HEADER,), numba.float64)
+    if int(header[2]) != dim:
+        return -1
+    theta = numba.carray(user_data_, (int(header[0]),), numba.float64)
+    x = numba.carray(x_, (dim,))
+    out = numba.carray(out_, (dim,))
+    logp = numba.carray(logp_, ())
+    try:
+        logp[()] = _affine_body(x, theta, out)
+    except Exception:
+        return 1
+    if not np.all(np.isfinite(out)):
+        return 3
+    if not np.isfinite(logp[()]):
+        return 4
+    return 0
+
+
+@functools.cache
+def _affine_logp_c() -> Any:
+    """:func:`_affine_logp` as a C function, compiled once (or loaded from disk).
+
+    Shared by every plain plan of every dimension and model.
+    """
+    return numba.cfunc(_LOGP_SIGNATURE, cache=True)(_affine_logp)

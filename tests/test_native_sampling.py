@@ -157,21 +157,34 @@ def _call_c(logp_c, z, user_data):
     return code, float(value), out
 
 
-@pytest.mark.parametrize("kind", ["affine", "walls", "bound-ridge", "squeezed-bent"])
+def _numba_model():
+    """:func:`_model` with a second likelihood term on shared data (as an emulator's
+    matrices), and its NUMBA value space."""
+    rng = np.random.default_rng(SEED + 1)
+    y_obs = pytensor.shared(rng.normal(1.0, 0.5, 12), name="y_obs")
+    model = _model()
+    with model:
+        pm.Normal("y2", model["c"], model["a"] + 1.0, observed=y_obs)
+    return model, value_space(model, mode="NUMBA")
+
+
+#: plans whose whole map is user data of one shared C function (native._affine_logp_c)
+PLAIN_KINDS = ["affine", "log-logit", "walls", "shares"]
+
+
+@pytest.mark.parametrize("kind", [*PLAIN_KINDS, "bound-ridge", "squeezed-bent"])
 def test_native_model_reuses_the_compiled_density_and_equals_the_numpy_one(kind):
     """A NUMBA space: nutpie's C function is the map z -> v around the space's compiled
     density (the model's graph is not compiled again), with shared data read from the
-    user data; its log density and gradient are the numpy map's (1e-10 relative)."""
+    user data; its log density and gradient are the numpy map's (1e-10 relative).
+    Plain plans all share one C function; the others compile their own map."""
     rng = np.random.default_rng(SEED)
-    y_obs = pytensor.shared(rng.normal(1.0, 0.5, 12), name="y_obs")
-    model = _model()
-    with model:  # a second likelihood term on shared data, as an emulator's matrices
-        pm.Normal("y2", model["c"], model["a"] + 1.0, observed=y_obs)
-    space = value_space(model, mode="NUMBA")
+    model, space = _numba_model()
     plan = _any_plan(space, kind)
     composed = native._composed_logp(space, plan)
     assert composed is not None
     logp_c, _, user_data = composed
+    assert (logp_c is native._affine_logp_c()) == (kind in PLAIN_KINDS)
     for z in rng.normal(0.0, 0.7, (3, space.ndim)):
         code, value, grad = _call_c(logp_c, z, user_data)
         expected_logp, expected_grad = plan.logp_dlogp(space, z)
@@ -180,6 +193,33 @@ def test_native_model_reuses_the_compiled_density_and_equals_the_numpy_one(kind)
         np.testing.assert_allclose(grad, expected_grad, rtol=1e-10, atol=1e-10 * scale)
     # the C space has no compiled numba density to reuse: the whole density is compiled
     assert native._composed_logp(value_space(model), plan) is None
+
+
+def test_one_c_function_serves_plain_plans_of_every_dimension():
+    """The shared C function of plain plans evaluates a 1-D and a 5-D model alike (numpy
+    map's density to 1e-10), and outside a wall returns nutpie's code for a non-finite
+    density without calling the density."""
+    with pm.Model() as small:
+        k = pm.LogNormal("k", 0.0, 1.0)
+        pm.Normal("y", k * np.arange(1.0, 4.0), 0.2, observed=[1.1, 1.9, 3.2])
+    _, big = _numba_model()
+    rng = np.random.default_rng(SEED)
+    one = Reparameterization("affine", np.array([0.1]), np.array([[0.3]]),
+                             Coordinates.identity(1), "")  # fmt: skip
+    for space, plan in [(value_space(small, mode="NUMBA"), one), (big, _any_plan(big, "shares"))]:
+        logp_c, _, user_data = native._composed_logp(space, plan)
+        assert logp_c is native._affine_logp_c()
+        for z in rng.normal(0.0, 0.7, (2, space.ndim)):
+            code, value, grad = _call_c(logp_c, z, user_data)
+            expected_logp, expected_grad = plan.logp_dlogp(space, z)
+            assert code == 0 and value == pytest.approx(expected_logp, rel=1e-10, abs=1e-10)
+            np.testing.assert_allclose(grad, expected_grad, rtol=1e-9, atol=1e-12)
+    plan = _plan(big, _coordinates(big, "walls"), "walls")
+    w = plan.mean.copy()
+    w[1] = np.log(big.upper[1]) + 0.1  # phi beyond its upper bound
+    outside = np.linalg.solve(plan.chol, w - plan.mean)
+    logp_c, _, user_data = native._composed_logp(big, plan)
+    assert _call_c(logp_c, outside, user_data)[0] == 4  # non-finite density: rejected
 
 
 def test_symbolic_map_outside_the_walls_has_zero_density(space):

@@ -39,6 +39,7 @@ import arviz as az
 import numpy as np
 import pymc as pm
 
+from kohpymc.chain_processes import GroupResult, sample_chains
 from kohpymc.checks import SAMPLERS, check_sampler
 from kohpymc.funnel import funnel_plan
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
@@ -95,6 +96,10 @@ class SamplingReport:
     chain_threads : int
         Threads nutpie's chains ran on: ``cores`` on the native path, one through the
         Python callback (every chain calls the log density through one lock).
+    chain_processes : str
+        Processes nutpie's chains ran in when the log density is a Python callback
+        (:mod:`kohpymc.chain_processes`): one per core on Linux, else ``"1 (reason)"``;
+        ``"1"`` on the native path.
     nutpie_backend : str
         How nutpie evaluated the log density: ``"numba-native"`` (the whole density in
         the sampling coordinates compiled by numba, :mod:`kohpymc.native`) or
@@ -116,6 +121,7 @@ class SamplingReport:
     failed_evaluations: int = 0
     compile_mode: str = "C"
     chain_threads: int = 1
+    chain_processes: str = "1"
     prior_bounds: list[dict[str, Any]] = field(default_factory=list)
     nutpie_backend: str = ""
     target_accept: float | None = None
@@ -131,6 +137,7 @@ class SamplingReport:
             "failed_evaluations": self.failed_evaluations,
             "compile_mode": self.compile_mode,
             "chain_threads": self.chain_threads,
+            "chain_processes": self.chain_processes,
             "nutpie_backend": self.nutpie_backend,
             "prior_bounds": list(self.prior_bounds),
             "target_accept": self.target_accept,
@@ -489,8 +496,10 @@ def _run_nutpie(
     """Nutpie's NUTS on the sampling coordinates ``z``, natively when the model allows.
 
     The native path (:func:`kohpymc.native.native_model`) runs the chains on
-    ``settings["cores"]`` threads; when it cannot compile, a Python log density runs
-    on one thread and ``report.nutpie_backend`` says why.  There, a log-density
+    ``settings["cores"]`` threads; when it cannot compile, a Python log density runs,
+    each chain alone, the chains split over forked processes
+    (:func:`kohpymc.chain_processes.sample_chains`), and ``report.nutpie_backend`` says
+    why.  There, a log-density
     evaluation that raises (e.g. a physics function overflowing far in the tails)
     counts as zero density; its message is appended to ``failures``.
     """
@@ -502,21 +511,35 @@ def _run_nutpie(
     coords, dims = _coords_and_dims(space)
     compiled, cores = _native_or_python(space, mapping, settings, failures, report)
     report.chain_threads = cores
-    with warnings.catch_warnings(), quiet_density_errors():
-        warnings.simplefilter("ignore", FutureWarning)
-        idata = nutpie.sample(
-            compiled,
-            draws=settings["draws"],
-            tune=settings["tune"],
-            chains=settings["chains"],
-            cores=cores,
-            seed=settings["seed"],
-            progress_bar=progressbar,
-            target_accept=target_accept,
-            init_mean=np.zeros(space.ndim),
-            save_warmup=False,
-            **kwargs,
-        )
+
+    def sample(chains: int, seed: int, progress: bool) -> GroupResult:
+        known = len(failures)
+        with warnings.catch_warnings(), quiet_density_errors():
+            warnings.simplefilter("ignore", FutureWarning)
+            idata = nutpie.sample(
+                compiled,
+                draws=settings["draws"],
+                tune=settings["tune"],
+                chains=chains,
+                cores=cores,
+                seed=seed,
+                progress_bar=progress,
+                target_accept=target_accept,
+                init_mean=np.zeros(space.ndim),
+                save_warmup=False,
+                **kwargs,
+            )
+        return idata, failures[known:]
+
+    if report.nutpie_backend.startswith("python"):  # chains in processes (GIL-bound)
+        before = list(failures)  # a forked chain's failures come back in ``found`` only
+        idata, found, report.chain_processes = sample_chains(
+            lambda seed, progress: sample(1, seed, progress),
+            settings["chains"], settings["cores"], settings["seed"], progressbar,
+        )  # fmt: skip
+        failures[:] = before + found
+    else:
+        idata, _ = sample(settings["chains"], settings["seed"], progressbar)
     begin = time.perf_counter()
     idata = expand_draws(idata, space, mapping, coords, dims)
     report.timings["expand"] = time.perf_counter() - begin

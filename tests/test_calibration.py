@@ -315,7 +315,8 @@ def test_other_physics_natural_units_unknown_noise_and_an_ignored_input():
         name="discharge",
     )
     data, held_out = _decay_data(SEED), _decay_data(SEED + 1, n=16)
-    cal = calibrate(physics, data, ConstantBias(), draws=500, tune=500, chains=2, cores=2,
+    # 1000 draws: with 500, r̂ of 2 chains exceeded 1.01 at 2 of 12 seeds (max 1.0116)
+    cal = calibrate(physics, data, ConstantBias(), draws=1000, tune=500, chains=2, cores=2,
                     random_seed=SEED, warn=False)  # fmt: skip
     assert cal.built.input_names == ("t",)  # the ignored input stays out of the model
     assert not cal.problems, cal.problems

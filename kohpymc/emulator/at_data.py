@@ -30,7 +30,7 @@ from kohpymc.emulator.sequential import refit
 if TYPE_CHECKING:
     from kohpymc.multi_output.physics import MultiOutputPhysics
 
-__all__ = ["EmulatorsAtData", "linearisation"]
+__all__ = ["EmulatorsAtData", "linearisation", "runs_at"]
 
 #: the output name of a single-output calibration in :class:`EmulatorsAtData`
 SINGLE = "output"
@@ -99,8 +99,19 @@ class EmulatorsAtData:
     data: dict[str, CalibrationData]
 
     @classmethod
-    def of(cls, emulator: Emulator, data: CalibrationData) -> EmulatorsAtData:
-        """One output: the emulator's own simulator and the data."""
+    def of(cls, emulator: Any, data: CalibrationData) -> EmulatorsAtData:
+        """One output: the emulator's own simulator and the data.
+
+        A :class:`~kohpymc.emulator.functional.FunctionalEmulator` gives a
+        :class:`~kohpymc.emulator.functional_at_data.CurvesAtData` (its simulator runs
+        whole curves).
+        """
+        from kohpymc.emulator.functional import FunctionalEmulator
+
+        if isinstance(emulator, FunctionalEmulator) and cls is EmulatorsAtData:
+            from kohpymc.emulator.functional_at_data import CurvesAtData
+
+            return CurvesAtData.of(emulator, data)
         return cls(emulator.physics, {SINGLE: emulator}, {SINGLE: data})
 
     @classmethod
@@ -175,6 +186,43 @@ class EmulatorsAtData:
         """The simulator at the design's points (one call per θ, cached)."""
         return run_design(self.simulator, design, cache=cache, workers=workers, scheduler=scheduler)
 
+    def run_thetas(self) -> np.ndarray:
+        """The distinct θ of the runs (rows; columns :attr:`parameters`)."""
+        return self.first.runs.points[self.parameters].drop_duplicates().to_numpy(float)
+
+    def simulated_at(
+        self,
+        theta: dict[str, float],
+        *,
+        cache: str | Path | None = None,
+        workers: int = 1,
+        scheduler: Any = None,
+    ) -> dict[str, np.ndarray]:
+        """Output -> the simulator at ``theta`` on that output's calibration rows (one call)."""
+        design = self.design(pd.DataFrame([theta]))
+        runs = self.run(design, cache=cache, workers=workers, scheduler=scheduler)
+        if len(runs.failed):
+            raise RuntimeError(f"check_at_data: {runs.failure_summary()}")
+        columns = [*self.inputs, *self.parameters]
+        simulated = {}
+        for k, data in self.data.items():
+            rows = pd.DataFrame({i: np.asarray(data.inputs[i], float) for i in self.inputs})
+            rows = rows.assign(**theta)
+            done = self.output_runs(runs, k).points[[*columns, "output"]]
+            done = done.drop_duplicates(subset=columns)
+            simulated[k] = rows.merge(done, on=columns, how="left")["output"].to_numpy(float)
+        return simulated
+
+    def predicted_at(self, name: str, theta: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Output ``name``'s emulator at ``theta`` on its calibration rows: mean, variance.
+
+        Runs made at ``theta`` itself (:func:`runs_at`) are left out, else the
+        prediction would only repeat them.
+        """
+        emulator, data = self.emulators[name], self.data[name]
+        Z = emulator._matrix(data.inputs, theta)
+        return emulator.predict_matrix(Z, without=runs_at(emulator, theta))
+
     @staticmethod
     def output_runs(runs: SimulatorRuns, name: str) -> SimulatorRuns:
         """One output's runs (the runs themselves for a single-output simulator)."""
@@ -201,3 +249,15 @@ class EmulatorsAtData:
             blocks.append(J / noise)
             covs.append(cov / noise**2)
         return np.vstack(blocks), linalg.block_diag(*covs)
+
+
+def runs_at(emulator: Any, theta: Mapping[str, float]) -> np.ndarray:
+    """Mask of the runs made at ``theta``: every parameter within 1e-4 of the box's width.
+
+    (The best fit may stop a few ulps from a run's θ; a run that near tells the emulator
+    what one at θ̂ would.)  ``emulator``: an ``Emulator`` or ``FunctionalEmulator``.
+    """
+    names = list(emulator.runs.parameters)
+    cols = [emulator.columns.index(k) for k in names]
+    unit = emulator.parameters_to_unit(np.array([[theta[k] for k in names]], dtype=float))
+    return np.all(np.abs(emulator.U[:, cols] - unit) < 1e-4, axis=1)

@@ -8,7 +8,10 @@ output's calibration data.  A single-output study is the case of one output
 the same runs, each run giving all outputs from one simulator call
 (:meth:`EmulatorsAtData.of_outputs`).  The outputs are stacked in the units of their
 noise: :meth:`EmulatorsAtData.whitened_linearisation` divides each output's rows by its
-noise sd, so the joint least squares weighs each output by ``1/σ_k²``.
+noise sd, so the joint least squares weighs each output by ``1/σ_k²``.  A functional
+emulator (:class:`~kohpymc.emulator.functional.FunctionalEmulator`) is seen through the
+subclass :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`, which
+:meth:`EmulatorsAtData.of` returns for it: its simulator runs whole curves.
 """
 
 from __future__ import annotations
@@ -37,7 +40,10 @@ SINGLE = "output"
 
 
 def linearisation(
-    emulator: Emulator, data: CalibrationData, theta: Mapping[str, float]
+    emulator: Emulator,
+    data: CalibrationData,
+    theta: Mapping[str, float],
+    covariance: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The emulator linearised at ``theta`` on the data's rows: ``(J, σ, Σ_η)``.
 
@@ -46,7 +52,8 @@ def linearisation(
     units), ``σ`` the data's noise sd (known or pooled from replicates) or else the rms
     residual of the emulator's mean at ``theta``, and ``Σ_η`` the emulator's covariance
     between the rows.  ``(Jᵀ (σ² I + Σ_η)⁻¹ J)⁻¹`` is then the linearised posterior
-    covariance of θ through the emulator (flat prior).
+    covariance of θ through the emulator (flat prior).  ``covariance``: ``Σ_η`` when
+    already known (else evaluated from the emulator's ``covariance_tensor``).
 
     Examples
     --------
@@ -62,7 +69,9 @@ def linearisation(
     inputs = {k: np.asarray(data.inputs[k], float) for k in emulator.physics.inputs}
     point = np.array([theta[k] for k in names], dtype=float)
     X = np.column_stack([inputs[k] for k in emulator.physics.inputs])
-    cov = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
+    if covariance is None:
+        covariance = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
+    cov = covariance
     noise = data.noise_sd
     if noise is None:
         mean, _ = emulator.predict(inputs, point)
@@ -235,6 +244,12 @@ class EmulatorsAtData:
         }
         return EmulatorsAtData(self.simulator, emulators, self.data)
 
+    def linearised(
+        self, name: str, theta: Mapping[str, float]
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """Output ``name``'s :func:`linearisation` at ``theta``: ``(J, σ, Σ_η)``."""
+        return linearisation(self.emulators[name], self.data[name], theta)
+
     def whitened_linearisation(self, theta: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """``(J̃, Σ̃)``: every output's :func:`linearisation` stacked, in its noise's units.
 
@@ -244,8 +259,8 @@ class EmulatorsAtData:
         covariance of θ through the emulators (flat prior).
         """
         blocks, covs = [], []
-        for k, data in self.data.items():
-            J, noise, cov = linearisation(self.emulators[k], data, theta)
+        for k in self.data:
+            J, noise, cov = self.linearised(k, theta)
             blocks.append(J / noise)
             covs.append(cov / noise**2)
         return np.vstack(blocks), linalg.block_diag(*covs)

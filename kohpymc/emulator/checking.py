@@ -435,9 +435,13 @@ def check_at_data(
     its runs near the posterior; predicted widening 1.24 and 1.33, sampled 1.22 and
     1.26).
 
+    A :class:`~kohpymc.emulator.functional.FunctionalEmulator` is checked the same way
+    through :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`: the simulator runs
+    one whole curve per scalar setting of the data at ``θ̂``.
+
     Parameters
     ----------
-    emulator : Emulator
+    emulator : Emulator or FunctionalEmulator
     data : CalibrationData
         The calibration data (inputs and outputs).
     cache : path, optional
@@ -716,7 +720,7 @@ def _least_squares_shift(
     blocks, errors = {}, {}
     for k, check in checks.items():
         data = target.data[k]
-        J, _, _ = linearisation(target.emulators[k], data, check.point)
+        J, _, _ = target.linearised(k, check.point)
         noise = float((data.noise_sd if data.noise_sd is not None else check.misfit) or 0.0)
         if noise <= 0.0:
             return {k: dict.fromkeys(names, 0.0) for k in checks}

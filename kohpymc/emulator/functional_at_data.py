@@ -20,6 +20,7 @@ is what tells whether the emulator is fit for *this* calibration.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,7 @@ import numpy as np
 import pandas as pd
 
 from kohpymc.data import CalibrationData
-from kohpymc.emulator.at_data import SINGLE, EmulatorsAtData, runs_at
+from kohpymc.emulator.at_data import SINGLE, EmulatorsAtData, linearisation, runs_at
 from kohpymc.emulator.functional import FunctionalEmulator, at_settings, distinct_rows, run_curves
 
 __all__ = ["CurvesAtData"]
@@ -96,6 +97,18 @@ class CurvesAtData(EmulatorsAtData):
                 f"failed at the best fit {theta} (first: {first['error']})"
             )
         return {SINGLE: emulator.at_rows(runs, data.inputs)}
+
+    def linearised(
+        self, name: str, theta: Mapping[str, float]
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """:func:`~kohpymc.emulator.at_data.linearisation`, ``Σ_η`` computed in numpy.
+
+        (The same matrix as the emulator's ``covariance_tensor``, without compiling it:
+        the first compilation took 15 s.)
+        """
+        data = self.data[name]
+        _, covariance = self.curves.predict_covariance(data.inputs, dict(theta))
+        return linearisation(self.curves, data, theta, covariance)  # type: ignore[arg-type]
 
     def predicted_at(self, name: str, theta: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """The emulator's mean and variance at ``theta`` on the calibration rows.

@@ -210,9 +210,8 @@ def study_functional_physics(
                 sampling=sampling, workers=workers, scheduler=scheduler,
             )  # fmt: skip
             _write_record(folder, key, emulator)
-    target = EmulatorsAtData.of(emulator, calibration)
-    if not (restored and warn_recorded(folder, target)):
-        _write_checks(study, target, folder)
+    if not (restored and warn_recorded(folder, EmulatorsAtData.of(emulator, calibration))):
+        _write_checks(study, emulator, calibration, folder)
     write_settings(folder, settings)
     write_functional_emulator(folder, emulator)
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
@@ -242,7 +241,9 @@ def _restored(study: CurveStudy, folder: Path, key: str) -> FunctionalEmulator |
     return study.fit(study.run(design), log_output=bool(record["log_output"]))
 
 
-def _write_checks(study: CurveStudy, target: EmulatorsAtData, folder: Path) -> None:
+def _write_checks(
+    study: CurveStudy, emulator: FunctionalEmulator, calibration: CalibrationData, folder: Path
+) -> None:
     """``check.json``/``.png`` on held-out curves, ``check_at_data.json``; warn from the latter.
 
     The held-out curves (a fifth of the first θ, at least 3, at every setting) score the
@@ -250,14 +251,14 @@ def _write_checks(study: CurveStudy, target: EmulatorsAtData, folder: Path) -> N
     written, not warned, and their problems are named in the warning of a failed check
     at the data (:func:`~kohpymc.emulator.study.write_check_at_data`).
     """
-    settings, emulator = study.settings, target.first
+    settings = study.settings
     n_theta = max(3, math.ceil(settings.runs / len(study.points) / 5))
     design = study.design(n_theta * len(study.points), "sobol", settings.seed + 1)
-    held_out = emulator.held_out_check(study.run(design))  # type: ignore[attr-defined]
+    held_out = emulator.held_out_check(study.run(design))
     write_check(folder, held_out)
     write_check_at_data(
-        folder, target, held_out.problems, advice=ADVICE, workers=study.workers,
-        scheduler=study.scheduler,
+        folder, EmulatorsAtData.of(emulator, calibration), held_out.problems, advice=ADVICE,
+        workers=study.workers, scheduler=study.scheduler,
     )  # fmt: skip
 
 

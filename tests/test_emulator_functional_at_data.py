@@ -99,6 +99,21 @@ def test_a_poor_functional_emulator_fails_at_the_data_and_says_why():
     assert np.max(np.abs(moved)) > 0.25, moved  # the emulator's best fit is really off
 
 
+@pytest.mark.parametrize("curves", [14, 20])
+def test_the_predicted_move_of_theta_is_the_simulators_own_least_squares(curves):
+    """14 and 20 curves over the box, none near the data: the check predicts (linearised)
+    how far the simulator's least-squares θ lies from the emulator's best fit; scipy's
+    fit of the closed-form decay gives it (measured: k 0.84 predicted against 0.78, and
+    1.50 against 1.40 sds).  Both move θ by more than 0.25 sds: the check fails."""
+    em, data = _emulator(curves, 0), _data()
+    check = check_at_data(em, data, warn=False)
+    best, sds = _simulator_fit(data)
+    actual = (best - np.array([check.point["A"], check.point["k"]])) / sds
+    predicted = np.array([check.shift["A"], check.shift["k"]])
+    assert np.all(np.abs(predicted - actual) < 0.15 + 0.2 * np.abs(actual)), (predicted, actual)
+    assert not check.fit and np.max(np.abs(actual)) > 0.5
+
+
 def test_the_check_leaves_out_curves_run_at_the_best_fit():
     """A curve run at θ̂ itself would only be repeated by the emulator: the prediction
     there is that of the other curves (the same as an emulator without it, whose weight

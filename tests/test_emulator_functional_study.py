@@ -113,8 +113,9 @@ def test_a_functional_study_runs_curves_at_the_datas_settings_and_a_rerun_simula
     tmp_path,
 ):
     """Settings x in {0, 0.5, 1} (calibration and validation), grid the 9 distinct times:
-    6 θ × 3 settings = 18 curves for the fit, 3 θ × 3 held out for the check, one
-    simulator call per curve.  The emulator predicts the simulator's closed form at the
+    6 θ × 3 settings = 18 curves for the fit, 3 θ × 3 held out for the check, the best
+    fit × the calibration's 2 settings for the check at the data, one simulator call per
+    curve.  The emulator predicts the simulator's closed form at the
     validation rows; a second build reads every curve from the cache."""
     from kohpymc.emulator.study import EmulatorSettings, study_physics
 
@@ -122,7 +123,7 @@ def test_a_functional_study_runs_curves_at_the_datas_settings_and_a_rerun_simula
     settings = EmulatorSettings.from_table({"functional": ["t"], "runs": 18, "seed": 2})
     first = study_physics(settings, physics, calibration, tmp_path, validation=validation)
     em = first.emulator
-    assert counter.rows == [9] * (18 + 9)  # every call one whole curve on the grid
+    assert counter.rows == [9] * (18 + 9 + 2)  # every call one whole curve on the grid
     assert sorted(em.grid[:, 0]) == sorted({*np.linspace(0.0, 3.0, 7), 3.5, 4.0})
     by_theta = em.runs.design.groupby(["A", "k"])["x"].apply(sorted)
     assert len(by_theta) == 6 and all(v == [0.0, 0.5, 1.0] for v in by_theta)
@@ -133,6 +134,8 @@ def test_a_functional_study_runs_curves_at_the_datas_settings_and_a_rerun_simula
     folder = tmp_path / "emulator"
     check = json.loads((folder / "check.json").read_text())
     assert check["kind"] == "held-out" and check["runs"] == 9 * 9
+    at_data = json.loads((folder / "check_at_data.json").read_text())
+    assert at_data["kind"] == "at the calibration data" and at_data["runs"] == calibration.n
     assert len(pd.read_csv(folder / "runs.csv")) == 18
     assert len(pd.read_csv(folder / "grid.csv")) == 9
     assert json.loads((folder / "settings.json").read_text())["functional"] == ["t"]
@@ -203,7 +206,7 @@ def test_a_functional_study_file_gives_the_direct_posterior_and_resumes_without_
     grid = 21 + 6  # the calibration and validation times
     rounds = pd.read_csv(folder / "out" / "emulator" / "rounds.csv")
     runs = int(rounds["runs"].iloc[-1])
-    held_out = 3  # max(3, ceil(12 / 5)) θ at the one setting
+    held_out = 3 + 1  # max(3, ceil(12 / 5)) θ at the one setting; the best fit
     assert _curve_calls(folder, grid) == runs + held_out
     capsys.readouterr()
     path = folder / "study.toml"

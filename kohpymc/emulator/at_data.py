@@ -8,7 +8,10 @@ output's calibration data.  A single-output study is the case of one output
 the same runs, each run giving all outputs from one simulator call
 (:meth:`EmulatorsAtData.of_outputs`).  The outputs are stacked in the units of their
 noise: :meth:`EmulatorsAtData.whitened_linearisation` divides each output's rows by its
-noise sd, so the joint least squares weighs each output by ``1/σ_k²``.
+noise sd, so the joint least squares weighs each output by ``1/σ_k²``.  A functional
+emulator (:class:`~kohpymc.emulator.functional.FunctionalEmulator`) is seen through the
+subclass :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`, which
+:meth:`EmulatorsAtData.of` returns for it: its simulator runs whole curves.
 """
 
 from __future__ import annotations
@@ -30,14 +33,17 @@ from kohpymc.emulator.sequential import refit
 if TYPE_CHECKING:
     from kohpymc.multi_output.physics import MultiOutputPhysics
 
-__all__ = ["EmulatorsAtData", "linearisation"]
+__all__ = ["EmulatorsAtData", "linearisation", "runs_at"]
 
 #: the output name of a single-output calibration in :class:`EmulatorsAtData`
 SINGLE = "output"
 
 
 def linearisation(
-    emulator: Emulator, data: CalibrationData, theta: Mapping[str, float]
+    emulator: Emulator,
+    data: CalibrationData,
+    theta: Mapping[str, float],
+    covariance: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The emulator linearised at ``theta`` on the data's rows: ``(J, σ, Σ_η)``.
 
@@ -46,7 +52,8 @@ def linearisation(
     units), ``σ`` the data's noise sd (known or pooled from replicates) or else the rms
     residual of the emulator's mean at ``theta``, and ``Σ_η`` the emulator's covariance
     between the rows.  ``(Jᵀ (σ² I + Σ_η)⁻¹ J)⁻¹`` is then the linearised posterior
-    covariance of θ through the emulator (flat prior).
+    covariance of θ through the emulator (flat prior).  ``covariance``: ``Σ_η`` when
+    already known (else evaluated from the emulator's ``covariance_tensor``).
 
     Examples
     --------
@@ -62,7 +69,9 @@ def linearisation(
     inputs = {k: np.asarray(data.inputs[k], float) for k in emulator.physics.inputs}
     point = np.array([theta[k] for k in names], dtype=float)
     X = np.column_stack([inputs[k] for k in emulator.physics.inputs])
-    cov = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
+    if covariance is None:
+        covariance = np.asarray(emulator.covariance_tensor(point, X).eval(), dtype=float)
+    cov = covariance
     noise = data.noise_sd
     if noise is None:
         mean, _ = emulator.predict(inputs, point)
@@ -99,8 +108,19 @@ class EmulatorsAtData:
     data: dict[str, CalibrationData]
 
     @classmethod
-    def of(cls, emulator: Emulator, data: CalibrationData) -> EmulatorsAtData:
-        """One output: the emulator's own simulator and the data."""
+    def of(cls, emulator: Any, data: CalibrationData) -> EmulatorsAtData:
+        """One output: the emulator's own simulator and the data.
+
+        A :class:`~kohpymc.emulator.functional.FunctionalEmulator` gives a
+        :class:`~kohpymc.emulator.functional_at_data.CurvesAtData` (its simulator runs
+        whole curves).
+        """
+        from kohpymc.emulator.functional import FunctionalEmulator
+
+        if isinstance(emulator, FunctionalEmulator) and cls is EmulatorsAtData:
+            from kohpymc.emulator.functional_at_data import CurvesAtData
+
+            return CurvesAtData.of(emulator, data)
         return cls(emulator.physics, {SINGLE: emulator}, {SINGLE: data})
 
     @classmethod
@@ -175,6 +195,43 @@ class EmulatorsAtData:
         """The simulator at the design's points (one call per θ, cached)."""
         return run_design(self.simulator, design, cache=cache, workers=workers, scheduler=scheduler)
 
+    def run_thetas(self) -> np.ndarray:
+        """The distinct θ of the runs (rows; columns :attr:`parameters`)."""
+        return self.first.runs.points[self.parameters].drop_duplicates().to_numpy(float)
+
+    def simulated_at(
+        self,
+        theta: dict[str, float],
+        *,
+        cache: str | Path | None = None,
+        workers: int = 1,
+        scheduler: Any = None,
+    ) -> dict[str, np.ndarray]:
+        """Output -> the simulator at ``theta`` on that output's calibration rows (one call)."""
+        design = self.design(pd.DataFrame([theta]))
+        runs = self.run(design, cache=cache, workers=workers, scheduler=scheduler)
+        if len(runs.failed):
+            raise RuntimeError(f"check_at_data: {runs.failure_summary()}")
+        columns = [*self.inputs, *self.parameters]
+        simulated = {}
+        for k, data in self.data.items():
+            rows = pd.DataFrame({i: np.asarray(data.inputs[i], float) for i in self.inputs})
+            rows = rows.assign(**theta)
+            done = self.output_runs(runs, k).points[[*columns, "output"]]
+            done = done.drop_duplicates(subset=columns)
+            simulated[k] = rows.merge(done, on=columns, how="left")["output"].to_numpy(float)
+        return simulated
+
+    def predicted_at(self, name: str, theta: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Output ``name``'s emulator at ``theta`` on its calibration rows: mean, variance.
+
+        Runs made at ``theta`` itself (:func:`runs_at`) are left out, else the
+        prediction would only repeat them.
+        """
+        emulator, data = self.emulators[name], self.data[name]
+        Z = emulator._matrix(data.inputs, theta)
+        return emulator.predict_matrix(Z, without=runs_at(emulator, theta))
+
     @staticmethod
     def output_runs(runs: SimulatorRuns, name: str) -> SimulatorRuns:
         """One output's runs (the runs themselves for a single-output simulator)."""
@@ -187,6 +244,12 @@ class EmulatorsAtData:
         }
         return EmulatorsAtData(self.simulator, emulators, self.data)
 
+    def linearised(
+        self, name: str, theta: Mapping[str, float]
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """Output ``name``'s :func:`linearisation` at ``theta``: ``(J, σ, Σ_η)``."""
+        return linearisation(self.emulators[name], self.data[name], theta)
+
     def whitened_linearisation(self, theta: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """``(J̃, Σ̃)``: every output's :func:`linearisation` stacked, in its noise's units.
 
@@ -196,8 +259,20 @@ class EmulatorsAtData:
         covariance of θ through the emulators (flat prior).
         """
         blocks, covs = [], []
-        for k, data in self.data.items():
-            J, noise, cov = linearisation(self.emulators[k], data, theta)
+        for k in self.data:
+            J, noise, cov = self.linearised(k, theta)
             blocks.append(J / noise)
             covs.append(cov / noise**2)
         return np.vstack(blocks), linalg.block_diag(*covs)
+
+
+def runs_at(emulator: Any, theta: Mapping[str, float]) -> np.ndarray:
+    """Mask of the runs made at ``theta``: every parameter within 1e-4 of the box's width.
+
+    (The best fit may stop a few ulps from a run's θ; a run that near tells the emulator
+    what one at θ̂ would.)  ``emulator``: an ``Emulator`` or ``FunctionalEmulator``.
+    """
+    names = list(emulator.runs.parameters)
+    cols = [emulator.columns.index(k) for k in names]
+    unit = emulator.parameters_to_unit(np.array([[theta[k] for k in names]], dtype=float))
+    return np.all(np.abs(emulator.U[:, cols] - unit) < 1e-4, axis=1)

@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 from scipy import stats
 
 from kohpymc.data import CalibrationData
@@ -45,6 +44,7 @@ __all__ = [
     "check_emulator",
     "check_emulators_at_data",
     "check_target_at_data",
+    "coverage_bounds",
     "linearisation",
     "posterior_widening",
     "warn_at_data",
@@ -197,6 +197,41 @@ class EmulatorCheck:
         return fig
 
 
+#: the tail probability, each side, of a band coverage called inconsistent with its level
+#: (that of three normal sds)
+COVERAGE_TAIL = float(stats.norm.sf(3.0))
+
+
+def coverage_bounds(level: float, n: int, tolerance: float | None = None) -> tuple[float, float]:
+    """The band coverages of ``n`` independent values consistent with ``level``.
+
+    By default the exact binomial bounds: a count of covered values below ``low · n``
+    (above ``high · n``) has probability at most :data:`COVERAGE_TAIL` (three normal sds)
+    when each value is covered with probability ``level``; and at least 0.05 from
+    ``level``.  The normal approximation ``level ± 3 sqrt(level (1 - level) / n)`` used
+    before flagged 5 of 9 covered values, which happens to calibrated bands in 0.8 % of
+    samples.  ``n`` counts *independent* values: the grid values of one held-out curve
+    share its component weights' errors, so a functional emulator's check counts
+    curves (84 grid values of 4 curves, all covered: as 84 values ``0.9⁸⁴ = 1e-4``, a
+    "too wide" alarm on an emulator good to 6e-5 of the outputs' sd; as 4 curves
+    ``0.9⁴ = 0.66``).  With ``tolerance``: ``level ± tolerance``.
+
+    Examples
+    --------
+    >>> [round(b, 3) for b in coverage_bounds(0.9, 100)]
+    [0.8, 0.98]
+    >>> coverage_bounds(0.9, 4)  # four values cannot show too-wide bands
+    (0.25, 1.0)
+    """
+    if n < 1:
+        raise ValueError(f"coverage_bounds: n must be >= 1, got {n}")
+    if tolerance is not None:
+        return level - tolerance, level + tolerance
+    low = float(stats.binom.ppf(COVERAGE_TAIL, n, level)) / n
+    high = float(stats.binom.isf(COVERAGE_TAIL, n, level)) / n
+    return min(low, level - 0.05), max(high, level + 0.05)
+
+
 def fit_problems(
     kind: str,
     coverage: float,
@@ -209,29 +244,27 @@ def fit_problems(
 ) -> list[str]:
     """What makes an emulator unfit, from its scores on ``n`` values it did not see.
 
-    The coverage of the ``level`` bands must lie within ``coverage_tolerance`` of
-    ``level`` (default the larger of 0.05 and three binomial sds), and the RMSE be at most
-    ``max_relative_rmse`` of the values' sd.
+    The coverage of the ``level`` bands must lie within :func:`coverage_bounds` (``n``
+    the number of independent values, ``coverage_tolerance`` its tolerance), and the
+    RMSE be at most ``max_relative_rmse`` of the values' sd.
 
     Examples
     --------
     >>> fit_problems("held-out", 0.78, 0.05, 930)  # doctest: +ELLIPSIS
     ["held-out coverage of the 90% bands is 0.78 (< 0.85): ... overconfident"]
     """
-    tol = coverage_tolerance
-    if tol is None:
-        tol = max(0.05, 3.0 * np.sqrt(level * (1.0 - level) / n))
+    low, high = coverage_bounds(level, n, coverage_tolerance)
     problems = []
-    if coverage < level - tol:
+    if coverage < low:
         problems.append(
             f"{kind} coverage of the {level:.0%} bands is {coverage:.2f} (< "
-            f"{level - tol:.2f}): the emulator's variance is too small, a calibration "
+            f"{low:.2f}): the emulator's variance is too small, a calibration "
             "through it would be overconfident"
         )
-    elif coverage > level + tol:
+    elif coverage > high:
         problems.append(
             f"{kind} coverage of the {level:.0%} bands is {coverage:.2f} (> "
-            f"{level + tol:.2f}): the emulator's variance is too large, the posterior "
+            f"{high:.2f}): the emulator's variance is too large, the posterior "
             "would be wider than needed"
         )
     if relative_rmse > max_relative_rmse:
@@ -265,8 +298,8 @@ def check_emulator(
     level : float
         Nominal coverage of the bands (0.9).
     coverage_tolerance : float, optional
-        Allowed distance of the coverage from ``level``; default the larger of 0.05 and
-        three binomial sds ``3 sqrt(level (1 - level) / n)``.
+        Allowed distance of the coverage from ``level``; default the binomial bounds of
+        :func:`coverage_bounds`.
     max_relative_rmse : float
         Largest RMSE relative to the sd of the simulated outputs.
     data : CalibrationData, optional
@@ -402,9 +435,13 @@ def check_at_data(
     its runs near the posterior; predicted widening 1.24 and 1.33, sampled 1.22 and
     1.26).
 
+    A :class:`~kohpymc.emulator.functional.FunctionalEmulator` is checked the same way
+    through :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`: the simulator runs
+    one whole curve per scalar setting of the data at ``θ̂``.
+
     Parameters
     ----------
-    emulator : Emulator
+    emulator : Emulator or FunctionalEmulator
     data : CalibrationData
         The calibration data (inputs and outputs).
     cache : path, optional
@@ -549,7 +586,7 @@ def check_emulators_at_data(
     (['strain', 'u'], False)
     """
     theta = _best_fit_parameters(target)
-    simulated = _simulated_at(target, theta, cache, workers, scheduler)
+    simulated = target.simulated_at(theta, cache=cache, workers=workers, scheduler=scheduler)
     checks = {k: _scored(target, k, theta, simulated[k], level) for k in target.data}
     parts = _least_squares_shift(target, checks)
     joint = "joint " if len(checks) > 1 else ""
@@ -621,7 +658,8 @@ def warn_at_data(
     if isinstance(emulator, EmulatorsAtData):
         what = f"emulators of {emulator.simulator.name!r} ({emulator.n_runs} runs) are"
     else:
-        what = f"emulator of {emulator.physics.name!r} ({emulator.n_runs} runs) is"
+        runs = getattr(emulator, "runs_noun", "runs")
+        what = f"emulator of {emulator.physics.name!r} ({emulator.n_runs} {runs}) is"
     design = f"; over its design, {'; '.join(design_problems)}" if design_problems else ""
     warn_user(
         f"{what} not fit for this calibration: {'; '.join(check.problems)}{design}; {advice}",
@@ -629,48 +667,22 @@ def warn_at_data(
     )
 
 
-def _simulated_at(
-    target: EmulatorsAtData,
-    theta: dict[str, float],
-    cache: str | Path | None,
-    workers: int,
-    scheduler: Any,
-) -> dict[str, np.ndarray]:
-    """Output -> the simulator at ``theta`` on that output's calibration rows (one call)."""
-    runs = target.run(
-        target.design(pd.DataFrame([theta])), cache=cache, workers=workers, scheduler=scheduler
-    )
-    if len(runs.failed):
-        raise RuntimeError(f"check_at_data: {runs.failure_summary()}")
-    columns = [*target.inputs, *target.parameters]
-    simulated = {}
-    for k, data in target.data.items():
-        rows = pd.DataFrame({i: np.asarray(data.inputs[i], float) for i in target.inputs})
-        rows = rows.assign(**theta)
-        done = target.output_runs(runs, k).points[[*columns, "output"]]
-        done = done.drop_duplicates(subset=columns)
-        simulated[k] = rows.merge(done, on=columns, how="left")["output"].to_numpy(float)
-    return simulated
-
-
 def _scored(
     target: EmulatorsAtData, name: str, theta: dict[str, float], simulated: np.ndarray, level: float
 ) -> EmulatorCheck:
     """One output's emulator scored against the simulator at ``theta``: coverage, error."""
-    emulator, data = target.emulators[name], target.data[name]
-    mean, var = emulator.predict_matrix(
-        emulator._matrix(data.inputs, theta), without=_runs_at(emulator, theta)
-    )
+    data = target.data[name]
+    mean, var = target.predicted_at(name, theta)
     misfit = float(np.sqrt(np.mean((np.asarray(data.y, float) - simulated) ** 2)))
     check = EmulatorCheck(
         "at the calibration data", simulated, mean, np.sqrt(var), level, point=theta, misfit=misfit
     )
-    tol = max(0.05, 3.0 * np.sqrt(level * (1.0 - level) / simulated.size))
+    low, _ = coverage_bounds(level, simulated.size)
     where = _where(target, theta)
-    if check.coverage < level - tol:
+    if check.coverage < low:
         check.problems.append(
             f"{where} its {level:.0%} bands cover {check.coverage:.2f} of the simulator's "
-            f"outputs at the calibration rows (< {level - tol:.2f})"
+            f"outputs at the calibration rows (< {low:.2f})"
         )
     if check.rmse > misfit:
         check.problems.append(
@@ -694,20 +706,6 @@ def _moved(shift: dict[str, float], max_shift: float, what: str) -> list[str]:
     return [f"{what}least-squares θ by about {named} posterior sds (linearised; > {max_shift})"]
 
 
-def _runs_at(emulator: Emulator, theta: dict[str, float]) -> np.ndarray:
-    """Mask of the runs made at ``theta``: every parameter within 1e-4 of the box's width.
-
-    (The best fit may stop a few ulps from a run's θ; a run that near tells the emulator
-    what one at θ̂ would.)
-    """
-    cols = [emulator.columns.index(k) for k in theta]
-    point = np.array([[theta[k] for k in theta]], dtype=float)
-    full = np.zeros((1, len(emulator.columns)))
-    full[0, cols] = point
-    unit = (emulator._transform(full) - emulator.lower) / emulator.width
-    return np.all(np.abs(emulator.U[:, cols] - unit[0, cols]) < 1e-4, axis=1)
-
-
 def _least_squares_shift(
     target: EmulatorsAtData, checks: dict[str, EmulatorCheck]
 ) -> dict[str, dict[str, float]]:
@@ -722,7 +720,7 @@ def _least_squares_shift(
     blocks, errors = {}, {}
     for k, check in checks.items():
         data = target.data[k]
-        J, _, _ = linearisation(target.emulators[k], data, check.point)
+        J, _, _ = target.linearised(k, check.point)
         noise = float((data.noise_sd if data.noise_sd is not None else check.misfit) or 0.0)
         if noise <= 0.0:
             return {k: dict.fromkeys(names, 0.0) for k in checks}
@@ -766,8 +764,7 @@ def _best_fit_parameters(target: EmulatorsAtData, starts: int = 5) -> dict[str, 
             total += weights[k] * float(np.sum((y - mean) ** 2))
         return total / spread
 
-    points = first.runs.points[names].drop_duplicates().to_numpy(float)
-    units = np.clip(first.parameters_to_unit(points), 0.0, 1.0)
+    units = np.clip(first.parameters_to_unit(target.run_thetas()), 0.0, 1.0)
     ranked = sorted(units, key=sse)[:starts]
     fits = [minimize(sse, u, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(names)) for u in ranked]
     best = min(fits, key=lambda fit: fit.fun)

@@ -472,6 +472,11 @@ class _WeightGP:
             cov = np.maximum(cov, h.nugget)
         return Ks @ self.alpha, cov
 
+    def without(self, drop: np.ndarray) -> _WeightGP:
+        """The GP conditioned on the training rows not in ``drop`` (same hyperparameters)."""
+        keep = ~np.asarray(drop, dtype=bool)
+        return _WeightGP(self.kernel, self.U[keep], self.z[keep], self.hyper)
+
     def predict_each(self, Us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance ``(m,)`` at every row of ``Us`` alone (``predict`` row by row)."""
         h = self.hyper
@@ -807,8 +812,13 @@ class FunctionalEmulator(SharedTrainingData):
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(self.log_columns[cols], np.log(np.abs(values)), values)
 
-    def _latent_numpy(self, X: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Latent (standardised-space transformed back) mean ``(n,)`` and cov ``(n, n)``."""
+    def _latent_numpy(
+        self, X: np.ndarray, theta: np.ndarray, without: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Latent (standardised-space transformed back) mean ``(n,)`` and cov ``(n, n)``.
+
+        ``without``: a mask of the runs the weight GPs leave out (basis kept).
+        """
         loc = self._locate(X)
         ds = len(self.scalar_inputs)
         coords = self._coordinates(np.r_[np.zeros(ds), np.asarray(theta, dtype=float)][None, :])
@@ -821,7 +831,10 @@ class FunctionalEmulator(SharedTrainingData):
         idx = loc.setting_index
         w_mean = np.zeros(len(X))
         cov_w = np.zeros((len(X), len(X)))
-        for k, gp in enumerate(self._gps):
+        gps = self._gps
+        if without is not None and np.any(without):
+            gps = [gp.without(without) for gp in gps]
+        for k, gp in enumerate(gps):
             m, c = gp.predict(Us)
             w_mean += B[:, k] * m[idx]
             cov_w += np.outer(B[:, k], B[:, k]) * c[np.ix_(idx, idx)]
@@ -847,20 +860,30 @@ class FunctionalEmulator(SharedTrainingData):
         return np.column_stack([arrays[k] for k in self.physics.inputs])
 
     def predict_covariance(
-        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+        self,
+        inputs: Mapping[str, Any],
+        params: Mapping[str, float] | Sequence[float],
+        without: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean ``(n,)`` and covariance ``(n, n)`` at input rows and one θ.
+
+        ``without`` (a boolean mask over the runs) conditions the weight GPs on the other
+        runs only (basis, scaling and hyperparameters kept): what the emulator would
+        predict had those curves not been run.
 
         Examples
         --------
         See :class:`FunctionalEmulator`; ``predict`` returns the diagonal.
         """
         theta = np.array(list(self.physics._as_params(params).values()))
-        mean, cov = self._latent_numpy(self._rows(inputs), theta)
+        mean, cov = self._latent_numpy(self._rows(inputs), theta, without)
         return self._output(mean, cov)
 
     def predict(
-        self, inputs: Mapping[str, Any], params: Mapping[str, float] | Sequence[float]
+        self,
+        inputs: Mapping[str, Any],
+        params: Mapping[str, float] | Sequence[float],
+        without: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean and variance (output units²) at input rows and one θ.
 
@@ -868,8 +891,70 @@ class FunctionalEmulator(SharedTrainingData):
         --------
         See :class:`FunctionalEmulator`.
         """
-        mean, cov = self.predict_covariance(inputs, params)
+        mean, cov = self.predict_covariance(inputs, params, without)
         return mean, np.diag(cov).copy()
+
+    def at_rows(self, runs: FunctionalRuns, inputs: Mapping[str, Any]) -> np.ndarray:
+        """The curves of ``runs`` at input rows, as the emulator reads its grid.
+
+        Each row takes the curve of its scalar setting (``runs`` has one curve per
+        setting, e.g. the simulator at one θ) at its functional input(s), linearly
+        interpolated between grid points like the emulator's basis.
+
+        Examples
+        --------
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> line = PhysicsModel(lambda x, p: p["a"] * x["t"], {"a": Uniform(0, 1)},
+        ...                     inputs=["t"])
+        >>> grid = {"t": [0.0, 1.0, 2.0]}
+        >>> em = FunctionalEmulator(run_curves(line, space_filling_design({"a": (0, 1)}, 6),
+        ...                                    grid), line)
+        >>> em.at_rows(run_curves(line, pd.DataFrame({"a": [0.5]}), grid), {"t": [0.5, 2.0]})
+        array([0.25, 1.  ])
+        """
+        loc = self._locate(self._rows(inputs))
+        scalar = runs.design[list(self.scalar_inputs)].to_numpy(float)
+        which = []
+        for setting in loc.settings:
+            hit = np.flatnonzero(np.all(scalar == setting, axis=1))
+            if hit.size == 0:
+                named = dict(zip(self.scalar_inputs, setting.tolist(), strict=True))
+                raise ValueError(f"at_rows: the runs have no curve at the setting {named}")
+            which.append(int(hit[0]))
+        curves = np.asarray(runs.curves, dtype=float)[which]
+        return np.sum(loc.interp * curves[loc.setting_index], axis=1)
+
+    def parameters_to_unit(self, values: np.ndarray) -> np.ndarray:
+        """θ rows (columns in ``runs.parameters`` order) in the unit box of the fit.
+
+        Examples
+        --------
+        >>> from kohpymc import PhysicsModel, Uniform
+        >>> from kohpymc.emulator import space_filling_design
+        >>> line = PhysicsModel(lambda x, p: p["a"] * x["t"], {"a": Uniform(0, 1)},
+        ...                     inputs=["t"])
+        >>> em = FunctionalEmulator(run_curves(line, space_filling_design({"a": (0, 1)}, 6),
+        ...                                    {"t": [0.0, 1.0]}), line, box={"a": (0, 1)})
+        >>> em.parameters_to_unit(np.array([[0.25]])).tolist(), em.parameters_from_unit([0.5])
+        ([[0.25]], array([0.5]))
+        """
+        values = np.asarray(values, dtype=float)
+        rows = np.atleast_2d(values)
+        ds = len(self.scalar_inputs)
+        H = self._coordinates(np.column_stack([np.ones((len(rows), ds)), rows]))
+        unit = (H[:, ds:] - self.lower[ds:]) / self.width[ds:]
+        return unit.reshape(values.shape)
+
+    def parameters_from_unit(self, unit: np.ndarray | Sequence[float]) -> np.ndarray:
+        """The inverse of :meth:`parameters_to_unit`."""
+        ds = len(self.scalar_inputs)
+        h = self.lower[ds:] + np.asarray(unit, dtype=float) * self.width[ds:]
+        if self.rotation is not None:
+            center, matrix = self.rotation
+            h = center + np.linalg.solve(matrix, h.T).T
+        logs = self.log_columns[ds:]
+        return np.where(logs, np.exp(np.where(logs, h, 0.0)), h)
 
     def predict_curves(self, design: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
         """Latent mean and sd ``(n, P)`` of the curves at every design row, on the grid.
@@ -940,7 +1025,9 @@ class FunctionalEmulator(SharedTrainingData):
         """The held-out curves' grid values scored as an :class:`EmulatorCheck`.
 
         Simulated values, means and sds are latent (ln output with ``log_output``), one
-        per grid point of every held-out curve; ``problems`` as in :meth:`held_out`.  Its
+        per grid point of every held-out curve; ``problems`` as in :meth:`held_out`, the
+        coverage's tolerance that of as many independent values as curves
+        (:func:`~kohpymc.emulator.checking.coverage_bounds`).  Its
         ``to_dict`` and ``figure`` are those of :func:`kohpymc.emulator.check_emulator`.
 
         Examples
@@ -961,10 +1048,15 @@ class FunctionalEmulator(SharedTrainingData):
         check = EmulatorCheck(
             "held-out", truth.ravel(), mean.ravel(), np.maximum(sd, 1e-300).ravel(), level
         )
+        # a curve's grid values share its weights' errors: the curves are the
+        # independent values of the coverage's binomial tolerance
         check.problems += fit_problems(
-            "held-out", check.coverage, check.relative_rmse, truth.size, level=level
+            "held-out", check.coverage, check.relative_rmse, len(truth), level=level
         )
         return check
+
+    #: what warnings call its runs
+    runs_noun = "curves"
 
     # ----------------------------------------------------------------- pytensor
     #: evaluate the weight GPs' ``k`` and ``kᵀ K⁻¹ k`` by one compiled op,

@@ -15,9 +15,15 @@ grid point), the **settings** the distinct values of the other (scalar) inputs t
 The first design is ``round(runs / m)`` θ by ``design`` over the prior box, each run at
 every one of the ``m`` settings (:func:`~kohpymc.emulator.functional.at_settings`): one
 simulator call per curve (:func:`~kohpymc.emulator.functional.run_curves`), cached in
-``<output>/emulator/runs/``.  Its check is on held-out curves: a fifth as many θ again
+``<output>/emulator/runs/``.  Two checks: on held-out curves, a fifth as many θ again
 (at least 3; a Sobol design with seed + 1), at every setting, not used in the fit
-(``check.json``/``check.png``, ``FunctionalEmulator.held_out_check``).
+(``check.json``/``check.png``, ``FunctionalEmulator.held_out_check``), and at the data
+(``check_at_data.json``, :func:`~kohpymc.emulator.checking.check_at_data` through
+:class:`~kohpymc.emulator.functional_at_data.CurvesAtData`): the simulator's curves at the
+emulator's best fit to the calibration data, one per setting, against the emulator's
+prediction there.  The second decides the ``EmulatorWarning``; the first, over the whole
+prior box, is named in it when it fails too.  A rerun restoring the rounds' emulator
+warns again from ``check_at_data.json`` instead of checking again.
 ``sequential = N`` runs :func:`~kohpymc.emulator.sequential.sequential_design` with the
 functional emulator (``rounds.csv``); its final design goes to ``rounds.json`` under a
 key of the settings, simulator, data and sampler settings, so a rerun refits the final
@@ -40,6 +46,7 @@ import pandas as pd
 
 from kohpymc.data import CalibrationData
 from kohpymc.discrepancy.base import Discrepancy
+from kohpymc.emulator.at_data import EmulatorsAtData
 from kohpymc.emulator.design import log_scaled, space_filling_design
 from kohpymc.emulator.functional import (
     FunctionalEmulatedPhysics,
@@ -49,7 +56,6 @@ from kohpymc.emulator.functional import (
     distinct_rows,
     run_curves,
 )
-from kohpymc.emulator.gp import EmulatorWarning
 from kohpymc.emulator.study import (
     ROUNDS_RECORD,
     EmulatorSettings,
@@ -57,16 +63,20 @@ from kohpymc.emulator.study import (
     read_rounds_record,
     rounds_key,
     run_rounds,
+    warn_recorded,
     write_check,
+    write_check_at_data,
     write_settings,
 )
 from kohpymc.fingerprint import data_fingerprint, digest
 from kohpymc.initialization import prior_box
 from kohpymc.physics import PhysicsModel
 from kohpymc.study_files import write_atomic
-from kohpymc.warning_filters import warn_user
 
 __all__ = ["CurveStudy", "study_functional_physics", "write_functional_emulator"]
+
+#: what the warning of a failed check at the data advises (no refinement rounds for curves)
+ADVICE = "add curves ([emulator] runs or sequential rounds)"
 
 
 @dataclass(frozen=True)
@@ -191,6 +201,7 @@ def study_functional_physics(
             ]
         )
     emulator = _restored(study, folder, key)
+    restored = emulator is not None
     if emulator is None:
         emulator = study.fit(study.run(study.design(settings.runs, settings.design, settings.seed)))
         if settings.sequential > 0:
@@ -199,7 +210,8 @@ def study_functional_physics(
                 sampling=sampling, workers=workers, scheduler=scheduler,
             )  # fmt: skip
             _write_record(folder, key, emulator)
-    _write_held_out_check(study, emulator, folder)
+    if not (restored and warn_recorded(folder, EmulatorsAtData.of(emulator, calibration))):
+        _write_checks(study, emulator, calibration, folder)
     write_settings(folder, settings)
     write_functional_emulator(folder, emulator)
     return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
@@ -229,20 +241,25 @@ def _restored(study: CurveStudy, folder: Path, key: str) -> FunctionalEmulator |
     return study.fit(study.run(design), log_output=bool(record["log_output"]))
 
 
-def _write_held_out_check(study: CurveStudy, emulator: FunctionalEmulator, folder: Path) -> None:
-    """``check.json``/``.png`` on held-out curves (a fifth of the first θ, at least 3); warn."""
+def _write_checks(
+    study: CurveStudy, emulator: FunctionalEmulator, calibration: CalibrationData, folder: Path
+) -> None:
+    """``check.json``/``.png`` on held-out curves, ``check_at_data.json``; warn from the latter.
+
+    The held-out curves (a fifth of the first θ, at least 3, at every setting) score the
+    emulator over the prior box, most of which the posterior never visits; they are
+    written, not warned, and their problems are named in the warning of a failed check
+    at the data (:func:`~kohpymc.emulator.study.write_check_at_data`).
+    """
     settings = study.settings
     n_theta = max(3, math.ceil(settings.runs / len(study.points) / 5))
     design = study.design(n_theta * len(study.points), "sobol", settings.seed + 1)
-    check = emulator.held_out_check(study.run(design))
-    write_check(folder, check)
-    if check.problems:
-        warn_user(
-            f"emulator of {study.physics.name!r} ({emulator.n_runs} curves) is not fit for "
-            f"calibration: {'; '.join(check.problems)}; add runs ([emulator] runs or "
-            "sequential rounds)",
-            EmulatorWarning,
-        )
+    held_out = emulator.held_out_check(study.run(design))
+    write_check(folder, held_out)
+    write_check_at_data(
+        folder, EmulatorsAtData.of(emulator, calibration), held_out.problems, advice=ADVICE,
+        workers=study.workers, scheduler=study.scheduler,
+    )  # fmt: skip
 
 
 def write_functional_emulator(folder: Path, emulator: FunctionalEmulator) -> None:

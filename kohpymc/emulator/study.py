@@ -87,7 +87,9 @@ __all__ = [
     "study_emulators",
     "study_physics",
     "warn_if_extrapolating",
+    "warn_recorded",
     "write_check",
+    "write_check_at_data",
     "write_emulator",
     "write_settings",
 ]
@@ -635,20 +637,24 @@ def _restored_rounds(
         )  # fmt: skip
         for k, model in models.items()
     }
-    _warn_again(folder, EmulatorsAtData(simulator, emulators, {}))
+    warn_recorded(folder, EmulatorsAtData(simulator, emulators, {}))
     return emulators
 
 
-def _warn_again(folder: Path, target: EmulatorsAtData) -> None:
-    """The warning of a failed check at the data recorded when the rounds ran."""
+def warn_recorded(folder: Path, target: EmulatorsAtData) -> bool:
+    """The warning of a failed check at the data recorded when the rounds ran.
+
+    Returns whether ``check_at_data.json`` was there to read.
+    """
     try:
         problems = json.loads((folder / "check_at_data.json").read_text())["problems"]
     except (OSError, ValueError, KeyError, TypeError):
-        return
+        return False
     if problems:
         empty = np.empty(0)
         recorded = EmulatorCheck("at the calibration data", empty, empty, empty, problems=problems)
         warn_at_data(target, recorded, "(recorded in check_at_data.json when the rounds ran)")
+    return True
 
 
 def _round_formulation(
@@ -739,13 +745,36 @@ def _write_checks(
     and the problems over the design (:func:`_write_design_checks`).
     """
     design = _write_design_checks(folder, target)
+    at_data = write_check_at_data(
+        folder, target, design, warn=warn, workers=workers, scheduler=scheduler
+    )
+    return at_data, design
+
+
+def write_check_at_data(
+    folder: Path,
+    target: EmulatorsAtData,
+    design_problems: list[str],
+    *,
+    warn: bool = True,
+    advice: str | None = None,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> Any:
+    """``check_at_data.json``: the check at the data (simulator run cached in ``folder/runs``).
+
+    With ``warn``, its :func:`~kohpymc.emulator.checking.warn_at_data` when it fails,
+    naming ``design_problems`` (those of the check over the design, written but not
+    warned) and ``advice`` (default: that of the scalar emulator).  Returns the check.
+    """
     at_data = check_target_at_data(
         target, cache=folder / "runs", workers=workers, scheduler=scheduler
     )
     if warn:
-        warn_at_data(target, at_data, design_problems=design)
+        extra = {} if advice is None else {"advice": advice}
+        warn_at_data(target, at_data, design_problems=design_problems, **extra)
     _write_json(folder / "check_at_data.json", at_data.to_dict())
-    return at_data, design
+    return at_data
 
 
 def _write_design_checks(folder: Path, target: EmulatorsAtData) -> list[str]:

@@ -191,4 +191,5 @@ def _joined(parts: list[az.InferenceData]) -> az.InferenceData:
             continue
         joined = xr.concat(datasets, dim="chain", combine_attrs="override")
         groups[group] = joined.assign_coords(chain=np.arange(joined.sizes["chain"]))
-    return az.InferenceData(**groups)
+    # InferenceData(**groups): its stub types the keyword arguments as bool (warn_on_custom_groups)
+    return az.InferenceData(**groups)  # type: ignore[arg-type]

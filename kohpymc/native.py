@@ -407,7 +407,7 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
     key = None
     if map_key is not None:  # the density's shared values (after the address) are not read
         parts = f"{map_key}-{n}-{n_map}".encode()
-        key = f"kohpymc-native-composed-v4-{hashlib.sha256(parts).hexdigest()}"  # a file name
+        key = f"kohpymc-native-composed-v5-{hashlib.sha256(parts).hexdigest()}"  # a file name
     names = {"N_MAP": n_map, "map_fn": _inlined(map_jit), "call_density": call_density}
     logp_c = _logp_c(_COMPOSED_BODY, n, n_map + 1, names, key)
     address = np.array([density.c_function.address], dtype=np.int64).view(np.float64)
@@ -441,12 +441,18 @@ def logp_c(dim, x_, out_, logp_, user_data_):
         body(x, theta, out, logp)
     except Exception:
         return 1
+    return status(out, logp)
+"""
+
+
+@numba.njit(cache=True)
+def _status(out, logp):  # pragma: no cover - runs compiled
+    """Nutpie's return code after a density evaluated: 3 non-finite gradient, 4 density."""
     if not np.all(np.isfinite(out)):
         return 3
     if not np.isfinite(logp[()]):
         return 4
     return 0
-"""
 
 
 def _logp_c(body: str, n_dim: int, n_theta: int, names: dict[str, Any], key: str | None) -> Any:
@@ -473,6 +479,7 @@ def _logp_c(body: str, n_dim: int, n_theta: int, names: dict[str, Any], key: str
         "np": np,
         "__name__": __name__,
         "body": numba_njit(raw_body, cache=key is not None),
+        "status": _status,
     }
     raw = compile_numba_function_src(_LOGP_TEMPLATE, "logp_c", env, cache_key=key)
     return numba.cfunc(_LOGP_SIGNATURE, cache=key is not None)(raw)
@@ -487,7 +494,7 @@ def _logp_cfunc(jit_fn: Any, n_dim: int, n_theta: int) -> Any:
     from pytensor.link.numba.cache import CACHED_SRC_FUNCTIONS
 
     graph_key = CACHED_SRC_FUNCTIONS.get(jit_fn.py_func)
-    key = None if graph_key is None else f"kohpymc-native-logp-v5-{graph_key}-{n_dim}-{n_theta}"
+    key = None if graph_key is None else f"kohpymc-native-logp-v6-{graph_key}-{n_dim}-{n_theta}"
     body = "value, grad = jit_fn(x, theta)\nlogp[()] = value\nout[...] = grad"
     return _logp_c(body, n_dim, n_theta, {"jit_fn": _inlined(jit_fn)}, key)
 
@@ -714,11 +721,7 @@ def _affine_logp(dim, x_, out_, logp_, user_data_):  # pragma: no cover - runs c
         logp[()] = _affine_body(x, theta, out)
     except Exception:
         return 1
-    if not np.all(np.isfinite(out)):
-        return 3
-    if not np.isfinite(logp[()]):
-        return 4
-    return 0
+    return _status(out, logp)
 
 
 @functools.cache

@@ -195,3 +195,22 @@ def test_draws_along_a_curved_ridge_in_own_units_match_quadrature():
         x = idata.posterior[name].values.ravel()
         assert abs(x.mean() - mean) < 4 * sd / np.sqrt(ess), (name, x.mean(), mean)
         assert abs(x.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess), (name, x.std(), sd)
+
+
+def test_position_quadrature_resolves_a_peak_narrower_than_its_grid():
+    """The position along the segment is centred and scaled by quadrature on a grid of
+    spacing 0.25.  A peak narrower than that (Steinhart–Hart with a GP discrepancy: sd ~0.1,
+    measured 0.014) fell between its points and the position axis lost its scale (drops
+    0.00–0.01 at ±1.5).  A Gaussian profile of sd 0.05 at 0.73: before, centre 0.750 (the
+    nearest grid point) and sd 0.0013; now both exact to 1 % of the sd."""
+    from kohpymc.ridge_segment import _centre_and_scale
+
+    class Profile:
+        ndim = 1
+
+        def logp_dlogp(self, space, z, *, safe=False):
+            return -0.5 * ((z[-1] - 0.73) / 0.05) ** 2, np.zeros(1)
+
+    centre, scale = _centre_and_scale(None, Profile())
+    assert abs(centre - 0.73) < 0.01 * 0.05, centre
+    assert abs(scale / 0.05 - 1.0) < 0.01, scale

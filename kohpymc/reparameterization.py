@@ -28,11 +28,13 @@ Before sampling, :func:`plan` therefore
    (``L Lᵀ = H⁻¹``), so the sampler sees a posterior close to a standard normal;
 6. where every Laplace map fits badly (score > 1), also tries a straight ridge cut by
    the prior box (:class:`BoxRidgePlan`) and a curved one followed from face to face
-   (:class:`kohpymc.ridge_curve.RidgeCurvePlan`); and, where the best fits badly on
-   average or along one axis, a long straight ridge that a face cuts off
-   (:class:`kohpymc.ridge_segment.SegmentPlan`, bounded parameters on the scale of their
-   flat prior); each is kept when it scores better, a plan whose density has
-   zero-density holes near the mode ranking last.
+   (:class:`kohpymc.ridge_curve.RidgeCurvePlan`, led by a parameter on the log scale, or
+   in its own units when no interval prior lies on the positive axis); and, where the
+   best fits badly on average or along one axis, a long straight ridge that a face cuts
+   off (:class:`kohpymc.ridge_segment.SegmentPlan`, bounded parameters on the scale of
+   their flat prior, declined where the ridge curves away from its line); each is kept
+   when it scores better, a plan whose density has zero-density holes near the mode
+   ranking last.
 
 Draws map back through ``z → w → v → parameters``; the InferenceData holds the user's
 parameters only.  The density in ``z`` is exact (the log-Jacobian of the elementwise
@@ -1629,7 +1631,14 @@ def _ridge_curve(
     from kohpymc.ridge_curve import ridge_curve_plan
 
     log_logit = [p for p in plans if p.coordinates.name == "log-logit"]
-    curve = ridge_curve_plan(space, log_logit[0], mode) if log_logit else None
+    value = [p for p in plans if p.coordinates.name == "value"]
+    curve = None
+    if log_logit:
+        curve = ridge_curve_plan(space, log_logit[0], mode)
+    elif value:
+        # no log scale (no interval prior on the positive axis): the ridge is led by a
+        # parameter in its own units (Steinhart–Hart's C, whose box spans zero)
+        curve = ridge_curve_plan(space, value[0], mode, own=True)
     if curve is None or not curve.gaussian_score > _BEND_SCORE:
         return curve
     from kohpymc.bends import bend_coordinates

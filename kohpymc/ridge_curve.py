@@ -26,6 +26,15 @@ that compensates it linearly bends exponentially).  Where a soft-box parameter l
 a few sds of a bound, its partners are measured from their regression on what the box
 leaves of it (a :class:`~kohpymc.reparameterization.BoundRidge`), so that past the bound
 they stop with it instead of running into a wall of their conditional precision.
+
+Without a log scale (no interval prior on the positive axis: Steinhart–Hart's
+``C ∈ (−5·10⁻⁷, 5·10⁻⁷)``, ``A`` and ``B`` bounded below by 0) the pivot is an interval
+parameter in its own units, ``s`` its position between its bounds (PyMC's logit), the
+members staying in PyMC's coordinates (``own=True``, kind
+``"ridge-curve-own-units-soft-box"``); the nodes are then refined where the splines miss
+the ridge (:func:`_refined`).  Steinhart–Hart with an input-dependent discrepancy (M3),
+where the straight segment's line missed the curved ridge by 11 transverse sds at 3 of its
+sds: r̂ 1.051 → 1.007, bulk ESS 37 → 705, divergences 39 → 16 in 2 × 1000 draws.
 """
 
 from __future__ import annotations
@@ -216,36 +225,59 @@ def _nodes(n: int, end: float = 1e-6) -> np.ndarray:
     return s
 
 
-def _ridge_members(laplace: Reparameterization) -> tuple[int, np.ndarray] | None:
-    """The pivot and the log-logit elements on the ridge, or None without a long ridge.
+def _ridge_members(
+    laplace: Reparameterization, candidates: np.ndarray | None = None
+) -> tuple[int, np.ndarray] | None:
+    """The pivot and the ridge's members, or None without a long ridge.
 
-    The ridge is the flattest direction ``d`` of the Laplace precision in the log-logit
-    coordinates; the pivot is its largest log-logit component, the members those with at
-    least a tenth of it.  A ridge is long when the pivot's marginal sd is more than
+    Without ``candidates`` the ridge is the flattest direction ``d`` of the Laplace
+    precision in the log-logit coordinates; the pivot is its largest log-logit component,
+    the members those with at least a tenth of it.  With ``candidates`` (a mask; elements
+    on different scales, where the flattest direction of the precision is that of the
+    widest element, not the ridge's) the pivot is the candidate whose marginal sd exceeds
+    its conditional sd the most, the members every candidate whose ratio exceeds
+    ``_RIDGE_RATIO``.  A ridge is long when the pivot's marginal sd is more than
     ``_RIDGE_RATIO`` times its conditional sd.
     """
     coords = laplace.coordinates
-    log = coords.log_scale
+    log = coords.log_scale if candidates is None else candidates
     if coords.walls or coords.ridge is not None or log.sum() < 2:
         return None
     cov = laplace.chol @ laplace.chol.T
     precision = np.linalg.inv(cov)
+    ratio = np.sqrt(np.diag(cov) * np.diag(precision))
+    if candidates is not None:
+        ratio = np.where(candidates, ratio, 0.0)
+        pivot = int(np.argmax(ratio))
+        members = np.flatnonzero(ratio > _RIDGE_RATIO)
+        return (pivot, members) if ratio[pivot] > _RIDGE_RATIO else None
     lam, vec = np.linalg.eigh(precision)
     d = np.where(log, np.abs(vec[:, 0]), 0.0)
     pivot = int(np.argmax(d))
-    if np.sqrt(cov[pivot, pivot] * precision[pivot, pivot]) < _RIDGE_RATIO:
+    if ratio[pivot] < _RIDGE_RATIO:
         return None
     return pivot, np.flatnonzero(d >= 0.1 * d[pivot])
 
 
-def _soft_box(space: ValueSpace, laplace: Reparameterization, members: np.ndarray):
-    """Log-logit for the ridge's members, a soft box for every other interval parameter."""
-    coords = laplace.coordinates
+def _interval(space: ValueSpace) -> np.ndarray:
+    """Mask of the interval elements with finite bounds."""
     kinds = np.array(space.transforms)
-    interval = (kinds == "interval") & np.isfinite(space.lower) & np.isfinite(space.upper)
-    log_scale = np.zeros(space.ndim, bool)
-    log_scale[members] = True
-    soft = interval & ~log_scale
+    return (kinds == "interval") & np.isfinite(space.lower) & np.isfinite(space.upper)
+
+
+def _soft_box(
+    space: ValueSpace, laplace: Reparameterization, members: np.ndarray, *, own: bool = False
+):
+    """The ridge's members log-logit, every other interval parameter in a soft box.
+
+    With ``own`` the members keep PyMC's coordinates (the logit of their own units).
+    """
+    coords = laplace.coordinates
+    interval = _interval(space)
+    on_ridge = np.zeros(space.ndim, bool)
+    on_ridge[members] = True
+    log_scale = np.zeros(space.ndim, bool) if own else on_ridge
+    soft = interval & ~on_ridge
     share = expit(np.asarray(laplace.mode.value if laplace.mode else laplace.mean, float))
     own_sd = (space.upper - space.lower) * share * (1.0 - share) * laplace.value_sd
     width = np.where(soft, _SOFT_WIDTH * own_sd, 1.0)
@@ -470,6 +502,58 @@ def _march(cond: _Conditional, nodes: np.ndarray, start: float, first: np.ndarra
     return modes, profile, factors
 
 
+#: a node is added between two where the splines' midpoint lies more than this far (log
+#: density) below the conditional mode there (:func:`_refined`)
+_MISS = 0.25
+
+#: only between nodes whose profile lies within this of its maximum (where the draws go)
+_RELEVANT = 30.0
+
+
+def _refined(cond: _Conditional, nodes: np.ndarray, marched: tuple, rounds: int = 5):
+    """``nodes`` and ``marched`` with nodes added where the splines miss the ridge.
+
+    Between two nodes whose profile lies within ``_RELEVANT`` of its maximum, the
+    conditional mode at the midpoint (from the splines' value there, whitened by the
+    nearer node's factor) is compared with the splines' value; where the log density at
+    the latter lies more than ``_MISS`` below, the midpoint becomes a node.  Repeated for
+    ``rounds`` rounds, each looking only between new nodes and their neighbours.  Where the
+    conditional modes turn fast (Steinhart–Hart M3: the noise and discrepancy variance
+    take up the misfit below C ≈ 0, their modes moving 1.9 units between C = −1.3·10⁻⁷ and
+    −7·10⁻⁸ while their conditional sds are 10⁻²–10⁻³) the spline through the default
+    nodes missed it by 6–14 conditional sds, a drop of 114 at −1.5 sds along the ridge.
+    """
+    modes, profile, factors = marched
+    fresh = np.ones(nodes.size, bool)
+    for _ in range(rounds):
+        curve = CubicSpline(nodes, modes, axis=0)
+        added = []
+        for i in range(nodes.size - 1):
+            relevant = min(profile[i], profile[i + 1]) > profile.max() - _RELEVANT
+            if not (relevant and (fresh[i] or fresh[i + 1])):
+                continue
+            s = 0.5 * (nodes[i] + nodes[i + 1])
+            w_pivot = float(logit(s))
+            near = factors[i] if s - nodes[i] < nodes[i + 1] - s else factors[i + 1]
+            guess = curve(s)
+            mode, best = cond.mode(w_pivot, guess, near)
+            on_spline, _ = cond._logp(w_pivot, guess)
+            if not np.isfinite(best) or not best - on_spline > _MISS:
+                continue
+            factor = cond.factor(w_pivot, mode, near)
+            if factor is not None:
+                added.append((s, mode, best, factor))
+        if not added:
+            break
+        order = np.argsort(np.concatenate([nodes, [a[0] for a in added]]), kind="stable")
+        nodes = np.concatenate([nodes, [a[0] for a in added]])[order]
+        modes = np.concatenate([modes, [a[1] for a in added]])[order]
+        profile = np.concatenate([profile, [a[2] for a in added]])[order]
+        factors = np.concatenate([factors, [a[3] for a in added]])[order]
+        fresh = np.concatenate([np.zeros(fresh.size, bool), np.ones(len(added), bool)])[order]
+    return nodes, (modes, profile, factors)
+
+
 def _pivot_moments(nodes: np.ndarray, profile: np.ndarray) -> tuple[float, float]:
     """Mean and sd of ``w_p`` under ``exp(profile)`` by quadrature (logistic tails outside)."""
     spline = CubicSpline(nodes, profile)
@@ -484,7 +568,12 @@ def _pivot_moments(nodes: np.ndarray, profile: np.ndarray) -> tuple[float, float
 
 
 def ridge_curve_plan(
-    space: ValueSpace, laplace: Reparameterization, mode: Mode, *, n_nodes: int = 25
+    space: ValueSpace,
+    laplace: Reparameterization,
+    mode: Mode,
+    *,
+    n_nodes: int = 25,
+    own: bool = False,
 ) -> RidgeCurvePlan | None:
     """A :class:`RidgeCurvePlan` from a log-logit Laplace plan, or None without a long ridge.
 
@@ -492,10 +581,16 @@ def ridge_curve_plan(
     ----------
     space : ValueSpace
     laplace : Reparameterization
-        The whitened plan in log-logit coordinates (no walls, no bound ridge).
+        The whitened plan in log-logit coordinates (no walls, no bound ridge); with
+        ``own``, in PyMC's coordinates.
     mode : Mode
     n_nodes : int
         Nodes of the splines from face to face.
+    own : bool
+        Lead the ridge by an interval parameter in its own units (its position between its
+        bounds, PyMC's logit), the members staying in PyMC's coordinates: for a ridge of
+        parameters whose boxes do not lie on the positive axis (Steinhart–Hart's
+        ``C ∈ (−5·10⁻⁷, 5·10⁻⁷)``), which have no log scale.
 
     Examples
     --------
@@ -504,11 +599,12 @@ def ridge_curve_plan(
     'ridge-curve-soft-box'
     """
     value_sd = laplace.value_sd
-    found = _ridge_members(laplace) if value_sd is not None else None
+    candidates = _interval(space) if own else None
+    found = _ridge_members(laplace, candidates) if value_sd is not None else None
     if found is None or value_sd is None:
         return None
     pivot, members = found
-    coords = _soft_box(space, laplace, members)
+    coords = _soft_box(space, laplace, members, own=own)
     if coords is None:
         return None
     mean, chol = _laplace(space, coords, coords.from_value(mode.value))
@@ -530,12 +626,15 @@ def ridge_curve_plan(
     marched = _march(cond, nodes, float(expit(mean[pivot])), mean[rest].copy())
     if marched is None:
         return None
+    if own:
+        nodes, marched = _refined(cond, nodes, marched)
     modes, profile, factors = marched
     lower = np.tril_indices(rest.size, -1)
     entries = [np.concatenate([np.log(np.diag(f)), f[lower]]) for f in factors]
     centre, scale = _pivot_moments(nodes, profile)
+    kind = "ridge-curve-own-units-soft-box" if own else "ridge-curve-soft-box"
     plan = RidgeCurvePlan(
-        "ridge-curve-soft-box", np.zeros(space.ndim), np.eye(space.ndim), coords, "", mode,
+        kind, np.zeros(space.ndim), np.eye(space.ndim), coords, "", mode,
         pivot=pivot, rest=rest, centre=centre, scale=scale, nodes=nodes,
         curve=CubicSpline(nodes, modes, axis=0),
         factor=CubicSpline(nodes, np.array(entries), axis=0),

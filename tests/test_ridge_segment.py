@@ -136,3 +136,81 @@ def test_no_segment_along_a_ridge_flatter_than_the_hessian_resolves():
     for shift in (0.0, 1e-13, -1e-13):
         moved = replace(mode, value=mode.value * (1.0 + shift))
         assert segment_plan(space, moved, seed=SEED) is None
+
+
+# A curved ridge led by a parameter whose box spans zero (no log scale), cut by its upper
+# bound: Steinhart–Hart's C in (−5e-7, 5e-7) with the discrepancy's mean sliding along it.
+# Here ``b = exp(2c)`` to 0.01 and ``c`` pulled to 0.7 ± 0.35, a bound at 1 (0.9 sds).
+CURVE_PULL, CURVE_SD, CURVE_WIDTH = 0.7, 0.35, 0.01
+
+
+def _curved_ridge() -> pm.Model:
+    with pm.Model() as model:
+        c = Uniform(-1.0, 1.0).create("c")
+        b = Uniform(-10.0, 10.0).create("b")
+        pm.Normal("ridge", b - pm.math.exp(2.0 * c), CURVE_WIDTH, observed=[0.0])
+        pm.Normal("pull", c, CURVE_SD, observed=[CURVE_PULL])
+    return model
+
+
+def _curved_ridge_reference() -> dict[str, tuple[float, float]]:
+    """Exact moments by quadrature: ``b | c ~ N(exp(2c), 0.01²)`` lies inside its box by
+    hundreds of sds, so ``c`` is ``N(0.7, 0.35²)`` truncated to (−1, 1)."""
+    c = np.linspace(-1.0, 1.0, 400001)
+    w = np.exp(-0.5 * ((c - CURVE_PULL) / CURVE_SD) ** 2)
+    w /= w.sum()
+    g = np.exp(2.0 * c)
+    mean_c, mean_b = float(w @ c), float(w @ g)
+    return {
+        "c": (mean_c, float(np.sqrt(w @ (c - mean_c) ** 2))),
+        "b": (mean_b, float(np.sqrt(w @ (g - mean_b) ** 2 + CURVE_WIDTH**2))),
+    }
+
+
+def test_no_segment_along_a_curved_ridge():
+    """The segment's line is the ridge's tangent at the mode; 2 Laplace sds of ``c`` below
+    the mode the ridge lies many conditional sds off it.  Before, segment_plan built it
+    (and the planner chose it: 54 and 20 divergences in 2 × (1000 + 1000) draws, seeds
+    1 and 2, r̂ 1.28 and 1.03, the mean of ``c`` 0.42 and 0.66 sds above quadrature's)."""
+    space = value_space(_curved_ridge())
+    assert segment_plan(space, find_mode(space, seed=SEED), seed=SEED) is None
+
+
+def test_draws_along_a_curved_ridge_in_own_units_match_quadrature():
+    """Followed as a ridge curve led by ``c``'s position in its own box: no divergence,
+    r̂ ≤ 1.01, ESS ≥ 400, and the means and sds of ``c`` and ``b`` within 4 Monte Carlo
+    errors of the exact moments (measured: 0 divergences, r̂ 1.001/1.002, ESS 1073/784
+    for seeds 1/2)."""
+    space = value_space(_curved_ridge())
+    assert plan(space, seed=SEED).kind == "ridge-curve-own-units-soft-box"
+    idata, report = sample_posterior(
+        _curved_ridge(), draws=1000, tune=1000, chains=2, cores=1, random_seed=1
+    )
+    assert report.reparameterization["kind"] == "ridge-curve-own-units-soft-box", report
+    assert int(idata.sample_stats.diverging.sum()) == 0
+    assert float(az.rhat(idata).to_array().max()) <= 1.01
+    ess = float(az.ess(idata).to_array().min())
+    assert ess >= 400
+    for name, (mean, sd) in _curved_ridge_reference().items():
+        x = idata.posterior[name].values.ravel()
+        assert abs(x.mean() - mean) < 4 * sd / np.sqrt(ess), (name, x.mean(), mean)
+        assert abs(x.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess), (name, x.std(), sd)
+
+
+def test_position_quadrature_resolves_a_peak_narrower_than_its_grid():
+    """The position along the segment is centred and scaled by quadrature on a grid of
+    spacing 0.25.  A peak narrower than that (Steinhart–Hart with a GP discrepancy: sd ~0.1,
+    measured 0.014) fell between its points and the position axis lost its scale (drops
+    0.00–0.01 at ±1.5).  A Gaussian profile of sd 0.05 at 0.73: before, centre 0.750 (the
+    nearest grid point) and sd 0.0013; now both exact to 1 % of the sd."""
+    from kohpymc.ridge_segment import _centre_and_scale
+
+    class Profile:
+        ndim = 1
+
+        def logp_dlogp(self, space, z, *, safe=False):
+            return -0.5 * ((z[-1] - 0.73) / 0.05) ** 2, np.zeros(1)
+
+    centre, scale = _centre_and_scale(None, Profile())
+    assert abs(centre - 0.73) < 0.01 * 0.05, centre
+    assert abs(scale / 0.05 - 1.0) < 0.01, scale

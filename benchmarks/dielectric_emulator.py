@@ -140,10 +140,10 @@ def report(result: dict, direct_path: Path, emulated_path: Path, out: Path) -> s
         "",
         "`python -m benchmarks.dielectric_emulator` (`make bench-dielectric-emulator`); data "
         f"`generate_data(seed={SEED})`, calibration half (240 rows); `kp.calibrate` at its "
-        "defaults for both (nutpie, 4 chains × 1000 draws after 1000 tuning on 2 threads), "
+        "defaults for both (nutpie, 4 chains × 1000 draws after 1000 tuning, 2 cores), "
         "seed 1, on 2 cores shared with other jobs. The direct model's physics is a Python "
-        "Op, so its chains share one interpreter (the GIL) and use about one core; the "
-        "emulator's log density is compiled by numba and its chains use both.",
+        "Op: its chains run in 2 forked processes (`kohpymc.chain_processes`); the "
+        "emulator's log density is compiled by numba and its chains run on 2 threads.",
         "",
         f"Simulator runs: {result['training runs']} for the emulator + {result['held-out runs']} "
         f"held out = {result['runs']} (one run = the stand-in at one θ, 12 settings × 40 times). "

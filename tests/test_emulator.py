@@ -1060,6 +1060,7 @@ def test_a_misfit_over_the_design_is_warned_only_when_the_check_at_the_data_fail
     else:
         assert at_data and len(warned) == 1
         assert "over its design, leave-one-out RMSE" in warned[0]
+        assert warned[0].count("add runs (") == 1  # the design problem's own advice left out
 
 
 @pytest.mark.filterwarnings("ignore:.*not fit for calibration:UserWarning")

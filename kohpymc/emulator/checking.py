@@ -660,11 +660,23 @@ def warn_at_data(
     else:
         runs = getattr(emulator, "runs_noun", "runs")
         what = f"emulator of {emulator.physics.name!r} ({emulator.n_runs} {runs}) is"
-    design = f"; over its design, {'; '.join(design_problems)}" if design_problems else ""
+    named = [_without_advice(problem) for problem in design_problems]
+    design = f"; over its design, {'; '.join(named)}" if named else ""
     warn_user(
         f"{what} not fit for this calibration: {'; '.join(check.problems)}{design}; {advice}",
         EmulatorWarning,
     )
+
+
+def _without_advice(problem: str) -> str:
+    """A design problem without its own advice (the warning ends with one).
+
+    Examples
+    --------
+    >>> _without_advice("leave-one-out RMSE is 0.6 (> 0.1): add runs (see kohpymc.emulator)")
+    'leave-one-out RMSE is 0.6 (> 0.1)'
+    """
+    return problem.split(": add runs (")[0]
 
 
 def _scored(

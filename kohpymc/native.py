@@ -410,9 +410,13 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
         key = f"kohpymc-native-composed-v5-{hashlib.sha256(parts).hexdigest()}"  # a file name
     names = {"N_MAP": n_map, "map_fn": _inlined(map_jit), "call_density": call_density}
     logp_c = _logp_c(_COMPOSED_BODY, n, n_map + 1, names, key)
-    address = np.array([density.c_function.address], dtype=np.int64).view(np.float64)
-    user_data = np.concatenate([parameters(mapping)[:n_map], address, density.theta()])
-    return logp_c, function, np.ascontiguousarray(user_data)
+    values = [parameters(mapping)[:n_map], _address_bits(density), density.theta()]
+    return logp_c, function, np.ascontiguousarray(np.concatenate(values))
+
+
+def _address_bits(density: NumbaDensity) -> np.ndarray:
+    """The address of ``density``'s C function as one float64 with its bits (user data)."""
+    return np.array([density.c_function.address], dtype=np.int64).view(np.float64)
 
 
 #: nutpie's log-density C signature: (dim, x, gradient out, logp out, user data) -> code
@@ -605,7 +609,7 @@ def _affine_user_data(mapping: Reparameterization, density: NumbaDensity) -> np.
     ]  # fmt: skip
     start = _HEADER + sum(p.size for p in parts)
     shared = density.theta()
-    address = np.array([density.c_function.address], dtype=np.int64).view(np.float64)[0]
+    address = _address_bits(density)[0]
     header = [start + shared.size, address, n, float(coords.walls), len(pairs), start]
     return np.ascontiguousarray(np.concatenate([header, *parts, shared]), dtype=float)
 

@@ -151,10 +151,11 @@ def rows_function(
     >>> f(np.array([[0.0, 1.0], [0.0, 2.0]]))[0].tolist()
     [2.0, 3.0]
     """
-    from pymc.pytensorf import compile as compile_function
     from pytensor.compile.mode import Mode
     from pytensor.graph.replace import vectorize_graph
     from pytensor.graph.rewriting.basic import in2out
+
+    from kohpymc.graph_cache import compile_cached
 
     if _slow_to_vectorize(outputs):
         return None
@@ -165,7 +166,9 @@ def rows_function(
         return None
     numpy_calls = (in2out(_numpy_elemwise, _stacked_linalg, name="kohpymc_numpy_calls"), 49.2)
     mode = Mode(linker="py", optimizer=optimizer).excluding("fusion").register(numpy_calls)
-    function = compile_function([rows], batched, on_unused_input="ignore", mode=mode)
+    function = compile_cached(
+        [rows], batched, mode=mode, label=f"kohpymc-rows-{optimizer}", on_unused_input="ignore"
+    )
     if any(_per_row(node.op) for node in function.maker.fgraph.apply_nodes):
         return None
     per_row = [b.type.ndim > o.type.ndim for b, o in zip(batched, outputs, strict=True)]

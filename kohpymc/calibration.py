@@ -272,7 +272,7 @@ def calibrate(
     physics, data, discrepancy :
         As in :func:`build_model`.
     draws, tune, chains, cores, random_seed :
-        Sampler settings (``cores`` defaults to ``min(chains, 2)``).
+        Sampler settings (``cores`` defaults to :func:`~kohpymc.sampling.default_cores`).
     sampler : {"nutpie", "pymc", "smc"}, optional
         ``"nutpie"`` (default): nutpie's NUTS on the log density compiled by PyTensor,
         in coordinates whitened at the posterior mode (see ``reparameterize``); PyMC's

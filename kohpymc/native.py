@@ -29,7 +29,6 @@ from typing import Any
 
 import numba
 import numpy as np
-import pymc as pm
 import pytensor
 import pytensor.tensor as pt
 from llvmlite import ir as llvm_ir  # type: ignore[import-untyped]  # llvmlite ships no stubs
@@ -38,6 +37,7 @@ from pymc.pytensorf import replace_vars_in_graphs
 from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
 
+from kohpymc.graph_cache import compile_cached
 from kohpymc.reparameterization import ArrayMath, Reparameterization
 from kohpymc.value_space import NumbaDensity, ValueSpace, value_logp
 
@@ -280,7 +280,7 @@ def native_model(
             raise ValueError(f"Python-only Op(s) in the log density: {', '.join(python_ops)}")
         with warnings.catch_warnings():
             warnings.filterwarnings("error", message="Numba will use object mode")
-            function = pm.pytensorf.compile([z, theta], [logp, grad], mode="NUMBA")
+            function = compile_cached([z, theta], [logp, grad], mode="NUMBA")
             logp_c = _logp_cfunc(function.vm.jit_fn, space.ndim, int(theta.type.shape[0]))
         user_data = parameters(mapping, shared)
     n = space.ndim
@@ -400,7 +400,7 @@ def _composed_logp(space: ValueSpace, mapping: Reparameterization) -> tuple[Any,
         return _affine_logp_c(), None, user_data
     n = space.ndim
     z, m, g, outputs = map_in_z(mapping, n)
-    function = pm.pytensorf.compile([z, m, g], outputs, mode="NUMBA")
+    function = compile_cached([z, m, g], outputs, mode="NUMBA")  # the rewrites kept on disk
     map_jit = function.vm.jit_fn
     n_map = _map_size(mapping)
     map_key = CACHED_SRC_FUNCTIONS.get(map_jit.py_func)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import os
 import threading
 import time
 import warnings
@@ -199,7 +200,7 @@ def sample_posterior(
     sampler : {"nutpie", "pymc", "smc"}, optional
         Default ``"nutpie"``.
     draws, tune, chains, cores, random_seed, progressbar :
-        The usual sampler settings (``cores`` defaults to ``min(chains, 2)``; it sets
+        The usual sampler settings (``cores`` defaults to :func:`default_cores`; it sets
         PyMC's and SMC's processes and nutpie's threads on the native path; through
         the Python callback nutpie's chains share one thread, see
         :attr:`SamplingReport.chain_threads`).
@@ -254,7 +255,7 @@ def sample_posterior(
     """
     name, reason = choose_sampler(sampler)
     report = SamplingReport(name, sampler or "nutpie", reason)
-    cores = min(chains, 2) if cores is None else cores
+    cores = default_cores(chains) if cores is None else cores
     seed = 0 if random_seed is None else int(random_seed)
     kwargs = dict(sample_kwargs or {})
     if kwargs.get("initvals") is not None and name != "smc":
@@ -296,6 +297,38 @@ def sample_posterior(
 
 #: what both NUTS runners take: space, plan, settings, target_accept, progressbar, kwargs
 _NutsRun = tuple[ValueSpace, Reparameterization | None, dict[str, Any], float, bool, dict[str, Any]]
+
+
+def default_cores(chains: int) -> int:
+    """The cores a calibration samples on unless told: one per chain, up to those it may use.
+
+    Those it may use: the CPUs this process may run on, or in a Dask worker the worker's
+    threads (with one single-threaded worker per core, a formulation's chains then take
+    turns on their worker instead of competing with the other workers' chains).
+
+    Examples
+    --------
+    >>> 1 <= default_cores(4) <= 4
+    True
+    """
+    return max(1, min(chains, _worker_threads() or _usable_cpus()))
+
+
+def _usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _worker_threads() -> int | None:
+    """The threads of the Dask worker this runs in, or None outside one."""
+    try:
+        from distributed import get_worker
+
+        return int(get_worker().state.nthreads)
+    except (ImportError, ValueError, AttributeError):
+        return None
 
 
 def _compile(

@@ -37,6 +37,7 @@ from pymc.logprob.utils import replace_rvs_by_values
 from pymc.pytensorf import constant_fold, join_nonshared_inputs
 
 from kohpymc.batched_map import rows_function
+from kohpymc.graph_cache import compile_cached
 from kohpymc.physics.spec import singularity_offsets
 
 __all__ = ["NumbaDensity", "ValueSpace", "transformed_value", "value_logp", "value_space"]
@@ -606,11 +607,13 @@ def value_space(model: pm.Model, *, mode: str | None = None) -> ValueSpace:
     joined_outputs, flat = join_nonshared_inputs(
         point=point, outputs=outputs, inputs=value_vars, make_inputs_shared=False
     )
-    compile_kwargs = {} if mode is None else {"mode": mode}
     with warnings.catch_warnings():
         # numba runs a numpy-function physics Op in object mode: correct, only slower
         warnings.filterwarnings("ignore", message="Numba will use object mode")
-        logp_dlogp = pm.pytensorf.compile([flat], joined_outputs, **compile_kwargs)
+        if mode == "NUMBA":  # its rewrites kept on disk (the C backend caches its own code)
+            logp_dlogp = compile_cached([flat], joined_outputs, mode=mode)
+        else:
+            logp_dlogp = pm.pytensorf.compile([flat], joined_outputs, mode=mode)
     if mode == "NUMBA":
         logp_dlogp = _direct_numba_call(logp_dlogp, sum(int(np.prod(s, dtype=int)) for s in shapes))
     expanded = list(model.free_RVs) + list(model.deterministics)

@@ -202,3 +202,24 @@ def test_smc_statistics_of_chains_with_different_numbers_of_stages_are_padded(tm
     np.testing.assert_array_equal(beta.values[0], [0.0, 0.2, 1.0, np.nan])
     np.testing.assert_array_equal(beta.values[1], stages[1])
     idata.to_netcdf(str(tmp_path / "smc.nc"))
+
+
+def test_default_cores_are_the_usable_cpus_or_a_dask_workers_threads():
+    """One core per chain up to the CPUs this process may use; in a Dask worker up to its
+    threads (a real LocalCluster), so single-threaded workers do not compete for cores."""
+    import os
+
+    from distributed import Client, LocalCluster
+
+    from kohpymc.sampling import default_cores
+
+    usable = len(os.sched_getaffinity(0))
+    assert default_cores(4) == min(4, usable)
+    assert default_cores(1) == 1
+    for threads in (1, 3):
+        with (
+            LocalCluster(n_workers=1, threads_per_worker=threads, processes=False) as cluster,
+            Client(cluster) as client,
+        ):
+            assert client.submit(default_cores, 4).result() == min(4, threads)
+            assert client.submit(default_cores, 2).result() == min(2, threads)

@@ -200,8 +200,9 @@ def _op_key(op: Op) -> str:
 
     cls = type(op)
     name = f"{cls.__module__}.{cls.__qualname__}"
-    if getattr(cls, "__props__", None) is not None:
-        return name + _describe(op._props())
+    props = getattr(cls, "__props__", None)
+    if props is not None:  # what PyTensor's merge rewrite compares
+        return name + _describe(tuple(getattr(op, prop) for prop in props))
     if isinstance(op, ScalarOp) and not isinstance(op, Composite):
         return name + _describe((op.name, op.output_types_preference))
     raise _Unkeyable(f"Op {name} has no __props__")
@@ -321,7 +322,8 @@ def _load(
         replace = dict(zip(payload["placeholders"], sources, strict=True))
         linked = clone_replace(payload["outputs"], replace)
         return pytensor.function(
-            list(inputs), linked, mode=Mode(linker=linker, optimizer=None),
+            list(inputs), linked,
+            mode=Mode(linker=linker, optimizer=None),  # type: ignore[arg-type]  # None: no rewrites
             accept_inplace=True, **kwargs,
         )  # fmt: skip
     except Exception as err:  # noqa: BLE001 - compiled again (and rewritten) below

@@ -111,11 +111,15 @@ def compile_cached(
     loaded = _load(path, inputs, outputs, _linker(mode), kwargs)
     if loaded is not None:
         return loaded
-    function = pm.pytensorf.compile(list(inputs), list(outputs), mode=mode, **kwargs)
-    _store(path, function, len(inputs), _shared(outputs))
-    # linked from the file as later processes will be: numba's source (and so its disk
-    # cache key) of a linked graph differs from that of the graph it was rewritten from
-    return _load(path, inputs, outputs, _linker(mode), kwargs) or function
+    # rewritten only (Python thunks, nothing compiled), then linked from the file as later
+    # processes will be: numba's source (so its disk cache key) of a linked graph differs
+    # from that of the graph it was rewritten from, and numba would compile both
+    rewritten = pm.pytensorf.compile(list(inputs), list(outputs), mode=_rewriting(mode), **kwargs)
+    _store(path, rewritten, len(inputs), _shared(outputs))
+    linked = _load(path, inputs, outputs, _linker(mode), kwargs)
+    if linked is not None:
+        return linked
+    return pm.pytensorf.compile(list(inputs), list(outputs), mode=mode, **kwargs)
 
 
 def graph_key(inputs: Sequence[Variable], outputs: Sequence[Variable], mode: str) -> str:
@@ -297,6 +301,19 @@ def _prune(directory: Path) -> None:
     files = sorted(directory.glob("*.pkl"), key=lambda p: p.stat().st_mtime, reverse=True)
     for stale in files[_KEEP:]:
         stale.unlink(missing_ok=True)
+
+
+def _rewriting(mode: str | Mode) -> Mode:
+    """``mode``'s rewrites with Python thunks: the rewritten graph, nothing compiled."""
+    from pytensor.compile.mode import get_mode
+    from pytensor.link.basic import PerformLinker
+
+    base = get_mode(mode)
+    linker = PerformLinker()
+    # the rewrites a linker requires or cannot run are chosen by its class attributes
+    linker.required_rewrites = base.linker.required_rewrites  # type: ignore[misc]
+    linker.incompatible_rewrites = base.linker.incompatible_rewrites  # type: ignore[misc]
+    return Mode(linker=linker, optimizer=base.provided_optimizer)
 
 
 def _linker(mode: str | Mode) -> str:

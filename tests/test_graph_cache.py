@@ -174,3 +174,25 @@ def test_the_least_recently_used_files_beyond_the_limit_are_removed(cache_dir, m
     newest = graph_key([x], outputs, "NUMBA")
     assert len(list(cache_dir.glob("*.pkl"))) == 2
     assert (cache_dir / f"{newest}.pkl").exists()
+
+
+def test_a_graph_not_yet_cached_is_rewritten_without_compiling_and_then_linked(
+    cache_dir, monkeypatch
+):
+    """numba's source of a linked graph differs from that of the graph it was rewritten
+    from: compiling both would cost two numba compilations from an empty cache."""
+    from pytensor.link.basic import PerformLinker
+
+    linkers = []
+    compile_function = pm.pytensorf.compile
+
+    def spy(inputs, outputs, mode=None, **kwargs):
+        linkers.append(type(mode.linker))
+        return compile_function(inputs, outputs, mode=mode, **kwargs)
+
+    monkeypatch.setattr(pm.pytensorf, "compile", spy)
+    x, _, outputs = _density([1.0, 2.0])
+    f = compile_cached([x], outputs, mode="NUMBA")
+    assert linkers == [PerformLinker]
+    assert type(f.maker.linker).__name__ == "NumbaLinker"
+    np.testing.assert_allclose(f(np.zeros(2))[0], -1.25 + 2 * np.log(2.0))

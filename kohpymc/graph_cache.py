@@ -108,18 +108,35 @@ def compile_cached(
     if key is None:
         return pm.pytensorf.compile(list(inputs), list(outputs), mode=mode, **kwargs)
     path = _directory() / f"{key}.pkl"
-    loaded = _load(path, inputs, outputs, _linker(mode), kwargs)
-    if loaded is not None:
-        return loaded
-    # rewritten only (Python thunks, nothing compiled), then linked from the file as later
-    # processes will be: numba's source (so its disk cache key) of a linked graph differs
-    # from that of the graph it was rewritten from, and numba would compile both
-    rewritten = pm.pytensorf.compile(list(inputs), list(outputs), mode=_rewriting(mode), **kwargs)
+    function = _load(path, inputs, outputs, _linker(mode), kwargs)
+    if function is None:
+        function = _rewrite_store_link(path, inputs, outputs, mode, kwargs)
+    if function is None:
+        function = pm.pytensorf.compile(list(inputs), list(outputs), mode=mode, **kwargs)
+    return function
+
+
+def _rewrite_store_link(
+    path: Path, inputs: Sequence[Variable], outputs: Sequence[Variable], mode: str | Mode,
+    kwargs: dict[str, Any],
+) -> Any:  # fmt: skip
+    """A graph not yet cached: rewritten, written to ``path``, linked from it (or None).
+
+    Rewritten with Python thunks (nothing compiled), then linked from the file as later
+    processes will be: numba's source (so its disk cache key) of a linked graph differs
+    from that of the graph it was rewritten from, and numba would compile both.
+    """
+    import pymc as pm
+
+    try:
+        rewritten = pm.pytensorf.compile(
+            list(inputs), list(outputs), mode=_rewriting(mode), **kwargs
+        )
+    except Exception as err:  # noqa: BLE001 - the usual compile then raises the model's error
+        _log.debug("graph not rewritten alone: %s", err)
+        return None
     _store(path, rewritten, len(inputs), _shared(outputs))
-    linked = _load(path, inputs, outputs, _linker(mode), kwargs)
-    if linked is not None:
-        return linked
-    return pm.pytensorf.compile(list(inputs), list(outputs), mode=mode, **kwargs)
+    return _load(path, inputs, outputs, _linker(mode), kwargs)
 
 
 def graph_key(inputs: Sequence[Variable], outputs: Sequence[Variable], mode: str) -> str:

@@ -1026,6 +1026,8 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
     corr = cov / np.outer(sd, sd)
     off = np.abs(corr - np.eye(len(sd)))
     eig = np.linalg.eigvalsh(corr)
+    if not eig.min() > 1e-12 * eig.max():  # |correlation| 1: a direction nothing bounds
+        return None
     kinds = {"value": "affine", "log-logit": "log-logit-affine", "log": "log-affine"}
     kind = kinds[coords.name.removeprefix("bound-ridge-")]
     kind = kind if coords.ridge is None else f"bound-ridge-{kind}"

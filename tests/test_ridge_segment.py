@@ -191,10 +191,15 @@ def test_draws_along_a_curved_ridge_in_own_units_match_quadrature():
     assert float(az.rhat(idata).to_array().max()) <= 1.01
     ess = float(az.ess(idata).to_array().min())
     assert ess >= 400
+    # each estimate's Monte Carlo error from its own ESS (ArviZ's "mean" and "sd"): the sd
+    # is a second moment, whose ESS can be well below the bulk ESS (seed 1 with numpy 2.4:
+    # 561 for c's sd against 907 bulk; the error of the sd then 1/sqrt(2 · 561))
+    ess_mean, ess_sd = az.ess(idata, method="mean"), az.ess(idata, method="sd")
     for name, (mean, sd) in _curved_ridge_reference().items():
         x = idata.posterior[name].values.ravel()
-        assert abs(x.mean() - mean) < 4 * sd / np.sqrt(ess), (name, x.mean(), mean)
-        assert abs(x.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * ess), (name, x.std(), sd)
+        n_mean, n_sd = float(ess_mean[name]), float(ess_sd[name])
+        assert abs(x.mean() - mean) < 4 * sd / np.sqrt(n_mean), (name, x.mean(), mean)
+        assert abs(x.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * n_sd), (name, x.std(), sd)
 
 
 def test_position_quadrature_resolves_a_peak_narrower_than_its_grid():

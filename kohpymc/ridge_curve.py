@@ -43,7 +43,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 from scipy.interpolate import CubicSpline
 from scipy.linalg import solve_triangular
 from scipy.special import expit, logit
@@ -53,6 +53,7 @@ from kohpymc.reparameterization import (
     Coordinates,
     Mode,
     Reparameterization,
+    _axis_errors,
     _gaussian_score,
     _hessian,
     _inverse_cholesky,
@@ -146,10 +147,12 @@ class SoftBoxCoordinates(Coordinates):
 class RidgeCurvePlan(Reparameterization):
     r"""Sampling coordinates ``z = (t, y)`` along a curved ridge (see the module docstring).
 
-    ``w_p = centre + scale·t``, ``s = expit(w_p)``, ``w_r = c(s) + L(s) y``; then the
-    elementwise map of ``coordinates`` (a :class:`SoftBoxCoordinates`).  ``nodes`` are the
-    ``s`` of the splines; beyond the first and last node (within 10⁻⁶ of the faces)
-    ``c`` and ``L`` are held constant.
+    ``w_p = centre + scale·t``, or ``w_p = W(t)`` with ``warp`` (a spline matching the
+    quantiles of the pivot's Laplace marginal to a standard normal's, linear beyond its
+    nodes); ``s = expit(w_p)``, ``w_r = c(s) + L(s) y``; then the elementwise map of
+    ``coordinates`` (a :class:`SoftBoxCoordinates`).  ``nodes`` are the ``s`` of the
+    splines; beyond the first and last node (within 10⁻⁶ of the faces) ``c`` and ``L``
+    are held constant.
     """
 
     symbolic: ClassVar[bool] = False  # its own map, in numpy only
@@ -166,6 +169,25 @@ class RidgeCurvePlan(Reparameterization):
     nodes: np.ndarray = field(default_factory=lambda: np.zeros(0))
     curve: Any = None
     factor: Any = None
+    warp: Any = None
+
+    def _pivot_of(self, t: float) -> tuple[float, float, float]:
+        """``w_p(t)`` and its first two derivatives (affine, or the warp's spline)."""
+        if self.warp is None:
+            return self.centre + self.scale * t, self.scale, 0.0
+        end = float(self.warp.x[-1])
+        if abs(t) <= end:
+            return float(self.warp(t)), float(self.warp(t, 1)), float(self.warp(t, 2))
+        edge = float(np.sign(t)) * end  # linear beyond the nodes
+        slope = float(self.warp(edge, 1))
+        return float(self.warp(edge)) + slope * (t - edge), slope, 0.0
+
+    def _t_of(self, w_pivot: float) -> float:
+        """The inverse of :meth:`_pivot_of`."""
+        if self.warp is None:
+            return (w_pivot - self.centre) / self.scale
+        gap = lambda t: self._pivot_of(t)[0] - w_pivot  # noqa: E731
+        return float(optimize.brentq(gap, -1e3, 1e3, xtol=1e-13))
 
     def _factor(self, s: float) -> tuple[Any, Any, np.ndarray, np.ndarray, float, float]:
         """``c(s)``, ``L(s)`` and their ``s``-derivatives, ``log det L(s)`` and its derivative."""
@@ -186,11 +208,13 @@ class RidgeCurvePlan(Reparameterization):
     def _position(self, z: np.ndarray):
         z = np.asarray(z, float)
         w = np.empty(z.size)
-        w[self.pivot] = self.centre + self.scale * z[0]
+        w[self.pivot], slope, bend = self._pivot_of(float(z[0]))
         s = float(expit(w[self.pivot]))
         c, dc, chol, dchol, logdet, dlogdet = self._factor(s)
         w[self.rest] = c + chol @ z[1:]
-        return w, s, dc + dchol @ z[1:], chol, logdet, dlogdet
+        # the warp's log-Jacobian and its t-derivative (0 and 0 for the affine pivot)
+        warped = (0.0, 0.0) if self.warp is None else (np.log(slope), bend / slope)
+        return w, s, dc + dchol @ z[1:], chol, logdet, dlogdet, slope, warped
 
     def to_value(self, z: np.ndarray) -> np.ndarray:
         """PyMC value-space vector of sampling coordinates ``z``."""
@@ -202,7 +226,7 @@ class RidgeCurvePlan(Reparameterization):
         s = float(expit(w[self.pivot]))
         c, _, chol, _, _, _ = self._factor(s)
         y = solve_triangular(chol, w[self.rest] - c, lower=True)
-        return np.append((w[self.pivot] - self.centre) / self.scale, y)
+        return np.append(self._t_of(float(w[self.pivot])), y)
 
     def laplace_value_sd(self) -> np.ndarray:  # pragma: no cover - not a Laplace map
         """NaN: the map is not one Laplace covariance."""
@@ -212,7 +236,7 @@ class RidgeCurvePlan(Reparameterization):
         self, space: ValueSpace, z: np.ndarray, *, safe: bool = False
     ) -> tuple[float, np.ndarray]:
         """Log density of ``z`` (exact up to a constant) and its gradient."""
-        w, s, dw_ds, chol, logdet, dlogdet = self._position(z)
+        w, s, dw_ds, chol, logdet, dlogdet, slope, warped = self._position(z)
         v, dv, dlogjac, logjac = self.coordinates.to_value(self._unshared(w))
         if not np.isfinite(logjac):
             return -np.inf, np.zeros(self.ndim)
@@ -220,7 +244,8 @@ class RidgeCurvePlan(Reparameterization):
         g = self._pull_back(w, grad_v * dv + dlogjac)
         g_rest = g[self.rest]
         along = g[self.pivot] + s * (1.0 - s) * (float(dw_ds @ g_rest) + dlogdet)
-        return logp + logjac + logdet, np.append(self.scale * along, chol.T @ g_rest)
+        logp = logp + logjac + logdet + warped[0]
+        return logp, np.append(slope * along + warped[1], chol.T @ g_rest)
 
 
 def _nodes(n: int, end: float = 1e-6) -> np.ndarray:
@@ -231,7 +256,9 @@ def _nodes(n: int, end: float = 1e-6) -> np.ndarray:
 
 
 def _ridge_members(
-    laplace: Reparameterization, candidates: np.ndarray | None = None
+    laplace: Reparameterization,
+    candidates: np.ndarray | None = None,
+    min_ratio: float = _RIDGE_RATIO,
 ) -> tuple[int, np.ndarray] | None:
     """The pivot and the ridge's members, or None without a long ridge.
 
@@ -242,7 +269,7 @@ def _ridge_members(
     widest element, not the ridge's) the pivot is the candidate whose marginal sd exceeds
     its conditional sd the most, the members every candidate whose ratio exceeds
     ``_RIDGE_RATIO``.  A ridge is long when the pivot's marginal sd is more than
-    ``_RIDGE_RATIO`` times its conditional sd.
+    ``min_ratio`` (default ``_RIDGE_RATIO``) times its conditional sd.
     """
     coords = laplace.coordinates
     log = coords.log_scale if candidates is None else candidates
@@ -256,12 +283,24 @@ def _ridge_members(
         pivot = int(np.argmax(ratio))
         members = np.flatnonzero(ratio > _RIDGE_RATIO)
         return (pivot, members) if ratio[pivot] > _RIDGE_RATIO else None
-    lam, vec = np.linalg.eigh(precision)
-    d = np.where(log, np.abs(vec[:, 0]), 0.0)
+    if min_ratio < _RIDGE_RATIO:
+        # the widest direction among the log-scale elements (the flattest of the whole
+        # precision can be another element's own: a constant bias in units of the output)
+        block = np.flatnonzero(log)
+        d = np.zeros(log.size)
+        d[block] = np.abs(np.linalg.eigh(cov[np.ix_(block, block)])[1][:, -1])
+    else:
+        lam, vec = np.linalg.eigh(precision)
+        d = np.where(log, np.abs(vec[:, 0]), 0.0)
     pivot = int(np.argmax(d))
-    if ratio[pivot] < _RIDGE_RATIO:
+    if ratio[pivot] < min_ratio:
         return None
-    return pivot, np.flatnonzero(d >= 0.1 * d[pivot])
+    members = d >= 0.1 * d[pivot]
+    if min_ratio < _RIDGE_RATIO:
+        # a short ridge: its flattest direction is the pivot's own when the pivot's scale
+        # dominates, so the members are the log-scale elements correlated with it too
+        members |= log & (ratio >= min_ratio)
+    return pivot, np.flatnonzero(members)
 
 
 def _interval(space: ValueSpace) -> np.ndarray:
@@ -559,17 +598,59 @@ def _refined(cond: _Conditional, nodes: np.ndarray, marched: tuple, rounds: int 
     return nodes, (modes, profile, factors)
 
 
-def _pivot_moments(nodes: np.ndarray, profile: np.ndarray) -> tuple[float, float]:
-    """Mean and sd of ``w_p`` under ``exp(profile)`` by quadrature (logistic tails outside)."""
-    spline = CubicSpline(nodes, profile)
-    w = np.linspace(-16.0, 16.0, 6401)
+def _pivot_weights(nodes: np.ndarray, profile: np.ndarray, n: int = 6401, *, in_w: bool = False):
+    """Grid over ``w_p`` and the normalised weights of ``exp(profile)`` (logistic tails outside).
+
+    ``profile`` is interpolated in ``s`` at the nodes, or with ``in_w`` in ``w_p = logit(s)``,
+    where its logistic tails near the faces are straight (in ``s`` they are ``ln(1 − s)``,
+    which a cubic between the last two nodes, ``s = 0.9957`` and ``1 − 10⁻⁶``, misses).
+    """
+    w = np.linspace(-16.0, 16.0, n)
     lo, hi = logit(nodes[0]), logit(nodes[-1])
-    logp = spline(np.clip(expit(w), nodes[0], nodes[-1]))
+    if in_w:
+        logp = CubicSpline(logit(nodes), profile)(np.clip(w, lo, hi))
+    else:
+        logp = CubicSpline(nodes, profile)(np.clip(expit(w), nodes[0], nodes[-1]))
     logp = logp + np.minimum(w - lo, 0.0) - np.maximum(w - hi, 0.0)
     weight = np.exp(logp - logp.max())
-    weight /= weight.sum()
+    return w, weight / weight.sum()
+
+
+def _pivot_moments(nodes: np.ndarray, profile: np.ndarray) -> tuple[float, float]:
+    """Mean and sd of ``w_p`` under ``exp(profile)`` by quadrature (logistic tails outside)."""
+    w, weight = _pivot_weights(nodes, profile)
     mean = float(weight @ w)
     return mean, float(np.sqrt(weight @ (w - mean) ** 2))
+
+
+#: drop of the log density at ±1.5 along the pivot's axis, off a Gaussian's by more than
+#: this, that has the pivot warped to normal quantiles (:func:`_pivot_warp`)
+_WARP_ERROR = 1.0
+
+#: quantile-matching nodes of the pivot's warp (standard-normal quantiles; linear beyond)
+_WARP_NODES = np.linspace(-5.0, 5.0, 41)
+
+
+def _pivot_warp(nodes: np.ndarray, marginal: np.ndarray) -> CubicSpline | None:
+    """``t → w_p`` matching the quantiles of ``exp(marginal)`` to a standard normal's.
+
+    ``marginal`` is the pivot's Laplace marginal at ``nodes`` (the profile plus the log
+    determinant of the conditional factor).  A one-sided ridge (a parameter the data bound
+    on one side only: a substrate-inhibition constant ``K_i`` whose effect grows as
+    ``1/K_i``) has a marginal with a double-exponential wall on one side and a plateau
+    ending in the box on the other, which no affine ``t`` makes Gaussian.  None when the
+    grid does not resolve the marginal or the spline is not increasing.
+    """
+    w, weight = _pivot_weights(nodes, marginal, n=32001, in_w=True)
+    if np.count_nonzero(weight > 1e-12 * weight.max()) < 200:
+        return None
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (weight[1:] + weight[:-1]))])
+    cdf /= cdf[-1]
+    keep = np.concatenate([[True], np.diff(cdf) > 0])  # strictly increasing for np.interp
+    warp = CubicSpline(_WARP_NODES, np.interp(stats.norm.cdf(_WARP_NODES), cdf[keep], w[keep]))
+    if not np.all(warp(np.linspace(-5.0, 5.0, 2001), 1) > 0):
+        return None
+    return warp
 
 
 def ridge_curve_plan(
@@ -579,6 +660,7 @@ def ridge_curve_plan(
     *,
     n_nodes: int = 25,
     own: bool = False,
+    min_ratio: float = _RIDGE_RATIO,
 ) -> RidgeCurvePlan | None:
     """A :class:`RidgeCurvePlan` from a log-logit Laplace plan, or None without a long ridge.
 
@@ -596,6 +678,9 @@ def ridge_curve_plan(
         bounds, PyMC's logit), the members staying in PyMC's coordinates: for a ridge of
         parameters whose boxes do not lie on the positive axis (Steinhart–Hart's
         ``C ∈ (−5·10⁻⁷, 5·10⁻⁷)``), which have no log scale.
+    min_ratio : float
+        The pivot's marginal over conditional Laplace sd above which its ridge is
+        followed (log-logit pivots only; ``own`` uses ``_RIDGE_RATIO``).
 
     Examples
     --------
@@ -605,7 +690,7 @@ def ridge_curve_plan(
     """
     value_sd = laplace.value_sd
     candidates = _interval(space) if own else None
-    found = _ridge_members(laplace, candidates) if value_sd is not None else None
+    found = _ridge_members(laplace, candidates, min_ratio) if value_sd is not None else None
     if found is None or value_sd is None:
         return None
     pivot, members = found
@@ -644,4 +729,13 @@ def ridge_curve_plan(
         curve=CubicSpline(nodes, modes, axis=0),
         factor=CubicSpline(nodes, np.array(entries), axis=0),
     )  # fmt: skip
-    return replace(plan, gaussian_score=_gaussian_score(space, plan))
+    plan = replace(plan, gaussian_score=_gaussian_score(space, plan))
+    if own or not _axis_errors(space, plan)[:2].max() > _WARP_ERROR:
+        return plan  # (own units: Steinhart–Hart's runs are measured without the warp)
+    volume = np.array([np.log(np.diag(f)).sum() for f in factors])
+    warp = _pivot_warp(nodes, profile + volume)
+    if warp is None:
+        return plan
+    warped = replace(plan, kind=f"{kind}-warped", warp=warp)
+    warped = replace(warped, gaussian_score=_gaussian_score(space, warped))
+    return warped if warped.gaussian_score < plan.gaussian_score else plan

@@ -104,6 +104,65 @@ def test_cached_runs_are_not_repeated_and_an_extension_runs_only_new_points(tmp_
     assert not list(tmp_path.glob(".*"))  # no temporary files left
 
 
+_SOLVER_FILE = """
+import numpy as np
+
+DRAG = {drag}
+
+
+def _solve(x, a):
+    return a * np.exp(-DRAG * np.asarray(x))
+
+
+def simulate(inputs, params):
+    return _solve(inputs["x"], params["a"])
+"""
+
+
+def _file_physics(folder, drag):
+    """A thin wrapper around a solver in the same file, loaded as a study file loads it."""
+    import importlib.util
+
+    path = folder / "solver.py"
+    path.write_text(_SOLVER_FILE.format(drag=drag))
+    spec = importlib.util.spec_from_file_location(f"solver_{drag}".replace(".", "_"), path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return PhysicsModel(module.simulate, {"a": Uniform(0.0, 2.0)}, inputs=["x"], name="solver")
+
+
+def test_a_changed_solver_behind_an_unchanged_wrapper_is_run_again(tmp_path):
+    # the cache key hashed the wrapper's source only: after a fix in the solver the
+    # design's runs of the old solver were reused, silently (the study's results were
+    # recomputed, through an emulator of the old physics)
+    design = pd.DataFrame({"x": [0.5, 1.0, 2.0], "a": [1.0, 1.5, 0.5]})
+    old = run_design(_file_physics(tmp_path, 0.5), design, cache=tmp_path / "runs")
+    new = run_design(_file_physics(tmp_path, 0.75), design, cache=tmp_path / "runs")
+    assert new.simulated == 3 and new.cached == 0
+    np.testing.assert_allclose(new.y, design["a"] * np.exp(-0.75 * design["x"]))
+    assert not np.allclose(new.y, old.y)
+    again = run_design(_file_physics(tmp_path, 0.75), design, cache=tmp_path / "runs")
+    assert again.simulated == 0 and again.cached == 3
+
+
+def test_per_output_models_are_known_by_each_outputs_function():
+    from kohpymc.emulator.runs import simulator_identity
+    from kohpymc.multi_output import MultiOutputPhysics
+
+    def model(function):
+        return PhysicsModel(function, {"a": Uniform(0.0, 2.0)}, inputs=["x"])
+
+    def u(inputs, params):
+        return params["a"] * np.asarray(inputs["x"])
+
+    def v(inputs, params):
+        return params["a"] ** 2 * np.asarray(inputs["x"])
+
+    one = MultiOutputPhysics.from_models({"u": model(u), "w": model(u)}, name="m")
+    two = MultiOutputPhysics.from_models({"u": model(u), "w": model(v)}, name="m")
+    assert simulator_identity(one) != simulator_identity(two)
+
+
 def test_runs_sharing_theta_go_to_one_simulator_call():
     counter, physics = _counted_physics()
     design = pd.DataFrame(

@@ -891,6 +891,33 @@ def test_check_at_data_flags_an_emulator_wrong_where_the_data_are(tmp_path):
     assert check_at_data(good, data, warn=False).problems == []
 
 
+def _fragile(inputs, params):
+    if params["k"] < 1.2:  # the data's k (0.8) is where this solver fails
+        raise RuntimeError("step size too small")
+    return _smooth(inputs, params)
+
+
+def test_a_simulator_failing_at_the_best_fit_is_an_error_saying_where_and_what_to_do(tmp_path):
+    # before: "check_at_data: 20 of 20 simulator runs failed (first: ...)", no θ̂, no advice
+    from kohpymc.emulator import Emulator, EmulatorWarning
+    from kohpymc.emulator.checking import check_at_data
+
+    _, data, box = _decay_setup()
+    physics = PhysicsModel(_fragile, _PRIORS, inputs=["x"], name="fragile")
+    runs = run_design(physics, space_filling_design(box, 40, seed=1), cache=tmp_path)
+    assert len(runs.failed) > 20  # most of the design fails
+    with pytest.warns(EmulatorWarning, match=f"{len(runs.failed)} of 40 simulator runs failed"):
+        em = Emulator(runs, physics, box=box)
+    pattern = (
+        r"failed at the emulator's best fit to the data \{a=.*, k=0\.\d+\} on 20 of 20 "
+        r"calibration rows \(first: .*step size too small[^)]*\); \d+ of the emulator's 40 design "
+        r"runs failed too\..*narrow the parameters' prior box"
+    )
+    with pytest.raises(RuntimeError, match=pattern):
+        check_at_data(em, data, cache=tmp_path, warn=False)
+    assert len(list(tmp_path.glob("*.json"))) == 60  # the failures are cached: no rerun
+
+
 # ------------------------------------------------------------ refinement at the data
 
 

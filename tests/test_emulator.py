@@ -104,6 +104,65 @@ def test_cached_runs_are_not_repeated_and_an_extension_runs_only_new_points(tmp_
     assert not list(tmp_path.glob(".*"))  # no temporary files left
 
 
+_SOLVER_FILE = """
+import numpy as np
+
+DRAG = {drag}
+
+
+def _solve(x, a):
+    return a * np.exp(-DRAG * np.asarray(x))
+
+
+def simulate(inputs, params):
+    return _solve(inputs["x"], params["a"])
+"""
+
+
+def _file_physics(folder, drag):
+    """A thin wrapper around a solver in the same file, loaded as a study file loads it."""
+    import importlib.util
+
+    path = folder / "solver.py"
+    path.write_text(_SOLVER_FILE.format(drag=drag))
+    spec = importlib.util.spec_from_file_location(f"solver_{drag}".replace(".", "_"), path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return PhysicsModel(module.simulate, {"a": Uniform(0.0, 2.0)}, inputs=["x"], name="solver")
+
+
+def test_a_changed_solver_behind_an_unchanged_wrapper_is_run_again(tmp_path):
+    # the cache key hashed the wrapper's source only: after a fix in the solver the
+    # design's runs of the old solver were reused, silently (the study's results were
+    # recomputed, through an emulator of the old physics)
+    design = pd.DataFrame({"x": [0.5, 1.0, 2.0], "a": [1.0, 1.5, 0.5]})
+    old = run_design(_file_physics(tmp_path, 0.5), design, cache=tmp_path / "runs")
+    new = run_design(_file_physics(tmp_path, 0.75), design, cache=tmp_path / "runs")
+    assert new.simulated == 3 and new.cached == 0
+    np.testing.assert_allclose(new.y, design["a"] * np.exp(-0.75 * design["x"]))
+    assert not np.allclose(new.y, old.y)
+    again = run_design(_file_physics(tmp_path, 0.75), design, cache=tmp_path / "runs")
+    assert again.simulated == 0 and again.cached == 3
+
+
+def test_per_output_models_are_known_by_each_outputs_function():
+    from kohpymc.emulator.runs import simulator_identity
+    from kohpymc.multi_output import MultiOutputPhysics
+
+    def model(function):
+        return PhysicsModel(function, {"a": Uniform(0.0, 2.0)}, inputs=["x"])
+
+    def u(inputs, params):
+        return params["a"] * np.asarray(inputs["x"])
+
+    def v(inputs, params):
+        return params["a"] ** 2 * np.asarray(inputs["x"])
+
+    one = MultiOutputPhysics.from_models({"u": model(u), "w": model(u)}, name="m")
+    two = MultiOutputPhysics.from_models({"u": model(u), "w": model(v)}, name="m")
+    assert simulator_identity(one) != simulator_identity(two)
+
+
 def test_runs_sharing_theta_go_to_one_simulator_call():
     counter, physics = _counted_physics()
     design = pd.DataFrame(
@@ -830,6 +889,33 @@ def test_check_at_data_flags_an_emulator_wrong_where_the_data_are(tmp_path):
     np.testing.assert_array_equal(again.simulated, check.simulated)
     good, _, data, _ = _emulator(100)
     assert check_at_data(good, data, warn=False).problems == []
+
+
+def _fragile(inputs, params):
+    if params["k"] < 1.2:  # the data's k (0.8) is where this solver fails
+        raise RuntimeError("step size too small")
+    return _smooth(inputs, params)
+
+
+def test_a_simulator_failing_at_the_best_fit_is_an_error_saying_where_and_what_to_do(tmp_path):
+    # before: "check_at_data: 20 of 20 simulator runs failed (first: ...)", no θ̂, no advice
+    from kohpymc.emulator import Emulator, EmulatorWarning
+    from kohpymc.emulator.checking import check_at_data
+
+    _, data, box = _decay_setup()
+    physics = PhysicsModel(_fragile, _PRIORS, inputs=["x"], name="fragile")
+    runs = run_design(physics, space_filling_design(box, 40, seed=1), cache=tmp_path)
+    assert len(runs.failed) > 20  # most of the design fails
+    with pytest.warns(EmulatorWarning, match=f"{len(runs.failed)} of 40 simulator runs failed"):
+        em = Emulator(runs, physics, box=box)
+    pattern = (
+        r"failed at the emulator's best fit to the data \{a=.*, k=0\.\d+\} on 20 of 20 "
+        r"calibration rows \(first: .*step size too small[^)]*\); \d+ of the emulator's 40 design "
+        r"runs failed too\..*narrow the parameters' prior box"
+    )
+    with pytest.raises(RuntimeError, match=pattern):
+        check_at_data(em, data, cache=tmp_path, warn=False)
+    assert len(list(tmp_path.glob("*.json"))) == 60  # the failures are cached: no rerun
 
 
 # ------------------------------------------------------------ refinement at the data

@@ -211,7 +211,7 @@ class EmulatorsAtData:
         design = self.design(pd.DataFrame([theta]))
         runs = self.run(design, cache=cache, workers=workers, scheduler=scheduler)
         if len(runs.failed):
-            raise RuntimeError(f"check_at_data: {runs.failure_summary()}")
+            raise RuntimeError(self._failed_at(theta, runs))
         columns = [*self.inputs, *self.parameters]
         simulated = {}
         for k, data in self.data.items():
@@ -221,6 +221,20 @@ class EmulatorsAtData:
             done = done.drop_duplicates(subset=columns)
             simulated[k] = rows.merge(done, on=columns, how="left")["output"].to_numpy(float)
         return simulated
+
+    def _failed_at(self, theta: dict[str, float], runs: SimulatorRuns) -> str:
+        """Why the check at the data cannot go on: the simulator fails at the best fit."""
+        point = ", ".join(f"{k}={v:.6g}" for k, v in theta.items())
+        design = self.first.runs
+        total = len(design.points) + len(design.failed)
+        return (
+            f"check at the data: the simulator failed at the emulator's best fit to the data "
+            f"{{{point}}} on {len(runs.failed)} of {len(runs.failed) + len(runs.points)} "
+            f"calibration rows (first: {runs.failed['error'].iloc[0]}); {len(design.failed)} "
+            f"of the emulator's {total} design runs failed too. The emulator has no run where "
+            "the data point, so a calibration through it would rest on none: make the "
+            "simulator run there, or narrow the parameters' prior box to where it runs"
+        )
 
     def predicted_at(self, name: str, theta: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """Output ``name``'s emulator at ``theta`` on its calibration rows: mean, variance.

@@ -19,7 +19,6 @@ runs as single-output runs (to fit one emulator per output).
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -30,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from kohpymc.execution import run_tasks
+from kohpymc.fingerprint import digest, source_fingerprint
 from kohpymc.physics import PhysicsModel
 from kohpymc.progress import TaskDisplay
 from kohpymc.study_files import write_atomic
@@ -43,7 +43,12 @@ __all__ = ["SimulatorRuns", "point_key", "run_design", "simulator_identity"]
 def simulator_identity(physics: PhysicsModel | MultiOutputPhysics, label: str | None = None) -> str:
     """A string naming the simulator for cache keys: its name and its source code.
 
-    ``label`` (e.g. a version of an external solver) replaces the source when given.
+    The source is the function's own and that of the file defining it
+    (:func:`kohpymc.fingerprint.source_fingerprint`), so a changed helper the function
+    calls — the solver behind a thin wrapper — runs the design again instead of reusing
+    runs of the old simulator; a model made of per-output models hashes each output's
+    function.  ``label`` (e.g. a version of an external solver) replaces the source when
+    given.
 
     Examples
     --------
@@ -54,13 +59,12 @@ def simulator_identity(physics: PhysicsModel | MultiOutputPhysics, label: str | 
     if label is not None:
         return f"{physics.name}:{label}"
     function = physics.function
-    try:
-        # None (a model made of per-output models) raises TypeError, handled below
-        source = inspect.getsource(function)  # type: ignore[arg-type]
-    except (OSError, TypeError):
-        source = getattr(function, "__qualname__", repr(function))
-    digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    return f"{physics.name}:{digest}"
+    if function is None:  # a multi-output model made of per-output models
+        models = getattr(physics, "models", {})
+        source = digest({k: source_fingerprint(m.function) for k, m in models.items()})
+    else:
+        source = source_fingerprint(function)
+    return f"{physics.name}:{source[:16]}"
 
 
 def point_key(point: Mapping[str, float], simulator: str) -> str:

@@ -52,10 +52,10 @@ from functools import cached_property
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy import linalg, optimize, stats
-from scipy.interpolate import CubicSpline
+from scipy import linalg, optimize
 from scipy.special import expit
 
+from kohpymc.quantile_warp import spline_through_quantiles, unwarped, warped
 from kohpymc.reparameterization import Reparameterization, _gaussian_score, _hessian
 from kohpymc.value_space import ValueSpace
 
@@ -119,20 +119,11 @@ class NoiseFunnel:
 
     def _t(self, y0: float) -> tuple[float, float, float]:
         """``t(y_0)`` and its first two derivatives (affine, or the warp's spline)."""
-        if self.warp is None:
-            return self.centre + self.scale * y0, self.scale, 0.0
-        end = float(self.warp.x[-1])
-        if abs(y0) <= end:
-            return float(self.warp(y0)), float(self.warp(y0, 1)), float(self.warp(y0, 2))
-        edge = float(np.sign(y0)) * end  # linear beyond the nodes
-        slope = float(self.warp(edge, 1))
-        return float(self.warp(edge)) + slope * (y0 - edge), slope, 0.0
+        return warped(self.warp, self.centre, self.scale, y0)
 
     def _y0(self, t: float) -> float:
         """The inverse of :meth:`_t`."""
-        if self.warp is None:
-            return (t - self.centre) / self.scale
-        return float(optimize.brentq(lambda y: self._t(y)[0] - t, -1e3, 1e3, xtol=1e-13))
+        return unwarped(self.warp, self.centre, self.scale, t)
 
     @cached_property
     def _unmix(self) -> np.ndarray:
@@ -345,9 +336,8 @@ def _warped(space: ValueSpace, plan: FunnelPlan) -> FunnelPlan:
     cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(grid))])
     if not (np.isfinite(cdf[-1]) and cdf[-1] > 0):
         return plan
-    nodes = np.linspace(-5.0, 5.0, 41)
-    warp = CubicSpline(nodes, np.interp(stats.norm.cdf(nodes), cdf / cdf[-1], grid))
-    if not np.all(warp(np.linspace(-5.0, 5.0, 2001), 1) > 0):
+    warp = spline_through_quantiles(cdf / cdf[-1], grid)
+    if warp is None:
         return plan
     return replace(plan, funnel=replace(funnel, warp=warp))
 

@@ -43,11 +43,12 @@ from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
 from scipy.interpolate import CubicSpline
 from scipy.linalg import solve_triangular
 from scipy.special import expit, logit
 
+from kohpymc.quantile_warp import spline_through_quantiles, unwarped, warped
 from kohpymc.reparameterization import (
     BoundRidge,
     Coordinates,
@@ -173,21 +174,11 @@ class RidgeCurvePlan(Reparameterization):
 
     def _pivot_of(self, t: float) -> tuple[float, float, float]:
         """``w_p(t)`` and its first two derivatives (affine, or the warp's spline)."""
-        if self.warp is None:
-            return self.centre + self.scale * t, self.scale, 0.0
-        end = float(self.warp.x[-1])
-        if abs(t) <= end:
-            return float(self.warp(t)), float(self.warp(t, 1)), float(self.warp(t, 2))
-        edge = float(np.sign(t)) * end  # linear beyond the nodes
-        slope = float(self.warp(edge, 1))
-        return float(self.warp(edge)) + slope * (t - edge), slope, 0.0
+        return warped(self.warp, self.centre, self.scale, t)
 
     def _t_of(self, w_pivot: float) -> float:
         """The inverse of :meth:`_pivot_of`."""
-        if self.warp is None:
-            return (w_pivot - self.centre) / self.scale
-        gap = lambda t: self._pivot_of(t)[0] - w_pivot  # noqa: E731
-        return float(optimize.brentq(gap, -1e3, 1e3, xtol=1e-13))
+        return unwarped(self.warp, self.centre, self.scale, w_pivot)
 
     def _factor(self, s: float) -> tuple[Any, Any, np.ndarray, np.ndarray, float, float]:
         """``c(s)``, ``L(s)`` and their ``s``-derivatives, ``log det L(s)`` and its derivative."""
@@ -627,9 +618,6 @@ def _pivot_moments(nodes: np.ndarray, profile: np.ndarray) -> tuple[float, float
 #: this, that has the pivot warped to normal quantiles (:func:`_pivot_warp`)
 _WARP_ERROR = 1.0
 
-#: quantile-matching nodes of the pivot's warp (standard-normal quantiles; linear beyond)
-_WARP_NODES = np.linspace(-5.0, 5.0, 41)
-
 
 def _pivot_warp(nodes: np.ndarray, marginal: np.ndarray) -> CubicSpline | None:
     """``t → w_p`` matching the quantiles of ``exp(marginal)`` to a standard normal's.
@@ -647,10 +635,7 @@ def _pivot_warp(nodes: np.ndarray, marginal: np.ndarray) -> CubicSpline | None:
     cdf = np.concatenate([[0.0], np.cumsum(0.5 * (weight[1:] + weight[:-1]))])
     cdf /= cdf[-1]
     keep = np.concatenate([[True], np.diff(cdf) > 0])  # strictly increasing for np.interp
-    warp = CubicSpline(_WARP_NODES, np.interp(stats.norm.cdf(_WARP_NODES), cdf[keep], w[keep]))
-    if not np.all(warp(np.linspace(-5.0, 5.0, 2001), 1) > 0):
-        return None
-    return warp
+    return spline_through_quantiles(cdf[keep], w[keep])
 
 
 def ridge_curve_plan(

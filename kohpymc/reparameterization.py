@@ -876,7 +876,7 @@ def _laplace(space: ValueSpace, coords: Coordinates, mode_w: np.ndarray):
         np.zeros(mode_w.size),
         np.full(mode_w.size, 1e-3),
     )
-    chol_z = _inverse_cholesky(hess_z)
+    chol_z = _inverse_cholesky(hess_z, resolution=_WHITENED_RESOLUTION)
     if chol_z is None:
         return mode_w, None
     return mode_w, chol @ chol_z
@@ -959,14 +959,23 @@ def _refine_whitened(logp_w, w: np.ndarray, rounds: int = 3) -> np.ndarray:
     return w
 
 
-def _inverse_cholesky(hess: np.ndarray, floor: float | None = None) -> np.ndarray | None:
+#: along axes already whitened every curvature is ~1; one below this fraction of the largest
+#: is flat to the differences' resolution (a + b with flat priors: 1e-9 of the largest, from
+#: rounding; the same sum under priors 1e4 wide, a ridge the prior bounds: 0.88)
+_WHITENED_RESOLUTION = 1e-6
+
+
+def _inverse_cholesky(
+    hess: np.ndarray, floor: float | None = None, resolution: float = 1e-12
+) -> np.ndarray | None:
     """``L`` with ``L Lᵀ = H⁻¹``, or None when ``H`` is not positive definite.
 
     ``H`` is first scaled to unit diagonal, so parameters whose scales differ by 10¹⁰
     are judged by their correlation, not by their units.  With ``floor``, eigenvalues of
     the scaled ``H`` below ``floor`` times the largest (negative ones included) are
     raised to it: a provisional factor for a Hessian whose weakest directions lie below
-    the finite differences' resolution (see :func:`_laplace`).
+    the finite differences' resolution (see :func:`_laplace`).  A scaled eigenvalue at or
+    below ``resolution`` times the largest counts as zero (not positive definite).
     """
     if not np.all(np.isfinite(hess)):
         return None
@@ -978,7 +987,7 @@ def _inverse_cholesky(hess: np.ndarray, floor: float | None = None) -> np.ndarra
     vals, vecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
     if floor is not None and vals.max() > 0:
         vals = np.maximum(vals, floor * vals.max())
-    if vals.min() <= 1e-12 * vals.max():
+    if vals.min() <= resolution * vals.max():  # scaled eigenvalues: below it counts as flat
         return None
     inverse = (vecs / vals) @ vecs.T
     try:
@@ -1031,8 +1040,6 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
     corr = cov / np.outer(sd, sd)
     off = np.abs(corr - np.eye(len(sd)))
     eig = np.linalg.eigvalsh(corr)
-    if not eig.min() > 1e-12 * eig.max():  # |correlation| 1: a direction nothing bounds
-        return None
     kinds = {"value": "affine", "log-logit": "log-logit-affine", "log": "log-affine"}
     kind = kinds[coords.name.removeprefix("bound-ridge-")]
     kind = kind if coords.ridge is None else f"bound-ridge-{kind}"

@@ -232,7 +232,7 @@ class EmulatorsAtData:
             f"{{{point}}} on {len(runs.failed)} of {len(runs.failed) + len(runs.points)} "
             f"calibration rows (first: {runs.failed['error'].iloc[0]}); {len(design.failed)} "
             f"of the emulator's {total} design runs failed too. The emulator has no run where "
-            "the data point, so a calibration through it would rest on none: make the "
+            "the data lie, so a calibration through it would rest on none: make the "
             "simulator run there, or narrow the parameters' prior box to where it runs"
         )
 

@@ -194,3 +194,28 @@ def test_a_study_warns_from_the_check_at_the_data_naming_the_box_wide_one(tmp_pa
     assert message.endswith("add curves ([emulator] runs or sequential rounds)")
     _, again, _, _ = _study(tmp_path, runs=4, sequential=1)
     assert len(again) == 1 and "recorded in check_at_data.json" in again[0], again
+
+
+def _fragile_decay(inputs, params):
+    if params["k"] < 1.0:  # the data's k (0.7) is where this solver fails
+        raise RuntimeError("step size too small")
+    return decay.exponential_decay(inputs, params)
+
+
+def test_curves_failing_at_the_best_fit_are_an_error_saying_where_and_what_to_do(tmp_path):
+    """As for scalar runs: the error names θ̂, the failed curves, the design's failures and
+    what to do (before: "check_at_data: 1 curve(s) of 'fragile' failed at the best fit")."""
+    priors = {k: Uniform(lo, hi) for k, (lo, hi) in _BOX.items()}
+    physics = PhysicsModel(_fragile_decay, priors, inputs=["t"], name="fragile")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the design's own failures are warned about
+        runs = run_curves(physics, space_filling_design(_BOX, 24, seed=0), _GRID)
+        em = FunctionalEmulator(runs, physics, box=_BOX, restarts=1)
+    assert 0 < len(runs.failed) < 24
+    pattern = (
+        r"failed at the emulator's best fit to the data \{A=.*, k=0\.\d+\} on 1 of 1 curves "
+        rf"\(first: .*step size too small[^)]*\); {len(runs.failed)} of the emulator's 24 "
+        r"design runs failed too\..*narrow the parameters' prior box"
+    )
+    with pytest.raises(RuntimeError, match=pattern):
+        check_at_data(em, _data(), cache=tmp_path, warn=False)

@@ -211,7 +211,8 @@ class EmulatorsAtData:
         design = self.design(pd.DataFrame([theta]))
         runs = self.run(design, cache=cache, workers=workers, scheduler=scheduler)
         if len(runs.failed):
-            raise RuntimeError(self._failed_at(theta, runs))
+            failed = runs.failed
+            raise RuntimeError(self._failed_at(theta, failed, len(failed) + len(runs.points)))
         columns = [*self.inputs, *self.parameters]
         simulated = {}
         for k, data in self.data.items():
@@ -222,18 +223,25 @@ class EmulatorsAtData:
             simulated[k] = rows.merge(done, on=columns, how="left")["output"].to_numpy(float)
         return simulated
 
-    def _failed_at(self, theta: dict[str, float], runs: SimulatorRuns) -> str:
+    def _design_failures(self) -> tuple[int, int]:
+        """Failed and all runs of the emulator's design."""
+        design = self.first.runs
+        return len(design.failed), len(design.points) + len(design.failed)
+
+    def _failed_at(
+        self, theta: Mapping[str, float], failed: pd.DataFrame, total: int,
+        what: str = "calibration rows",
+    ) -> str:  # fmt: skip
         """Why the check at the data cannot go on: the simulator fails at the best fit."""
         point = ", ".join(f"{k}={v:.6g}" for k, v in theta.items())
-        design = self.first.runs
-        total = len(design.points) + len(design.failed)
+        design_failed, design_total = self._design_failures()
         return (
             f"check at the data: the simulator failed at the emulator's best fit to the data "
-            f"{{{point}}} on {len(runs.failed)} of {len(runs.failed) + len(runs.points)} "
-            f"calibration rows (first: {runs.failed['error'].iloc[0]}); {len(design.failed)} "
-            f"of the emulator's {total} design runs failed too. The emulator has no run where "
-            "the data lie, so a calibration through it would rest on none: make the "
-            "simulator run there, or narrow the parameters' prior box to where it runs"
+            f"{{{point}}} on {len(failed)} of {total} {what} (first: "
+            f"{failed['error'].iloc[0]}); {design_failed} of the emulator's {design_total} "
+            "design runs failed too. The emulator has no run where the data lie, so a "
+            "calibration through it would rest on none: make the simulator run there, or "
+            "narrow the parameters' prior box to where it runs"
         )
 
     def predicted_at(self, name: str, theta: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:

@@ -68,6 +68,11 @@ class CurvesAtData(EmulatorsAtData):
         """The functional emulator."""
         return self.emulators[SINGLE]  # type: ignore[return-value]
 
+    def _design_failures(self) -> tuple[int, int]:
+        """Failed and all curves of the emulator's design."""
+        runs = self.curves.runs
+        return len(runs.failed), runs.n_runs + len(runs.failed)
+
     def run_thetas(self) -> np.ndarray:
         """The distinct θ of the curves (rows; columns :attr:`parameters`)."""
         return self.curves.runs.design[self.parameters].drop_duplicates().to_numpy(float)
@@ -91,11 +96,8 @@ class CurvesAtData(EmulatorsAtData):
             scheduler=scheduler,
         )  # fmt: skip
         if len(runs.failed):
-            first = runs.failed.iloc[0]
-            raise RuntimeError(
-                f"check_at_data: {len(runs.failed)} curve(s) of {self.simulator.name!r} "
-                f"failed at the best fit {theta} (first: {first['error']})"
-            )
+            total = len(runs.failed) + runs.n_runs
+            raise RuntimeError(self._failed_at(theta, runs.failed, total, "curves"))
         return {SINGLE: emulator.at_rows(runs, data.inputs)}
 
     def linearised(

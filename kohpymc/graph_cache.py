@@ -12,10 +12,11 @@ class and ``__props__`` (the same equality PyTensor's merge rewrite relies on), 
 types of the inputs and shared variables, the constants' values, and the versions of
 Python, PyTensor, PyMC, numba and kohpymc's own source.  Shared variables (data) are
 not in it: the cached graph holds placeholders that the caller's shared variables
-replace, so ``pm.set_data`` works as on a freshly compiled function.  A graph is
-compiled the usual way, and not cached, when some Op cannot be keyed (no ``__props__``,
-or a value without a stable description), when it runs Python code of the user's (a
-numpy physics Op: its source may change under the same name), or when it draws random
+replace, so ``pm.set_data`` works as on a freshly compiled function.  An ``OpFromGraph``
+(``pt.diag``'s ``AllocDiag``, ...) is keyed by its inner graph.  A graph is compiled the
+usual way, and not cached, when some Op cannot be keyed (no ``__props__``, or a value
+without a stable description), when it runs Python code of the user's (a numpy physics
+Op: its source may change under the same name), or when it draws random
 numbers.  A cache file that cannot be read is compiled again and rewritten.
 
 ``KOHPYMC_GRAPH_CACHE=0`` turns the cache off; files are in
@@ -37,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import pytensor
+from pytensor.compile.builders import OpFromGraph
 from pytensor.compile.mode import Mode
 from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.basic import Constant, Variable
@@ -221,12 +223,32 @@ def _op_key(op: Op) -> str:
 
     cls = type(op)
     name = f"{cls.__module__}.{cls.__qualname__}"
+    if isinstance(op, OpFromGraph):
+        return name + _inner_graph_key(op)
     props = getattr(cls, "__props__", None)
     if props is not None:  # what PyTensor's merge rewrite compares
         return name + _describe(tuple(getattr(op, prop) for prop in props))
     if isinstance(op, ScalarOp) and not isinstance(op, Composite):
         return name + _describe((op.name, op.output_types_preference))
     raise _Unkeyable(f"Op {name} has no __props__")
+
+
+def _inner_graph_key(op: OpFromGraph) -> str:
+    """An OpFromGraph (``pt.diag``'s ``AllocDiag``, ...): its settings and inner graph.
+
+    Its behaviour is its inner graph; the plain settings of the subclass (``offset``,
+    ``axis1``, ...) are in the key too, as rewrites may read them.  Gradient overrides
+    and shared inputs are not described, so such an Op is not keyed.
+    """
+    overrides = (op.lop_overrides, op.grad_overrides, op.rop_overrides)
+    if op.shared_inputs or any(o is not None for o in overrides):
+        raise _Unkeyable(f"Op {type(op).__qualname__} has shared inputs or overrides")
+    settings = {
+        k: v for k, v in vars(op).items()
+        if not k.startswith("_") and isinstance(v, bool | int | float | str)
+    }  # fmt: skip
+    inner = _graph_lines(op.inner_inputs, op.inner_outputs)
+    return _describe(settings) + "[" + ";".join(inner) + "]"
 
 
 def _describe(value: Any) -> str:

@@ -97,6 +97,45 @@ def test_a_linked_graph_equals_a_fresh_compile_and_reads_the_callers_data(
     np.testing.assert_allclose(linked(np.zeros(3))[0], expected, rtol=1e-14)
 
 
+def _diagonal_density(offset=0, power=2.0):
+    """A Gaussian log density whose covariance holds ``pt.diag`` (an ``OpFromGraph``)."""
+    x = pt.vector("x")
+    scale = pt.exp(x) ** power
+    cov = pt.diag(scale, offset) if offset else pt.diag(scale) + pt.ones((3, 3))
+    logp = -0.5 * pt.log(pt.linalg.det(cov[:3, :3]))
+    return x, [logp, pt.grad(logp, x)]
+
+
+def test_an_op_from_graph_is_keyed_by_its_inner_graph_and_linked_like_a_fresh_compile(
+    cache_dir, monkeypatch
+):
+    x, outputs = _diagonal_density()
+    key = graph_key([x], outputs, "NUMBA")
+    again, outputs_again = _diagonal_density()
+    assert graph_key([again], outputs_again, "NUMBA") == key  # built again
+    other, outputs_other = _diagonal_density(power=3.0)
+    assert graph_key([other], outputs_other, "NUMBA") != key
+    y = pt.vector("y")
+    inner = [pt.diag(pt.exp(y)).sum()], [pt.diag(pt.exp(2 * y)).sum()]
+    assert graph_key([y], inner[0], "NUMBA") != graph_key([y], inner[1], "NUMBA")
+    assert graph_key([y], [pt.diag(y, 1).sum()], "NUMBA") != graph_key(
+        [y], [pt.diag(y, -1).sum()], "NUMBA"
+    )  # the Op's settings
+    compile_cached([x], outputs, mode="NUMBA")
+    assert len(list(cache_dir.glob("*.pkl"))) == 1
+    x2, outputs2 = _diagonal_density()
+    reference = pm.pytensorf.compile([x2], outputs2, mode="NUMBA")
+
+    def no_compile(*args, **kwargs):
+        raise AssertionError("compiled although the graph is cached")
+
+    monkeypatch.setattr(pm.pytensorf, "compile", no_compile)
+    linked = compile_cached([x2], outputs2, mode="NUMBA")
+    for point in np.random.default_rng(5).normal(size=(4, 3)):
+        for got, want in zip(linked(point), reference(point), strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-13)
+
+
 def test_a_graph_with_python_code_of_the_users_is_not_cached(cache_dir):
     from kohpymc.examples import beam
     from kohpymc.model import compose_model

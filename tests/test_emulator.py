@@ -1237,6 +1237,70 @@ def test_a_study_whose_refinement_cannot_pass_keeps_the_warning_and_says_so(tmp_
 
 
 @pytest.mark.slow
+def _noise_sd_moves(emulator, data):
+    """An unknown noise sd's maximum-likelihood move, through the emulator against the
+    simulator, in its sds: each maximised over (a, k, ln σ) jointly (Nelder-Mead), the
+    emulator's likelihood from its dense mean and covariance (not the check's
+    linearisation)."""
+    import pytensor
+    import pytensor.tensor as pt
+    from scipy.optimize import minimize
+
+    y, theta, X = np.asarray(data.y, float), pt.dvector("theta"), _X_OBS[:, None]
+    moments = pytensor.function(
+        [theta], [emulator.mean_tensor(theta, X), emulator.covariance_tensor(theta, X)]
+    )
+
+    def through_emulator(p):
+        mean, cov = moments(p[:2])
+        chol = np.linalg.cholesky(cov + np.exp(2 * p[2]) * np.eye(y.size))
+        z = np.linalg.solve(chol, y - mean)
+        return 0.5 * z @ z + np.sum(np.log(np.diag(chol)))
+
+    def through_simulator(p):
+        r = y - _smooth({"x": _X_OBS}, {"a": p[0], "k": p[1]})
+        return 0.5 * r @ r / np.exp(2 * p[2]) + y.size * p[2]
+
+    options = {"xatol": 1e-8, "fatol": 1e-10, "maxiter": 5000}
+    direct = minimize(through_simulator, [1.7, 0.8, np.log(0.05)], method="Nelder-Mead",
+                      options=options).x  # fmt: skip
+    emulated = minimize(through_emulator, direct, method="Nelder-Mead", options=options).x
+    sd = np.exp(direct[2])
+    return (np.exp(emulated[2]) - sd) / (sd / np.sqrt(2 * y.size))
+
+
+def test_check_at_data_predicts_how_far_the_emulator_moves_an_unknown_noise_sd():
+    """8 % proportional noise, σ not given: the check's linearised move of the noise sd's
+    best fit against the joint maximum likelihood (through the simulator, and through the
+    emulator's mean and covariance).  10 runs move σ by ~1.9 of its sds (a problem);
+    40 runs by ~0.2 (none)."""
+    import warnings
+
+    from kohpymc import CalibrationData
+    from kohpymc.emulator import Emulator, EmulatorWarning
+    from kohpymc.emulator.checking import MAX_NOISE_SHIFT, check_at_data
+
+    physics, _, _ = _decay_setup()
+    truth = _smooth({"x": _X_OBS}, _TRUTH)
+    y = truth + np.random.default_rng(1).normal(0.0, 1.0, _X_OBS.size) * 0.08 * truth
+    data = CalibrationData({"x": _X_OBS}, y)
+    box = design_box(physics, data)
+    for n, flagged in ((10, True), (40, False)):
+        runs = run_design(physics, space_filling_design(box, n, seed=3))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", EmulatorWarning)
+            em = Emulator(runs, physics, box=box)
+        check = check_at_data(em, data, warn=False)
+        reference = _noise_sd_moves(em, data)
+        assert abs(reference) > 0.15  # something to predict
+        assert abs(check.noise_shift - reference) < 0.25, (n, check.noise_shift, reference)
+        noise = [p for p in check.problems if "noise sd" in p]
+        assert bool(noise) == flagged == (abs(reference) > MAX_NOISE_SHIFT), check.problems
+        assert check.to_dict()["noise_shift"] == check.noise_shift
+    known = CalibrationData({"x": _X_OBS}, y, noise_sd=0.05)  # a known σ: nothing to move
+    assert check_at_data(em, known, warn=False).noise_shift is None
+
+
 def test_a_refined_emulator_gives_the_direct_posterior(direct_posterior):
     """8 runs: the emulated posterior lies several direct sds off; after the refinement
     rounds at the data, within 0.25 direct sd, its sds within 25 %."""

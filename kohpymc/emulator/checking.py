@@ -46,9 +46,17 @@ __all__ = [
     "check_target_at_data",
     "coverage_bounds",
     "linearisation",
+    "noise_sd_shift",
     "posterior_widening",
     "warn_at_data",
 ]
+
+#: largest move of an unknown noise sd's best fit by the emulator, in its posterior sds (a
+#: nuisance parameter: half an sd changes predictive bands by ~σ/(2√(2n)))
+MAX_NOISE_SHIFT = 0.5
+
+#: largest move of θ (posterior sds) at which the noise sd's move is still judged
+_LINEAR_SHIFT = 1.0
 
 #: largest widening of a parameter's (linearised) posterior sd that the emulator's own
 #: uncertainty may cause, over the design and at the data
@@ -79,6 +87,10 @@ class EmulatorCheck:
     shift : dict or None
         For a check at the data: parameter -> how far the emulator's error moves the
         least-squares θ, in linearised posterior sds (:func:`check_at_data`).
+    noise_shift : float or None
+        For a check at the data without a known noise sd: how far the emulator's mean
+        and ``Σ_η`` move the noise sd's best fit at ``point``, in its posterior sds
+        (negative: ``Σ_η`` takes up part of the noise; :func:`noise_sd_shift`).
 
     Examples
     --------
@@ -101,6 +113,7 @@ class EmulatorCheck:
     point: dict[str, float] = field(default_factory=dict)
     misfit: float | None = None
     shift: dict[str, float] | None = None
+    noise_shift: float | None = None
 
     @property
     def standardized_errors(self) -> np.ndarray:
@@ -145,6 +158,7 @@ class EmulatorCheck:
             **({"point": dict(self.point)} if self.point else {}),
             **({"misfit": self.misfit} if self.misfit is not None else {}),
             **({"shift": dict(self.shift)} if self.shift is not None else {}),
+            **({"noise_shift": self.noise_shift} if self.noise_shift is not None else {}),
         }
 
     def figure(self) -> Any:
@@ -433,7 +447,12 @@ def check_at_data(
     likelihood's ``Σ_η`` widens the posterior (decay model, 8 runs refined by one round
     around a poor first fit: error rms 0.004 against noise 0.05, bands 0.02, none of
     its runs near the posterior; predicted widening 1.24 and 1.33, sampled 1.22 and
-    1.26).
+    1.26).  Without a known noise sd, also the emulator moving the noise sd's best fit
+    by more than :data:`MAX_NOISE_SHIFT` of its sds (:func:`noise_sd_shift`: its ``Σ_η``
+    taking up part of the noise, or its error adding to it), linearised at ``θ̂`` and
+    judged only while θ itself moves by less than 1 sd (decay model with 8 % noise,
+    10 runs: predicted +1.69, against +1.89 from the joint maximum likelihood through
+    the emulator's mean and covariance).
 
     A :class:`~kohpymc.emulator.functional.FunctionalEmulator` is checked the same way
     through :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`: the simulator runs
@@ -595,6 +614,7 @@ def check_emulators_at_data(
         check.problems += _moved(
             parts[k], max_shift, f"{_where(target, theta)} its error moves the {joint}"
         )
+        check.problems += _noise_moved(target, k, check)
     total = {p: float(sum(part[p] for part in parts.values())) for p in theta}
     widening = _widening_at(target, theta)
     result = OutputsCheck(checks, theta, total, widening=widening)
@@ -716,6 +736,87 @@ def _moved(shift: dict[str, float], max_shift: float, what: str) -> list[str]:
         return []
     named = ", ".join(f"{k} {v:+.2g}" for k, v in moved.items())
     return [f"{what}least-squares θ by about {named} posterior sds (linearised; > {max_shift})"]
+
+
+def noise_sd_shift(
+    simulator_residual: np.ndarray, emulator_residual: np.ndarray, covariance: np.ndarray
+) -> tuple[float, float, float]:
+    """How far an emulator moves the best fit of an unknown noise sd, in its posterior sds.
+
+    Through the simulator the noise sd's maximum-likelihood value at θ is the rms of its
+    residual ``r_s``; through the emulator it maximises ``log N(r_e; 0, Σ_η + σ² I)``
+    (``r_e`` the emulator mean's residual, ``Σ_η`` its covariance on the rows).  An
+    emulator whose own variance is a fair part of the noise takes that part up, and an
+    unknown σ is then estimated low.  The move is given in σ's large-sample sd,
+    ``σ̂ / √(2n)``.
+
+    Parameters
+    ----------
+    simulator_residual, emulator_residual : numpy.ndarray
+        ``y - simulator(θ)`` and ``y - emulator mean(θ)`` on the calibration rows.
+    covariance : numpy.ndarray
+        ``Σ_η`` on those rows.
+
+    Returns
+    -------
+    (float, float, float)
+        σ̂ through the simulator, σ̂ through the emulator, the move in σ's sds.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> r = np.random.default_rng(0).normal(0.0, 1.0, 200)
+    >>> sim, emu, move = noise_sd_shift(r, r, 0.5 * np.eye(200))  # Σ_η half the variance
+    >>> round(emu / sim, 2), bool(move < -4)
+    (0.68, True)
+    """
+    from scipy.optimize import minimize_scalar
+
+    n = simulator_residual.size
+    simulated = float(np.sqrt(np.mean(simulator_residual**2)))
+    if simulated <= 0.0:
+        return 0.0, 0.0, 0.0
+    eigenvalues, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    eigenvalues = np.maximum(eigenvalues, 0.0)
+    z2 = (vectors.T @ emulator_residual) ** 2
+
+    def minus_log_likelihood(log_sd: float) -> float:
+        total = eigenvalues + np.exp(2.0 * log_sd)
+        return 0.5 * float(np.sum(np.log(total) + z2 / total))
+
+    centre = np.log(simulated)
+    best = minimize_scalar(
+        minus_log_likelihood, bounds=(centre - 12.0, centre + 3.0), method="bounded",
+        options={"xatol": 1e-6},
+    )  # fmt: skip
+    emulated = float(np.exp(best.x))
+    return simulated, emulated, (emulated - simulated) / (simulated / np.sqrt(2.0 * n))
+
+
+def _noise_moved(target: EmulatorsAtData, name: str, check: EmulatorCheck) -> list[str]:
+    """The problem of an emulator moving an unknown noise sd's best fit (or none).
+
+    Linearised at ``θ̂``: not judged when the emulator moves θ itself by more than
+    :data:`_LINEAR_SHIFT` sds (that is a problem already, and the linearisation is off).
+    """
+    data = target.data[name]
+    moved = max((abs(v) for v in (check.shift or {}).values()), default=0.0)
+    if data.noise_sd is not None or moved > _LINEAR_SHIFT:
+        return []
+    y = np.asarray(data.y, float)
+    J, _, covariance = target.linearised(name, check.point)
+    # the simulator's residual at its own least-squares θ (linearised), not at θ̂
+    residual = y - check.simulated
+    step, *_ = np.linalg.lstsq(J, residual, rcond=None)
+    simulated, emulated, move = noise_sd_shift(residual - J @ step, y - check.mean, covariance)
+    check.noise_shift = move
+    if abs(move) <= MAX_NOISE_SHIFT:
+        return []
+    return [
+        f"{_where(target, check.point)} its variance and error move the unknown noise sd's "
+        f"best fit from {simulated:.3g} (the simulator's) to {emulated:.3g}, {move:+.2g} of its "
+        f"posterior sds (> {MAX_NOISE_SHIFT}): σ would be estimated {'low' if move < 0 else 'high'}"
+    ]
 
 
 def _least_squares_shift(

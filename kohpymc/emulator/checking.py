@@ -56,7 +56,7 @@ __all__ = [
 MAX_NOISE_SHIFT = 0.5
 
 #: largest move of θ (posterior sds) at which the noise sd's move is still judged
-_LINEAR_SHIFT = 1.0
+_LINEAR_SHIFT = 2.0
 
 #: largest widening of a parameter's (linearised) posterior sd that the emulator's own
 #: uncertainty may cause, over the design and at the data
@@ -450,9 +450,11 @@ def check_at_data(
     1.26).  Without a known noise sd, also the emulator moving the noise sd's best fit
     by more than :data:`MAX_NOISE_SHIFT` of its sds (:func:`noise_sd_shift`: its ``Σ_η``
     taking up part of the noise, or its error adding to it), linearised at ``θ̂`` and
-    judged only while θ itself moves by less than 1 sd (decay model with 8 % noise,
+    judged only while θ itself moves by less than 2 sds (decay model with 8 % noise,
     10 runs: predicted +1.69, against +1.89 from the joint maximum likelihood through
-    the emulator's mean and covariance).
+    the emulator's mean and covariance; oral-dose pharmacokinetics with 5 % proportional
+    noise, 99 curves: predicted σ 0.082 → 0.065, −1.3 sds, and the sampled σ_obs was
+    0.072 against 0.098 through the simulator, −1.3 of its sds).
 
     A :class:`~kohpymc.emulator.functional.FunctionalEmulator` is checked the same way
     through :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`: the simulator runs

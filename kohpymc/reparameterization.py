@@ -214,6 +214,19 @@ class Coordinates:
         name = "value" if not self.log_scale.any() else "log" if self.walls else "log-logit"
         return name if self.ridge is None else f"bound-ridge-{name}"
 
+    def scale_text(self, labels: Mapping[int, str]) -> str:
+        """The part of a plan's reason that says which parameters are on which scale.
+
+        ``labels`` names the interval elements by flat index
+        (:func:`kohpymc.prior_bounds.interval_labels`); "" when none is rescaled.
+        """
+        if not self.log_scale.any():
+            return ""
+        return (
+            f"; {int(self.log_scale.sum())} bounded positive parameter(s) on the log scale, "
+            "where the posterior is closer to Gaussian"
+        )
+
     def to_value(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """``v(w)``, ``dv/dw``, ``d log|dv/dw| / dw`` and ``Σ log|dv/dw|``.
 
@@ -400,6 +413,16 @@ class BoundRidge:
     beta: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     centre: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
     slope: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    #: prefix of the kind of a plan whose coordinates carry this map
+    prefix: ClassVar[str] = "bound-ridge-"
+
+    def text(self, named: str) -> str:
+        """The part of a plan's reason that says what the map does (``named``: ``bounded``)."""
+        return (
+            f"; {named} against a prior bound: the other coordinates measured from "
+            "their regression on it in its own units, which the interval transform bends"
+        )
 
     @classmethod
     def fit(
@@ -1040,9 +1063,14 @@ def _whitened(space: ValueSpace, coords: Coordinates, mode_v: np.ndarray, mode: 
     corr = cov / np.outer(sd, sd)
     off = np.abs(corr - np.eye(len(sd)))
     eig = np.linalg.eigvalsh(corr)
-    kinds = {"value": "affine", "log-logit": "log-logit-affine", "log": "log-affine"}
+    kinds = {
+        "value": "affine",
+        "log-logit": "log-logit-affine",
+        "log": "log-affine",
+        "soft-flat-scale": "flat-scale-affine",
+    }
     kind = kinds[coords.name.removeprefix("bound-ridge-")]
-    kind = kind if coords.ridge is None else f"bound-ridge-{kind}"
+    kind = kind if coords.ridge is None else f"{coords.ridge.prefix}{kind}"
     kind = kind if coords.shares is None else f"variance-share-{kind}"
     kind = getattr(coords, "kind_prefix", "") + kind
     plan = Reparameterization(
@@ -1106,6 +1134,7 @@ def plan(
     pymc_coords, candidates = _candidate_coordinates(space, shares)
     plans = [p for p in (_whitened(space, c, mode.value, mode) for c in candidates) if p]
     plans = [p for p in plans if not p.coordinates.walls or _far_from_walls(space, p)]
+    plans += _flat_scale_plans(space, plans, mode, seed, shares)
     plans += _near_bound_plans(space, plans, mode)
     plans += _bound_ridge_plans(space, plans, mode)
     shared = _shares_text(shares)
@@ -1164,6 +1193,19 @@ def _near_bound_plans(
     from kohpymc.bound_distance import bound_distance_plans
 
     return bound_distance_plans(space, plans, mode)
+
+
+def _flat_scale_plans(
+    space: ValueSpace,
+    plans: list[Reparameterization],
+    mode: Mode,
+    seed: int,
+    shares: VarianceShare | None,
+) -> list[Reparameterization]:
+    """The candidate with bounded parameters on their prior's flat scale, in a soft box."""
+    from kohpymc.flat_scale import flat_scale_plans
+
+    return flat_scale_plans(space, plans, mode, seed, shares)
 
 
 def _bent(space: ValueSpace, best: Reparameterization) -> Any:
@@ -1331,12 +1373,7 @@ def _whitened_plan(
     reason = shared + (
         f"whitened by the Laplace covariance at the mode (condition number "
         f"{best.condition_number:.3g}, max |correlation| {best.max_correlation:.4f}"
-        + (
-            f"; {int(best.coordinates.log_scale.sum())} bounded positive parameter(s) on "
-            "the log scale, where the posterior is closer to Gaussian"
-            if best.coordinates.log_scale.any()
-            else ""
-        )
+        + best.coordinates.scale_text(interval_labels(space))
         + _ridge_text(space, best)
         + ")"
     )
@@ -1355,11 +1392,7 @@ def _ridge_text(space: ValueSpace, plan: Reparameterization) -> str:
     if ridge is None:
         return ""
     by_index = interval_labels(space)
-    named = ", ".join(by_index[int(i)] for i in ridge.bounded)
-    return (
-        f"; {named} against a prior bound: the other coordinates measured from "
-        "their regression on it in its own units, which the interval transform bends"
-    )
+    return ridge.text(", ".join(by_index[int(i)] for i in ridge.bounded))
 
 
 def _shares_text(shares: VarianceShare | None) -> str:

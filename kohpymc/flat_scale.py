@@ -24,7 +24,10 @@ straight in ``ξ``), and beyond a bound the density decays like ``e^{−|ξ − 
 wall, no hole of zero density.  ``h`` is :data:`SOFT_WIDTH` Laplace sds.  The map is
 written once over :class:`~kohpymc.reparameterization.ArrayMath`, so it also runs on
 nutpie's native path.  :func:`flat_scale_plans` offers it to
-:func:`kohpymc.reparameterization.plan`, scored like the other Laplace maps.
+:func:`kohpymc.reparameterization.plan`, which takes it over the best Laplace map where
+it fits as well at ±1.5 sds and clearly better at ±3 (creep M0: mean error of the axes'
+drops at ±3 sds 1.50 in PyMC's coordinates, 0.35 here, the rest from the noise sd's skew;
+16–23 divergences in 4 × 1000 draws → 0 at three seeds).
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ drops at ±3 sds 1.50 in PyMC's coordinates, 0.35 here, the rest from the noise 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -138,6 +138,27 @@ class SoftFlatScaleCoordinates(Coordinates):
         """``"soft-flat-scale"``."""
         return "soft-flat-scale"
 
+    def map_constants(self) -> np.ndarray:
+        """``h`` of every element, then the shear's ``β`` (row-major) if there is one."""
+        beta = self.ridge.beta if isinstance(self.ridge, SoftBoxShear) else np.zeros(0)
+        return np.concatenate([np.ravel(self.width), np.ravel(beta)]).astype(float)
+
+    def with_map_constants(self, values: Any) -> SoftFlatScaleCoordinates:
+        """The coordinates with ``h`` and the shear's ``β`` read from ``values``.
+
+        Examples
+        --------
+        >>> coords = SoftFlatScaleCoordinates(np.array([True]), np.array([1.0]),
+        ...     np.array([10.0]), own=np.array([False]), width=np.array([0.1]))
+        >>> coords.with_map_constants(np.array([0.2])).width.tolist()
+        [0.2]
+        """
+        n = self.width.size
+        ridge = self.ridge
+        if isinstance(ridge, SoftBoxShear):
+            ridge = replace(ridge, beta=values[n:].reshape(ridge.beta.shape))
+        return replace(self, width=values[:n], ridge=ridge)
+
     def scale_text(self, labels: Any) -> str:
         """Which parameters are on the log scale and which in their own units."""
         logs = ", ".join(labels.get(int(i), str(i)) for i in np.flatnonzero(self.log_scale))
@@ -191,7 +212,7 @@ class SoftFlatScaleCoordinates(Coordinates):
             log_above, log_below = xp.log(h * above), xp.log(h * below)
         # log dv/dℓ (+ ℓ on the log scale, dx/dℓ = x) + log dℓ/dξ
         logjac = np.log(b - a) - log_above - log_below - _softplus(-p, xp) - _softplus(p - c, xp)
-        logjac = logjac + np.log(-np.expm1(-c)) + (ell if log else 0.0)
+        logjac = logjac + xp.log(-xp.expm1(-c)) + (ell if log else 0.0)
         return log_above - log_below, logjac, (ell, log_above, log_below, p, c)
 
     def to_value(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

@@ -220,6 +220,17 @@ class Coordinates:
         name = "value" if not self.log_scale.any() else "log" if self.walls else "log-logit"
         return name if self.ridge is None else f"bound-ridge-{name}"
 
+    def map_constants(self) -> np.ndarray:
+        """Numbers of the map fitted to the posterior, flattened (none: the priors' bounds).
+
+        See :meth:`Reparameterization.map_constants`.
+        """
+        return np.zeros(0)
+
+    def with_map_constants(self, values: Any) -> Coordinates:
+        """The coordinates with :meth:`map_constants` replaced by ``values``."""
+        return self
+
     def scale_text(self, labels: Mapping[int, str]) -> str:
         """The part of a plan's reason that says which parameters are on which scale.
 
@@ -666,16 +677,17 @@ class Reparameterization:
     curved: ClassVar[bool] = False
 
     def map_constants(self) -> np.ndarray:
-        """The map's numbers besides ``μ`` and ``L``, flattened (none for this plan).
+        """The map's numbers besides ``μ`` and ``L``, flattened: its coordinates' (if any).
 
         :mod:`kohpymc.native` passes them to the compiled map as inputs, so that its
         graph, and numba's disk cache of it, does not change with the plan's values.
         """
-        return np.zeros(0)
+        return self.coordinates.map_constants()
 
     def with_map_constants(self, values: Any) -> Reparameterization:
         """The plan with :meth:`map_constants` replaced by ``values`` (e.g. a tensor)."""
-        return self
+        coords = self.coordinates.with_map_constants(values)
+        return self if coords is self.coordinates else replace(self, coordinates=coords)
 
     def logp_dlogp(
         self, space: ValueSpace, z: np.ndarray, *, safe: bool = False

@@ -13,7 +13,7 @@ import pytest
 
 import kohpymc as kp
 from kohpymc.flat_scale import SoftBoxShear, SoftFlatScaleCoordinates
-from kohpymc.native import PYTENSOR
+from kohpymc.native import symbolic_value
 from kohpymc.priors import LogUniform, Uniform
 from kohpymc.reparameterization import Reparameterization, _axis_drops, plan
 from kohpymc.value_space import value_space
@@ -95,14 +95,17 @@ def test_shear_map_symbolic_and_gradient_match_numpy():
     mean = np.array([np.log(1e-8) - 0.1, 2.9e5, 0.3])  # the bend is on beyond ln 1e-8
     chol = np.diag([0.3, 3e3, 1.0])
     reparam = Reparameterization("flat-scale-affine", mean, chol, coords, "")
-    z = pt.vector("z")
-    v, logjac = reparam.value_from_affine(mean + pt.dot(chol, z), PYTENSOR)
-    f = pytensor.function([z], [v, logjac], mode="FAST_COMPILE")
-    g = pytensor.function([z], pytensor.grad(logjac + (v**2).sum(), z), mode="FAST_COMPILE")
+    z, constants = pt.vector("z"), pt.vector("constants")  # h and β are inputs, not baked
+    v, logjac = symbolic_value(reparam, z, constants=constants)
+    f = pytensor.function([z, constants], [v, logjac], mode="FAST_COMPILE")
+    grad = pytensor.grad(logjac + (v**2).sum(), z)
+    g = pytensor.function([z, constants], grad, mode="FAST_COMPILE")
+    numbers = reparam.map_constants()
+    assert numbers.size == 3 + 3  # h of each element, β of the one sheared element
     for point in ([0.0, 0.0, 0.0], [1.5, -0.4, 0.7], [-2.0, 1.0, -1.0]):
         point = np.array(point)
         value, total = reparam.value_from_affine(mean + chol @ point)
-        got_v, got_total = f(point)
+        got_v, got_total = f(point, numbers)
         np.testing.assert_allclose(got_v, value, rtol=1e-12)
         assert float(got_total) == pytest.approx(float(total), rel=1e-12)
         np.testing.assert_allclose(reparam.from_value(value), point, atol=1e-9)
@@ -110,7 +113,7 @@ def test_shear_map_symbolic_and_gradient_match_numpy():
         w = shear.forward(coords, u)
         vv, dv, dlogjac, _ = coords.to_value(w)
         numpy_grad = chol.T @ reparam._pull_back(u, 2 * vv * dv + dlogjac)
-        np.testing.assert_allclose(g(point), numpy_grad, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(g(point, numbers), numpy_grad, rtol=1e-8, atol=1e-10)
 
 
 def test_a_ridge_straight_in_natural_units_is_sampled_straight():

@@ -38,7 +38,7 @@ from pytensor.compile.sharedvalue import SharedVariable
 from pytensor.graph.traversal import applys_between, graph_inputs
 
 from kohpymc.graph_cache import compile_cached
-from kohpymc.reparameterization import ArrayMath, Reparameterization
+from kohpymc.reparameterization import ArrayMath, Coordinates, Reparameterization
 from kohpymc.value_space import NumbaDensity, ValueSpace, value_logp
 
 __all__ = [
@@ -595,10 +595,13 @@ def _affine_user_data(mapping: Reparameterization, density: NumbaDensity) -> np.
     the elementwise coordinates (log-scale flags, lower and upper bounds), the
     variance-share pairs ``(i, j, c)``, then the density's shared values.  None for a
     plan this generic map does not cover (a subclass with its own map or map constants,
-    a bound ridge): those compile their own map (:func:`_composed_logp`).
+    a bound ridge, elementwise coordinates of a subclass): those compile their own map
+    (:func:`_composed_logp`).
     """
     coords = mapping.coordinates
     if type(mapping) is not Reparameterization or coords.ridge is not None:
+        return None
+    if type(coords) is not Coordinates:  # elementwise maps of its own (e.g. a soft box)
         return None
     n = mapping.ndim
     pairs = () if coords.shares is None else coords.shares.pairs

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.special import expit
 
+from kohpymc.flat_scale import flat_scale_masks
 from kohpymc.prior_bounds import interval_labels
 from kohpymc.reparameterization import (
     BoxRidgePlan,
@@ -43,7 +44,6 @@ from kohpymc.reparameterization import (
     VarianceShare,
     _gaussian_score,
     _laplace,
-    prior_scales,
 )
 from kohpymc.value_space import ValueSpace
 
@@ -147,10 +147,9 @@ def flat_scale_coordinates(
 ) -> FlatScaleCoordinates | None:
     """Every bounded parameter of ``space`` on the scale on which its prior is flat.
 
-    A positive interval element goes on the log scale when the median of its prior
-    draws lies closer to the middle of ``(ln a, ln b)`` than to the middle of ``(a, b)``
-    (a log-uniform prior: ``√(ab)``; a uniform one: ``(a + b)/2``), otherwise it stays in
-    its own units.  None without two interval elements (no ridge between box faces).
+    The scales are :func:`kohpymc.flat_scale.flat_scale_masks`' (the log for a log-uniform
+    prior, the parameter's own units for a uniform one).  None without two interval
+    elements (no ridge between box faces).
 
     Examples
     --------
@@ -168,16 +167,9 @@ def flat_scale_coordinates(
     interval = (kinds == "interval") & np.isfinite(space.lower) & np.isfinite(space.upper)
     if interval.sum() < 2:
         return None
-    median_v, _ = prior_scales(space, seed)
+    log_scale, own = flat_scale_masks(space, seed)
     a, b = space.lower, space.upper
-    with np.errstate(all="ignore"):
-        median = a + (b - a) * expit(median_v)
-        linear = np.abs((median - a) / (b - a) - 0.5)
-        logarithmic = np.abs(np.log(median / a) / np.log(b / a) - 0.5)
-    log_scale = interval & (a > 0) & (logarithmic < linear)
-    return FlatScaleCoordinates(
-        log_scale, a.copy(), b.copy(), True, shares=shares, own=interval & ~log_scale
-    )
+    return FlatScaleCoordinates(log_scale, a.copy(), b.copy(), True, shares=shares, own=own)
 
 
 @dataclass(frozen=True)

@@ -370,6 +370,7 @@ def calibrate(
         mode=mode,
         sample_kwargs=sample_kwargs,
         variance_pairs=_variance_pairs(discrepancy),
+        scale_parameters=discrepancy.scale_parameters(),
         before_sampling=presampling,
     )
     _add_log_likelihood(idata, built, plain)

@@ -46,6 +46,7 @@ from kohpymc.funnel import funnel_plan
 from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
+from kohpymc.scale_funnel import scale_funnel_plan
 from kohpymc.value_space import (
     ValueSpace,
     nudged,
@@ -188,6 +189,7 @@ def sample_posterior(
     mode: str | None = None,
     sample_kwargs: Mapping[str, Any] | None = None,
     variance_pairs: Sequence[Sequence[str]] = (),
+    scale_parameters: Sequence[str] = (),
     space: ValueSpace | None = None,
     before_sampling: Callable[..., None] | None = None,
     default_target_accept: float = 0.9,
@@ -226,6 +228,10 @@ def sample_posterior(
         discrepancy sd, or to a log-variance's intercept with kind ``"log_variance"``);
         with ``reparameterize`` they are sampled as total sd and log ratio
         (:func:`variance_shares`).
+    scale_parameters : sequence of str
+        A discrepancy's scales (:meth:`~kohpymc.discrepancy.base.Discrepancy.scale_parameters`);
+        with ``reparameterize`` a funnel between one of them and the rest is followed
+        (:func:`kohpymc.scale_funnel.scale_funnel_plan`).
     space : ValueSpace, optional
         ``value_space(model)`` compiled earlier, to sample without compiling again (e.g.
         many data sets swapped into one model's shared variables); default: compile now.
@@ -269,7 +275,7 @@ def sample_posterior(
         start = time.perf_counter()
         space = _compile(model, space, mode, report)
         shares = variance_shares(space, variance_pairs)
-        reparam = _plan(space, starts, seed, reparameterize, report, shares)
+        reparam = _plan(space, starts, seed, reparameterize, report, shares, scale_parameters)
         target_accept = target_accept_for(reparam, target_accept, default_target_accept)
         report.target_accept = target_accept
         if before_sampling is not None:
@@ -465,13 +471,14 @@ def _plan(
     reparameterize: bool,
     report: SamplingReport,
     shares: VarianceShare | None = None,
+    scales: Sequence[str] = (),
 ) -> Reparameterization | None:
     if not reparameterize:
         report.reparameterization = {"kind": "none", "reason": "reparameterize=False"}
         return None
     begin = time.perf_counter()
     reparam = plan(space, _user_starts(space, starts), seed=seed, shares=shares)
-    reparam = funnel_plan(space, reparam) or reparam
+    reparam = funnel_plan(space, reparam) or scale_funnel_plan(space, reparam, scales) or reparam
     report.timings["mode_and_laplace"] = time.perf_counter() - begin
     report.reparameterization = reparam.to_dict()
     return reparam

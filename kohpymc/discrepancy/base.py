@@ -291,6 +291,22 @@ class Discrepancy(ABC):
         """
         return None
 
+    def scale_parameters(self) -> tuple[str, ...]:
+        """Parameters that set how much of the data's shape the discrepancy takes up.
+
+        Where they are large the physics parameters are held less and move (a funnel);
+        with ``reparameterize`` the sampler follows the others' conditional modes and
+        scales along the strongest of them
+        (:func:`kohpymc.scale_funnel.scale_funnel_plan`).  None by default.
+
+        Examples
+        --------
+        >>> from kohpymc.discrepancy import InputDependentGaussian, NoDiscrepancy
+        >>> InputDependentGaussian(["x"]).scale_parameters(), NoDiscrepancy().scale_parameters()
+        (('delta_logvar',), ())
+        """
+        return ()
+
     @abstractmethod
     def build(self, ctx: ModelContext) -> Likelihood:
         """Add parameters and the observed variable ``"y"``; return the record."""

@@ -82,6 +82,10 @@ class InputDependentGaussian(IndependentDiscrepancy, kind="input_dependent"):
             return ("delta_logvar", "log_variance")
         return None
 
+    def scale_parameters(self) -> tuple[str, ...]:
+        """``delta_logvar``: the log-variance coefficients."""
+        return ("delta_logvar",)
+
     def mean_function(self, ctx: ModelContext) -> MeanSpec:
         """μ_δ with coefficients ``delta_mean``."""
         return self.mean

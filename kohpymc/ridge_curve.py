@@ -189,12 +189,7 @@ class RidgeCurvePlan(Reparameterization):
         c, entries = self.curve(sc), self.factor(sc)
         dc = self.curve(sc, 1) if inside else np.zeros(n)
         dentries = self.factor(sc, 1) if inside else np.zeros_like(entries)
-        lower = np.tril_indices(n, -1)
-        diag = np.exp(entries[:n])
-        chol, dchol = np.zeros((n, n)), np.zeros((n, n))
-        chol[np.diag_indices(n)], dchol[np.diag_indices(n)] = diag, diag * dentries[:n]
-        chol[lower], dchol[lower] = entries[n:], dentries[n:]
-        return c, dc, chol, dchol, float(entries[:n].sum()), float(dentries[:n].sum())
+        return (c, dc, *lower_factor(entries, dentries, n))
 
     def _position(self, z: np.ndarray):
         z = np.asarray(z, float)
@@ -237,6 +232,29 @@ class RidgeCurvePlan(Reparameterization):
         along = g[self.pivot] + s * (1.0 - s) * (float(dw_ds @ g_rest) + dlogdet)
         logp = logp + logjac + logdet + warped[0]
         return logp, np.append(slope * along + warped[1], chol.T @ g_rest)
+
+
+def lower_factor(
+    entries: np.ndarray, dentries: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """A lower-triangular factor from its splined entries, and its derivative.
+
+    ``entries`` holds the log of the diagonal (first ``n``), then the strict lower
+    triangle row by row; ``dentries`` their derivatives along the path.  Returns
+    ``(L, dL, ln det L, d ln det L)``.
+
+    Examples
+    --------
+    >>> L, dL, logdet, _ = lower_factor(np.array([0.0, np.log(2.0), 0.5]), np.zeros(3), 2)
+    >>> L.tolist(), round(logdet, 6)
+    ([[1.0, 0.0], [0.5, 2.0]], 0.693147)
+    """
+    lower = np.tril_indices(n, -1)
+    diag = np.exp(entries[:n])
+    chol, dchol = np.zeros((n, n)), np.zeros((n, n))
+    chol[np.diag_indices(n)], dchol[np.diag_indices(n)] = diag, diag * dentries[:n]
+    chol[lower], dchol[lower] = entries[n:], dentries[n:]
+    return chol, dchol, float(entries[:n].sum()), float(dentries[:n].sum())
 
 
 def _nodes(n: int, end: float = 1e-6) -> np.ndarray:

@@ -60,7 +60,7 @@ from kohpymc.reparameterization import (
     _hessian,
     _inverse_cholesky,
 )
-from kohpymc.ridge_curve import RidgeCurvePlan, _pivot_warp
+from kohpymc.ridge_curve import RidgeCurvePlan, _pivot_warp, lower_factor
 from kohpymc.value_space import ValueSpace
 
 __all__ = ["SCALE_FUNNEL_RATIO", "SCALE_FUNNEL_SHIFT", "ScaleFunnel", "scale_funnel_plan"]
@@ -121,12 +121,7 @@ class ScaleFunnel:
         m = self.curve(edge) + (0.0 if inside else slope * (t - edge))
         entries = self.factor(edge)
         dentries = self.factor(edge, 1) if inside else np.zeros_like(entries)
-        lower = np.tril_indices(n, -1)
-        diag = np.exp(entries[:n])
-        chol, dchol = np.zeros((n, n)), np.zeros((n, n))
-        chol[np.diag_indices(n)], dchol[np.diag_indices(n)] = diag, diag * dentries[:n]
-        chol[lower], dchol[lower] = entries[n:], dentries[n:]
-        return m, slope, chol, dchol, float(entries[:n].sum()), float(dentries[:n].sum())
+        return (m, slope, *lower_factor(entries, dentries, n))
 
     def forward(self, y: np.ndarray) -> tuple[np.ndarray, float]:
         """``z(y)`` and ``ln|dz/dy|``."""

@@ -399,7 +399,8 @@ def scale_funnel_plan(
 
 def _scales(space: ValueSpace, names: Sequence[str]) -> list[int]:
     """Value-space indices of every element of the parameters ``names`` in ``space``."""
-    out, start = [], 0
+    out: list[int] = []
+    start = 0
     for rv, shape in zip(space.model.free_RVs, space.shapes, strict=True):
         size = int(np.prod(shape, dtype=int))
         if rv.name in names:

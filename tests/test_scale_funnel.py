@@ -9,6 +9,7 @@ from kohpymc.funnel import FunnelPlan
 from kohpymc.reparameterization import plan
 from kohpymc.scale_funnel import ScaleFunnel, scale_funnel_plan
 from kohpymc.value_space import value_space
+from tests.test_reparameterization import _finite_difference_gradient
 
 #: three rows of a line whose discrepancy sd grows with x, over a noise sd of 0.05
 _X = np.linspace(1.0, 3.0, 3)
@@ -72,8 +73,7 @@ def test_pull_back_is_the_gradient_of_the_density_in_y(y0):
     y = np.array([y0, -1.0, 0.5, 1.5])
     z, _ = funnel.forward(y)
     grad = funnel.pull_back(y, -(z - 0.3))
-    h = 1e-6
-    numeric = [(density(y + h * e) - density(y - h * e)) / (2 * h) for e in np.eye(4)]
+    numeric = _finite_difference_gradient(density, y)
     np.testing.assert_allclose(grad, numeric, atol=1e-6)
 
 
@@ -90,12 +90,7 @@ def test_funnel_of_a_discrepancy_sd_is_found_and_carries_the_posterior():
     logp, grad = wrapped.logp_dlogp(space, y)
     inner_z, logjac = wrapped.funnel.forward(y)
     assert logp == pytest.approx(inner.logp_dlogp(space, inner_z)[0] + logjac)
-    h = 1e-6
-    numeric = [
-        (wrapped.logp_dlogp(space, y + h * e)[0] - wrapped.logp_dlogp(space, y - h * e)[0])
-        / (2 * h)
-        for e in np.eye(3)
-    ]
+    numeric = _finite_difference_gradient(lambda x: wrapped.logp_dlogp(space, x)[0], y)
     np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(wrapped.from_value(wrapped.to_value(y)), y, atol=1e-9)
 

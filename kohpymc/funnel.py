@@ -403,20 +403,11 @@ def funnel_plan(space: ValueSpace, inner: Reparameterization) -> FunnelPlan | No
 
 
 def _scalar(space: ValueSpace, index: int) -> bool:
-    start = 0
-    for shape in space.shapes:
-        size = int(np.prod(shape, dtype=int))
-        if start <= index < start + size:
-            return size == 1
-        start += size
-    return False
+    return any(start == index and size == 1 for _, _, start, size in space.blocks())
 
 
 def _label(space: ValueSpace, index: int) -> str:
-    start = 0
-    for name, shape in zip(space.names, space.shapes, strict=True):
-        size = int(np.prod(shape, dtype=int))
+    for _, name, start, size in space.blocks():
         if start <= index < start + size:
             return name.removesuffix("_log__")
-        start += size
     return f"element {index}"

@@ -399,14 +399,8 @@ def scale_funnel_plan(
 
 def _scales(space: ValueSpace, names: Sequence[str]) -> list[int]:
     """Value-space indices of every element of the parameters ``names`` in ``space``."""
-    out: list[int] = []
-    start = 0
-    for rv, shape in zip(space.model.free_RVs, space.shapes, strict=True):
-        size = int(np.prod(shape, dtype=int))
-        if rv.name in names:
-            out.extend(range(start, start + size))
-        start += size
-    return out
+    blocks = space.blocks()
+    return [i for rv, _, start, size in blocks if rv in names for i in range(start, start + size)]
 
 
 def _with_warped_pivot(space: ValueSpace, inner: Reparameterization) -> Reparameterization:

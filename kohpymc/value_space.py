@@ -151,6 +151,25 @@ class ValueSpace:
             start += size
         return out
 
+    def blocks(self) -> list[tuple[str, str, int, int]]:
+        """``(variable name, value-variable name, first flat index, size)`` per free variable.
+
+        Examples
+        --------
+        >>> import pymc as pm
+        >>> with pm.Model() as model:
+        ...     a = pm.HalfNormal("a", 1.0, shape=2)
+        ...     b = pm.Normal("b")
+        >>> value_space(model).blocks()
+        [('a', 'a_log__', 0, 2), ('b', 'b', 2, 1)]
+        """
+        out, start = [], 0
+        for rv, name, shape in zip(self.model.free_RVs, self.names, self.shapes, strict=True):
+            size = int(np.prod(shape, dtype=int))
+            out.append((rv.name, name, start, size))
+            start += size
+        return out
+
     def join(self, point: dict[str, Any]) -> np.ndarray:
         """A point ``{value-variable name: array}`` as one flat vector."""
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])

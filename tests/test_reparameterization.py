@@ -36,6 +36,11 @@ def _finite_difference_gradient(f, x, h=1e-6):
     return grad
 
 
+def _finite_difference_jacobian(f, x, h=1e-6):
+    """Central differences of a vector function: column ``j`` is ``∂f/∂x_j``."""
+    return np.column_stack([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(x.size)])
+
+
 def _check_plan_exact(space, reparam, z, *, rtol, atol, inverse_atol):
     """At ``z`` the plan's density has the gradient central differences give, and z → v → z
     round trips to ``inverse_atol``; returns the log density."""

@@ -20,7 +20,12 @@ import pytensor.tensor as pt
 
 from kohpymc.discrepancy.base import Discrepancy, Likelihood, ModelContext
 from kohpymc.discrepancy.functions import MeanSpec, marginalizable
-from kohpymc.gaussian import GaussianLikelihood, add_to_covariance, covariance_solve
+from kohpymc.gaussian import (
+    GaussianLikelihood,
+    add_to_covariance,
+    covariance_solve,
+    low_rank_covariance,
+)
 
 __all__ = ["IndependentDiscrepancy"]
 
@@ -54,8 +59,7 @@ class IndependentDiscrepancy(Discrepancy):
             m0, s0 = spec.gaussian_prior(ctx)  # type: ignore[union-attr, misc]
             diag = variance * pt.ones_like(ctx.G)
             if physics_cov is None:
-                base = pt.diag(diag)
-                cov = base + pt.dot(B * s0**2, B.T)
+                cov = low_rank_covariance(diag, B * s0)
             else:  # low-rank when the emulator's Σ_η is (Woodbury likelihood)
                 base = add_to_covariance(physics_cov, diagonal=diag)
                 cov = add_to_covariance(base, factor=B * s0)

@@ -256,7 +256,8 @@ class SoftFlatScaleCoordinates(Coordinates):
             share = expit(v[index])
             gap = np.log1p((b - a) / a * share) if log else (b - a) * share
             g = np.clip(gap / h, 1e-300, c * (1 - 1e-15))
-            w[index] = lo + h * (np.log(np.expm1(g)) - np.log(-np.expm1(g - c)))
+            # log(expm1(g)) as g + log(1 - e^-g): no overflow where g > 709 (a narrow tail)
+            w[index] = lo + h * (g + np.log(-np.expm1(-g)) - np.log(-np.expm1(g - c)))
         w = w if self.shares is None else self.shares.inverse(w)
         return w if self.ridge is None else self.ridge.inverse(self, w)
 

@@ -23,7 +23,7 @@ from pytensor.graph.rewriting.basic import node_rewriter
 from pytensor.tensor.blockwise import Blockwise
 from pytensor.tensor.elemwise import Elemwise
 
-__all__ = ["fold_static_shapes", "rows_function"]
+__all__ = ["rows_function"]
 
 
 def _stacked_cholesky(op: Any, a: np.ndarray) -> np.ndarray:
@@ -159,7 +159,6 @@ def rows_function(
 
     if _slow_to_vectorize(outputs):
         return None
-    outputs = fold_static_shapes(outputs)
     rows = pt.matrix("rows")
     try:
         batched = vectorize_graph(list(outputs), {flat: rows})
@@ -186,70 +185,27 @@ def rows_function(
 
 
 def _slow_to_vectorize(outputs: Sequence[Any]) -> bool:
-    """Whether the graph has more dynamic ``Shape`` nodes than vectorising can afford.
+    """Whether the graph has more ``Shape`` nodes than vectorising can afford.
 
     PyTensor vectorises a ``Shape`` node through ``broadcast_to`` and re-infers static
     shapes each time, rewriting the shape graph: a GridGP calibration's expand map, with
     25 ``Shape`` nodes over a Kronecker structure, took 598 s to vectorise, against 44 s
-    for the whole calibration before (the compiled per-draw map is used instead).  A
-    ``Shape`` of a variable whose static shape is known is not counted: it becomes a
-    constant before vectorising (:func:`fold_static_shapes`).
+    for the whole calibration before (the compiled per-draw map is used instead).
     """
-    shapes = sum(1 for v in _shape_nodes(outputs) if _static_shape(v) is None)
-    return shapes > _MAX_SHAPES
-
-
-#: dynamic ``Shape`` nodes above which a graph is not vectorised (see
-#: :func:`_slow_to_vectorize`): the beam's and a dense GP's expand maps have none, GridGP's 25
-_MAX_SHAPES = 4
-
-
-def fold_static_shapes(outputs: Sequence[Any]) -> list[Any]:
-    """``outputs`` with every ``Shape``/``Shape_i`` of a statically shaped variable a constant.
-
-    A ``Shape`` that stays in the graph is vectorised into a batched shape, and what it
-    sizes becomes a ``Blockwise`` that the Python linker runs once per row (a GP
-    conditional's ``eye(n)`` jitter); the data's sizes are fixed, so the shape is a
-    constant.  The graph is cloned; ``outputs`` themselves are not changed.
-
-    Examples
-    --------
-    >>> x = pt.vector("x", shape=(3,))
-    >>> folded = fold_static_shapes([pt.eye(x.shape[0]) * x[0]])
-    >>> rows_function(x, folded)(np.array([[2.0, 0.0, 0.0]]))[0][0].tolist()[0]
-    [2.0, 0.0, 0.0]
-    """
-    from pytensor.graph.replace import graph_replace
-
-    replacements = {}
-    for v in _shape_nodes(outputs):
-        shape = _static_shape(v)
-        if shape is not None:
-            replacements[v] = pt.constant(np.asarray(shape, dtype=v.type.dtype))
-    return graph_replace(list(outputs), replacements) if replacements else list(outputs)
-
-
-def _shape_nodes(outputs: Sequence[Any]) -> list[Any]:
-    """The outputs of the ``Shape`` and ``Shape_i`` nodes ``outputs`` depend on."""
     from pytensor.graph.traversal import ancestors
     from pytensor.tensor.shape import Shape, Shape_i
 
-    return [
-        v
+    shapes = sum(
+        1
         for v in ancestors(outputs)
         if v.owner is not None and isinstance(v.owner.op, Shape | Shape_i)
-    ]
+    )
+    return shapes > _MAX_SHAPES
 
 
-def _static_shape(shape: Any) -> tuple[int, ...] | int | None:
-    """The value of the ``Shape``/``Shape_i`` output ``shape`` from static types, or None."""
-    from pytensor.tensor.shape import Shape_i
-
-    node = shape.owner
-    static = node.inputs[0].type.shape
-    if isinstance(node.op, Shape_i):
-        return static[node.op.i]
-    return None if any(s is None for s in static) else tuple(static)
+#: ``Shape`` nodes above which a graph is not vectorised (see :func:`_slow_to_vectorize`):
+#: the beam's and a dense GP's expand maps have none, GridGP's 25
+_MAX_SHAPES = 4
 
 
 def _per_row(op: Any) -> bool:

@@ -223,3 +223,30 @@ def test_default_cores_are_the_usable_cpus_or_a_dask_workers_threads():
         ):
             assert client.submit(default_cores, 4).result() == min(4, threads)
             assert client.submit(default_cores, 2).result() == min(2, threads)
+
+
+def test_divergent_chains_are_sampled_again_at_a_higher_target_accept():
+    """Neal's funnel, sampled without reparameterisation, diverges at 0.9: the chains run
+    again at RETRY_TARGET_ACCEPT, the run with fewer divergences is kept, and both counts
+    are in the report.  A target the caller set is never overridden."""
+    import pymc as pm
+
+    from kohpymc.diagnostics import n_divergences
+    from kohpymc.sampling import RETRY_TARGET_ACCEPT, sample_posterior
+
+    with pm.Model() as funnel:
+        v = pm.Normal("v", 0.0, 3.0)
+        pm.Normal("x", 0.0, pm.math.exp(v / 2), shape=2)
+    settings = dict(draws=300, tune=300, chains=2, cores=1, random_seed=5, reparameterize=False)
+    idata, report = sample_posterior(funnel, **settings)
+    first, second = report.retry["divergences"]
+    assert first > 0
+    assert report.retry["target_accept"] == [0.9, RETRY_TARGET_ACCEPT]
+    assert n_divergences(idata) == min(first, second)
+    kept_second = second < first
+    assert report.retry["kept"] == ("second" if kept_second else "first")
+    assert report.target_accept == (RETRY_TARGET_ACCEPT if kept_second else 0.9)
+    assert json.loads(json.dumps(report.to_dict()))["retry"] == report.retry
+
+    _, told = sample_posterior(funnel, target_accept=0.9, **settings)
+    assert told.retry == {} and told.target_accept == 0.9

@@ -48,6 +48,7 @@ from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.scale_funnel import scale_funnel_plan
+from kohpymc.second_run import better, plan_second_run, smallest_ess
 from kohpymc.value_space import (
     ValueSpace,
     nudged,
@@ -73,17 +74,6 @@ __all__ = [
 #: of h are unstable where it exceeds (2/h)².  At 0.9, M0's step was 0.51-0.53 and 3 of
 #: 4000 draws diverged; at 0.95, 0.40-0.42 and none, for 1.37× the leapfrog steps.
 CURVED_TARGET_ACCEPT = 0.95
-
-#: NUTS target acceptance of the second run after divergent transitions, when the caller
-#: set none (:func:`sample_posterior`).  A few divergences where the curvature rises in
-#: one region usually go with a smaller step: enzyme kinetics with substrate inhibition
-#: under M4 (natural units, σ unknown) had 7 at 0.95 and none at 0.99, for 1.7x the
-#: leapfrog steps; a thermistor's M3 went from 7 to 4.
-RETRY_TARGET_ACCEPT = 0.99
-
-#: the first run's sampling seconds above which a divergent run is not sampled again
-#: (its divergences are reported, with the advice to raise ``target_accept``)
-MAX_RETRY_SAMPLING_S = 300.0
 
 
 @dataclass
@@ -124,12 +114,12 @@ class SamplingReport:
         (:func:`kohpymc.prior_bounds.hits_in_draws`), each also warned about (NUTS
         samplers; not checked after SMC).
     target_accept : float or None
-        NUTS target acceptance of the draws kept (:func:`target_accept_for`, or
-        :data:`RETRY_TARGET_ACCEPT` after a retry; None for SMC).
-    retry : dict
-        Empty unless the chains were sampled again after divergent transitions:
-        ``target_accept`` and ``divergences`` of both runs, the seconds of the first and
-        which was kept (the one with fewer divergences; the first on a tie).
+        NUTS target acceptance of the draws kept (:func:`target_accept_for`, or the
+        second run's; None for SMC).
+    second_run : dict
+        Empty unless the chains were sampled again (:mod:`kohpymc.second_run`): why,
+        ``target_accept``, ``draws``, ``divergences`` and ``smallest_ess_bulk`` of both
+        runs, the first run's sampling seconds and which run was kept.
     """
 
     sampler: str
@@ -144,7 +134,7 @@ class SamplingReport:
     prior_bounds: list[dict[str, Any]] = field(default_factory=list)
     nutpie_backend: str = ""
     target_accept: float | None = None
-    retry: dict[str, Any] = field(default_factory=dict)
+    second_run: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for provenance."""
@@ -161,7 +151,7 @@ class SamplingReport:
             "nutpie_backend": self.nutpie_backend,
             "prior_bounds": list(self.prior_bounds),
             "target_accept": self.target_accept,
-            "retry": dict(self.retry),
+            "second_run": dict(self.second_run),
         }
 
 
@@ -309,8 +299,8 @@ def sample_posterior(
         run = (space, reparam, settings, target_accept, progressbar, kwargs)
         begin = time.perf_counter()
         idata = _run_nuts(model, name, run, failures, report)
-        if requested_target_accept is None:
-            idata = _retry_if_divergent(model, name, run, idata, begin, failures, report)
+        fixed = requested_target_accept is not None
+        idata = _second_run(model, name, run, idata, (begin, fixed), failures, report)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
         _report_rate(settings, report.timings["sampling"])
         _add_observed_data(idata, model)
@@ -396,46 +386,56 @@ def _run_nuts(
     return _run_pymc(model, *run)
 
 
-def _retry_if_divergent(
+def _second_run(
     model: pm.Model,
     name: str,
     run: _NutsRun,
     first: az.InferenceData,
-    began: float,
+    began_fixed: tuple[float, bool],
     failures: list[str],
     report: SamplingReport,
 ) -> az.InferenceData:
-    """The draws of ``run``, sampled again at :data:`RETRY_TARGET_ACCEPT` if some diverged.
+    """The draws of ``run``, or of a second run when the first's chains show trouble.
 
-    Only when the first run's target is below it and its sampling took at most
-    :data:`MAX_RETRY_SAMPLING_S`; the run with fewer divergences is kept (the first on a
-    tie) and both are recorded in ``report.retry``.
+    :func:`kohpymc.second_run.plan_second_run` decides (``began_fixed``: when the first
+    run began, whether the caller set its target); the better run is kept
+    (:func:`kohpymc.second_run.better`) and both are recorded in ``report.second_run``.
     """
+    began, fixed = began_fixed
     seconds = time.perf_counter() - began
-    divergent = _divergences(first)
     space, reparam, settings, target_accept, progressbar, kwargs = run
-    if divergent == 0 or target_accept >= RETRY_TARGET_ACCEPT or seconds > MAX_RETRY_SAMPLING_S:
+    names = [rv.name for rv in model.free_RVs]
+    change = plan_second_run(
+        first, names, target_accept=target_accept, target_fixed=fixed,
+        tune=settings["tune"], draws=settings["draws"], seconds=seconds,
+    )  # fmt: skip
+    if change is None:
         return first
-    report_phase(f"sampling again at target_accept {RETRY_TARGET_ACCEPT} ({divergent} divergent)")
+    report_phase(f"sampling again ({'; '.join(change.reasons)})")
     again: list[str] = []
-    retry = (space, reparam, settings, RETRY_TARGET_ACCEPT, progressbar, dict(kwargs))
-    second = _run_nuts(model, name, retry, again, report)
-    kept_second = _divergences(second) < divergent
-    report.retry = {
-        "target_accept": [target_accept, RETRY_TARGET_ACCEPT],
-        "divergences": [divergent, _divergences(second)],
+    changed = {**settings, "draws": change.draws}
+    second = _run_nuts(
+        model, name, (space, reparam, changed, change.target_accept, progressbar, dict(kwargs)),
+        again, report,
+    )  # fmt: skip
+    keep = better(first, second, names)
+    report.second_run = {
+        "reasons": change.reasons,
+        "target_accept": [target_accept, change.target_accept],
+        "draws": [settings["draws"], change.draws],
+        "divergences": [n_divergences(first) or 0, n_divergences(second) or 0],
+        "smallest_ess_bulk": [
+            round(smallest_ess(first, names)),
+            round(smallest_ess(second, names)),
+        ],
         "first_sampling_s": round(seconds, 3),
-        "kept": "second" if kept_second else "first",
+        "kept": "second" if keep else "first",
     }
-    if not kept_second:
+    if not keep:
         return first
-    report.target_accept = RETRY_TARGET_ACCEPT
+    report.target_accept = change.target_accept
     failures[:] = again
     return second
-
-
-def _divergences(idata: az.InferenceData) -> int:
-    return n_divergences(idata) or 0
 
 
 def target_accept_for(

@@ -232,21 +232,49 @@ def test_divergent_chains_are_sampled_again_at_a_higher_target_accept():
     import pymc as pm
 
     from kohpymc.diagnostics import n_divergences
-    from kohpymc.sampling import RETRY_TARGET_ACCEPT, sample_posterior
+    from kohpymc.sampling import sample_posterior
+    from kohpymc.second_run import RETRY_TARGET_ACCEPT
 
     with pm.Model() as funnel:
         v = pm.Normal("v", 0.0, 3.0)
         pm.Normal("x", 0.0, pm.math.exp(v / 2), shape=2)
     settings = dict(draws=300, tune=300, chains=2, cores=1, random_seed=5, reparameterize=False)
     idata, report = sample_posterior(funnel, **settings)
-    first, second = report.retry["divergences"]
-    assert first > 0
-    assert report.retry["target_accept"] == [0.9, RETRY_TARGET_ACCEPT]
-    assert n_divergences(idata) == min(first, second)
-    kept_second = second < first
-    assert report.retry["kept"] == ("second" if kept_second else "first")
+    second_run = report.second_run
+    first, second = second_run["divergences"]
+    assert first > 0 and "divergent" in second_run["reasons"][0]
+    assert second_run["target_accept"] == [0.9, RETRY_TARGET_ACCEPT]
+    kept_second = second_run["kept"] == "second"
+    assert n_divergences(idata) == (second if kept_second else first)
+    assert idata.posterior.sizes["draw"] == second_run["draws"][1 if kept_second else 0]
     assert report.target_accept == (RETRY_TARGET_ACCEPT if kept_second else 0.9)
-    assert json.loads(json.dumps(report.to_dict()))["retry"] == report.retry
+    assert json.loads(json.dumps(report.to_dict()))["second_run"] == second_run
 
     _, told = sample_posterior(funnel, target_accept=0.9, **settings)
-    assert told.retry == {} and told.target_accept == 0.9
+    assert told.target_accept == 0.9
+    assert told.second_run == {} or told.second_run["target_accept"] == [0.9, 0.9]
+
+
+def test_slowly_mixing_chains_get_more_draws_and_the_better_run_is_kept():
+    """A Gaussian with correlation 0.999 sampled in PyMC's coordinates with trees cut at
+    depth 3 mixes slowly: its bulk ESS per draw is far below a tenth, so a second run with
+    2-4 times the draws follows; the run with the larger smallest ESS is kept."""
+    import pymc as pm
+
+    from kohpymc.sampling import sample_posterior
+    from kohpymc.second_run import MAX_DRAWS_FACTOR, ess_wanted
+
+    cov = np.array([[1.0, 0.999], [0.999, 1.0]])
+    with pm.Model() as ridge:
+        pm.MvNormal("z", mu=np.zeros(2), cov=cov)
+    settings = dict(draws=200, tune=300, chains=2, cores=1, random_seed=3, reparameterize=False)
+    idata, report = sample_posterior(ridge, sample_kwargs={"maxdepth": 3}, **settings)
+    assert report.second_run, "a slowly mixing run was not sampled again"
+    first_draws, second_draws = report.second_run["draws"]
+    assert first_draws == 200 and 2 * 200 <= second_draws <= MAX_DRAWS_FACTOR * 200
+    assert any("ESS" in r or "r_hat" in r for r in report.second_run["reasons"])
+    ess = report.second_run["smallest_ess_bulk"]
+    assert ess[0] < ess_wanted(2, 200) == 40.0
+    kept = report.second_run["kept"]
+    assert kept == ("second" if ess[1] > ess[0] else "first")
+    assert idata.posterior.sizes["draw"] == (second_draws if kept == "second" else 200)

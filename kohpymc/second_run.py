@@ -1,0 +1,223 @@
+"""A second NUTS run when the first one's chains show trouble.
+
+PyMC's advice on divergent transitions is a higher target acceptance (a smaller step), and
+on a low effective sample size more draws; a careful user does both before reading the
+posterior.  After the first run, :func:`plan_second_run` says what a second one changes:
+
+* divergences, when the caller set no ``target_accept``: the target becomes
+  :data:`RETRY_TARGET_ACCEPT`;
+* chains that mix slowly — a bulk ESS below :func:`ess_wanted` for a sampled parameter,
+  or r̂ above :func:`~kohpymc.diagnostics.rhat_limit` — the draws are multiplied (2 to
+  :data:`MAX_DRAWS_FACTOR` times, by what the ESS falls short).
+
+It runs only when its projected sampling time, from the first run's, stays within
+:data:`MAX_SECOND_RUN_S`; else the trouble is reported as always.  :func:`better` keeps
+the run with fewer divergences, then the one with the larger smallest ESS.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import arviz as az
+import numpy as np
+
+from kohpymc.diagnostics import ESS_MIN, n_divergences, rhat_limit
+from kohpymc.warning_filters import single_chain_notes_hidden
+
+__all__ = [
+    "MAX_DRAWS_FACTOR",
+    "MAX_SECOND_RUN_S",
+    "RETRY_TARGET_ACCEPT",
+    "SecondRun",
+    "better",
+    "ess_wanted",
+    "plan_second_run",
+    "smallest_ess",
+]
+
+#: NUTS target acceptance of the second run after divergent transitions.  A few
+#: divergences where the curvature rises in one region usually go with a smaller step:
+#: enzyme kinetics with substrate inhibition under M4 (natural units, σ unknown) had 7 at
+#: 0.95 and none at 0.99, for 1.7x the leapfrog steps; a thermistor's M3 went from 7 to 4.
+RETRY_TARGET_ACCEPT = 0.99
+
+#: projected seconds of sampling above which no second run starts
+MAX_SECOND_RUN_S = 600.0
+
+#: at most this many times the draws in a second run
+MAX_DRAWS_FACTOR = 4
+
+#: leapfrog steps per draw at :data:`RETRY_TARGET_ACCEPT` against the first run's
+#: (the enzyme case: 24.5 against 14.1), for the projection
+_STEPS_AT_RETRY = 1.75
+
+
+@dataclass(frozen=True)
+class SecondRun:
+    """What a second run changes, and why.
+
+    Attributes
+    ----------
+    target_accept : float
+    draws : int
+        Kept draws per chain (the tuning steps stay).
+    reasons : list of str
+        The first run's trouble, in words.
+    """
+
+    target_accept: float
+    draws: int
+    reasons: list[str]
+
+
+def ess_wanted(chains: int, draws: int) -> float:
+    """Bulk ESS below which chains mix too slowly: ``ESS_MIN``, or a tenth of the draws.
+
+    A short run (a test, a quick look) is judged by its length, not by the 400 a
+    posterior summary needs.
+
+    Examples
+    --------
+    >>> ess_wanted(4, 1000), ess_wanted(2, 200)
+    (400.0, 40.0)
+    """
+    return float(min(ESS_MIN, 0.1 * chains * draws))
+
+
+def plan_second_run(
+    idata: az.InferenceData,
+    names: Sequence[str],
+    *,
+    target_accept: float,
+    target_fixed: bool,
+    tune: int,
+    draws: int,
+    seconds: float,
+) -> SecondRun | None:
+    """The second run the first one's chains call for, or None.
+
+    Parameters
+    ----------
+    idata : InferenceData
+        The first run (``posterior``, ``sample_stats``).
+    names : sequence of str
+        The sampled parameters whose mixing is judged.
+    target_accept, target_fixed :
+        The first run's target; whether the caller set it (then it stays).
+    tune, draws, seconds :
+        The first run's tuning steps and draws per chain, and its sampling seconds.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> good = az.from_dict(posterior={"a": rng.normal(size=(4, 1000))},
+    ...                     sample_stats={"diverging": np.zeros((4, 1000), bool)})
+    >>> plan_second_run(good, ["a"], target_accept=0.9, target_fixed=False, tune=1000,
+    ...                 draws=1000, seconds=5.0) is None
+    True
+    >>> bad = az.from_dict(posterior={"a": rng.normal(size=(4, 1000))},
+    ...                    sample_stats={"diverging": np.eye(4, 1000, dtype=bool)})
+    >>> plan_second_run(bad, ["a"], target_accept=0.9, target_fixed=False, tune=1000,
+    ...                 draws=1000, seconds=5.0).target_accept
+    0.99
+    """
+    reasons: list[str] = []
+    new_target = target_accept
+    divergent = n_divergences(idata) or 0
+    if divergent and not target_fixed and target_accept < RETRY_TARGET_ACCEPT:
+        new_target = RETRY_TARGET_ACCEPT
+        reasons.append(f"{divergent} divergent transition(s) at target_accept {target_accept}")
+    factor, mixing = _draws_factor(idata, names, draws)
+    reasons += mixing
+    if not reasons:
+        return None
+    steps = _STEPS_AT_RETRY if new_target > target_accept else 1.0
+    while factor > 1 and _projected(seconds, tune, draws, factor, steps) > MAX_SECOND_RUN_S:
+        factor -= 1
+    if _projected(seconds, tune, draws, factor, steps) > MAX_SECOND_RUN_S:
+        return None
+    if factor == 1 and new_target == target_accept:
+        return None
+    return SecondRun(new_target, draws * factor, reasons)
+
+
+def better(first: az.InferenceData, second: az.InferenceData, names: Sequence[str]) -> bool:
+    """Whether ``second`` is the run to keep: fewer divergences, then a larger smallest ESS.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> run = lambda n: az.from_dict(posterior={"a": rng.normal(size=(2, n))},
+    ...                              sample_stats={"diverging": np.zeros((2, n), bool)})
+    >>> better(run(100), run(2000), ["a"])
+    True
+    """
+    first_div, second_div = n_divergences(first) or 0, n_divergences(second) or 0
+    if first_div != second_div:
+        return second_div < first_div
+    return smallest_ess(second, names) > smallest_ess(first, names)
+
+
+def _draws_factor(
+    idata: az.InferenceData, names: Sequence[str], draws: int
+) -> tuple[int, list[str]]:
+    """How many times the draws slow mixing calls for (1: none), and why."""
+    posterior = idata["posterior"]
+    chains = int(posterior.sizes.get("chain", 1))
+    wanted = ess_wanted(chains, draws)
+    smallest = smallest_ess(idata, names)
+    reasons = []
+    factor = 1
+    if smallest < wanted:
+        reasons.append(f"bulk ESS {smallest:.0f} below {wanted:.0f}")
+        factor = math.ceil(1.25 * wanted / max(smallest, 1.0))
+    worst, limit = _worst_rhat(idata, names)
+    if chains >= 2 and worst > limit:
+        reasons.append(f"r_hat {worst:.4f} above {limit:.4f}")
+    if not reasons:
+        return 1, []
+    return min(max(factor, 2), MAX_DRAWS_FACTOR), reasons
+
+
+def smallest_ess(idata: az.InferenceData, names: Sequence[str]) -> float:
+    """The smallest bulk ESS over the elements of ``names`` (inf when none is drawn).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(2)
+    >>> bool(smallest_ess(az.from_dict(posterior={"a": rng.normal(size=(2, 500))}), ["a"]) > 500)
+    True
+    """
+    posterior = idata["posterior"][[n for n in names if n in idata["posterior"]]]
+    with single_chain_notes_hidden():
+        ess = az.ess(posterior, method="bulk")
+    values = [float(np.nanmin(ess[n].values)) for n in ess.data_vars]
+    finite = [v for v in values if np.isfinite(v)]
+    return min(finite) if finite else float("inf")
+
+
+def _worst_rhat(idata: az.InferenceData, names: Sequence[str]) -> tuple[float, float]:
+    """The largest r̂ over ``names`` and the limit it is judged against."""
+    posterior = idata["posterior"]
+    present = [n for n in names if n in posterior]
+    scalars = [
+        np.asarray(posterior[n].values).reshape(
+            posterior.sizes["chain"], posterior.sizes["draw"], -1
+        )
+        for n in present
+    ]
+    columns = [s[:, :, k] for s in scalars for k in range(s.shape[2])]
+    if not columns:
+        return 1.0, 1.0
+    with single_chain_notes_hidden():
+        rhats = [float(az.rhat(c)) for c in columns]
+    worst = int(np.nanargmax(rhats)) if np.any(np.isfinite(rhats)) else 0
+    return rhats[worst], rhat_limit(columns[worst], parameters=len(columns))
+
+
+def _projected(seconds: float, tune: int, draws: int, factor: int, steps: float) -> float:
+    """Sampling seconds of a run with ``factor`` times the draws and ``steps`` the steps."""
+    return seconds * steps * (tune + factor * draws) / max(tune + draws, 1)

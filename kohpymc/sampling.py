@@ -48,7 +48,7 @@ from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.scale_funnel import scale_funnel_plan
-from kohpymc.second_run import better, plan_second_run, smallest_ess
+from kohpymc.second_run import plan_second_run, smallest_ess
 from kohpymc.value_space import (
     ValueSpace,
     nudged,
@@ -119,7 +119,7 @@ class SamplingReport:
     second_run : dict
         Empty unless the chains were sampled again (:mod:`kohpymc.second_run`): why,
         ``target_accept``, ``draws``, ``divergences`` and ``smallest_ess_bulk`` of both
-        runs, the first run's sampling seconds and which run was kept.
+        runs and the first run's sampling seconds; the draws are the second run's.
     """
 
     sampler: str
@@ -398,11 +398,12 @@ def _second_run(
     """The draws of ``run``, or of a second run when the first's chains show trouble.
 
     :func:`kohpymc.second_run.plan_second_run` decides (``began_fixed``: when the first
-    run began, whether the caller set its target); the better run is kept
-    (:func:`kohpymc.second_run.better`) and both are recorded in ``report.second_run``.
+    run began, whether the caller set its target); the second run's draws are kept and
+    both runs are recorded in ``report.second_run``.
     """
     began, fixed = began_fixed
-    seconds = time.perf_counter() - began
+    first_setup = {k: report.timings.get(k, 0.0) for k in _RUN_SETUP}
+    seconds = time.perf_counter() - began - sum(first_setup.values())
     space, reparam, settings, target_accept, progressbar, kwargs = run
     names = [rv.name for rv in model.free_RVs]
     change = plan_second_run(
@@ -418,7 +419,6 @@ def _second_run(
         model, name, (space, reparam, changed, change.target_accept, progressbar, dict(kwargs)),
         again, report,
     )  # fmt: skip
-    keep = better(first, second, names)
     report.second_run = {
         "reasons": change.reasons,
         "target_accept": [target_accept, change.target_accept],
@@ -429,13 +429,17 @@ def _second_run(
             round(smallest_ess(second, names)),
         ],
         "first_sampling_s": round(seconds, 3),
-        "kept": "second" if keep else "first",
     }
-    if not keep:
-        return first
+    for key, value in first_setup.items():  # both runs' set-up, not counted as sampling
+        report.timings[key] = report.timings.get(key, 0.0) + value
     report.target_accept = change.target_accept
     failures[:] = again
     return second
+
+
+#: timings of a NUTS run that are set-up, not sampling (the native density's compile and
+#: the map of the draws to the user's parameters)
+_RUN_SETUP = ("native_compile", "expand")
 
 
 def target_accept_for(

@@ -11,8 +11,10 @@ posterior.  After the first run, :func:`plan_second_run` says what a second one 
   :data:`MAX_DRAWS_FACTOR` times, by what the ESS falls short).
 
 It runs only when its projected sampling time, from the first run's, stays within
-:data:`MAX_SECOND_RUN_S`; else the trouble is reported as always.  :func:`better` keeps
-the run with fewer divergences, then the one with the larger smallest ESS.
+:data:`MAX_SECOND_RUN_S`; else the trouble is reported as always.  The second run's draws
+are the result whatever its diagnostics: choosing between two valid runs by how their
+draws came out would select on the draws (a run that missed a hard region diverges
+less), while the second run's settings are the better ones before either is seen.
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ __all__ = [
     "MAX_SECOND_RUN_S",
     "RETRY_TARGET_ACCEPT",
     "SecondRun",
-    "better",
     "ess_wanted",
     "plan_second_run",
     "smallest_ess",
@@ -142,23 +143,6 @@ def plan_second_run(
     if factor == 1 and new_target == target_accept:
         return None
     return SecondRun(new_target, draws * factor, reasons)
-
-
-def better(first: az.InferenceData, second: az.InferenceData, names: Sequence[str]) -> bool:
-    """Whether ``second`` is the run to keep: fewer divergences, then a larger smallest ESS.
-
-    Examples
-    --------
-    >>> rng = np.random.default_rng(1)
-    >>> run = lambda n: az.from_dict(posterior={"a": rng.normal(size=(2, n))},
-    ...                              sample_stats={"diverging": np.zeros((2, n), bool)})
-    >>> better(run(100), run(2000), ["a"])
-    True
-    """
-    first_div, second_div = n_divergences(first) or 0, n_divergences(second) or 0
-    if first_div != second_div:
-        return second_div < first_div
-    return smallest_ess(second, names) > smallest_ess(first, names)
 
 
 def _draws_factor(

@@ -34,6 +34,7 @@ from kohpymc.identifiability import (
     IdentifiabilityWarning,
     model_taylor_check,
 )
+from kohpymc.identifiability.model_check import regular
 from kohpymc.loo import compute_log_likelihood, pointwise_log_likelihood
 from kohpymc.model import OBS_DIM, PRED_DIM, CalibrationModel, compose_model, new_input_matrix
 from kohpymc.physics import PhysicsModel
@@ -158,11 +159,11 @@ def _plain_or_repr(formulation: Discrepancy) -> Any:
         return repr(formulation)
 
 
-def _identifiability(plain: CalibrationModel, physics: PhysicsModel):
+def _identifiability(plain: CalibrationModel, physics: PhysicsModel, data: CalibrationData):
     """The Taylor check at the prior centre, warning on a rank deficit."""
     label = plain.formulation.label
     try:
-        report = model_taylor_check(plain)
+        report = model_taylor_check(plain, fallback=regular(physics, data))
     except ValueError as err:
         warn_user(f"identifiability check skipped: {err}", IdentifiabilityWarning)
         return None
@@ -259,7 +260,7 @@ def calibrate(
     progressbar: bool = False,
     noise_sd_prior: Prior | dict[str, Any] | None = None,
     warn: bool = True,
-    check_identifiability: bool = True,
+    check_identifiability: bool | Literal["at_mode"] = True,
     slow_warning_s: float | None = SLOW_SAMPLING_S,
     method: Literal["nuts", "smc"] | None = None,
     nuts_sampler: Literal["pymc", "nutpie"] | None = None,
@@ -305,14 +306,17 @@ def calibrate(
     warn : bool
         Issue a :class:`~kohpymc.diagnostics.SamplerTroubleWarning` on problems; they
         are in :attr:`Calibration.problems` either way.
-    check_identifiability : bool
+    check_identifiability : bool or "at_mode"
         Before sampling, run the Taylor check of the physics plus discrepancy mean
         (:func:`kohpymc.identifiability.check_formulation`) at the prior centre; a rank
         deficit gives an :class:`~kohpymc.identifiability.IdentifiabilityWarning` naming
         the confounded combination.  The report is :attr:`Calibration.identifiability`.
         Once the posterior mode is found the check is repeated there
-        (:attr:`Calibration.identifiability_at_mode`), warning on a rank deficit or an
-        ill-conditioned (practically non-identifiable) combination.
+        (:attr:`Calibration.identifiability_at_mode`), warning on a rank deficit (saying
+        structural or practical when a confounded set is of physics parameters only) or
+        an ill-conditioned (practically non-identifiable) combination.  ``"at_mode"``:
+        only the check at the mode (a caller that ran the one at the prior centre, such
+        as :func:`kohpymc.run_study`); ``False``: neither.
     slow_warning_s : float or None
         Before NUTS starts, estimate the sampling time (evaluation cost at the mode ×
         leapfrog steps per draw × iterations, :mod:`kohpymc.presampling`) and issue a
@@ -346,9 +350,10 @@ def calibrate(
     plain = compose_model(
         physics, data, discrepancy, noise_sd_prior=noise_sd_prior, marginalize=False
     )
-    report = _identifiability(plain, physics) if check_identifiability else None
+    at_centre = check_identifiability is True
+    report = _identifiability(plain, physics, data) if at_centre else None
     presampling = PreSampling(
-        plain if check_identifiability else None,
+        plain if check_identifiability in (True, "at_mode") else None,
         physics,
         data.inputs,
         label=f"{discrepancy.label} with {physics.name!r}",

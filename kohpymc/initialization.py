@@ -78,22 +78,13 @@ class MultistartResult:
 
 
 def _quantile_box(prior: Prior, coverage: float) -> tuple[float, float]:
-    from scipy import stats
-
-    a = prior.args
-    tails = (0.5 * (1.0 - coverage), 0.5 * (1.0 + coverage))
     if prior.kind in ("uniform", "loguniform"):
-        return a["lower"], a["upper"]
-    if prior.kind == "normal":
-        lo, hi = stats.norm.ppf(tails, loc=a["mu"], scale=a["sigma"])
-    elif prior.kind == "lognormal":
-        lo, hi = np.exp(stats.norm.ppf(tails, loc=a["mu"], scale=a["sigma"]))
-    elif prior.kind == "halfnormal":
-        lo, hi = stats.halfnorm.ppf(tails, scale=a["sigma"])
-    else:  # custom: no quantiles, mean ± a few sd
+        return prior.args["lower"], prior.args["upper"]
+    if prior.kind == "custom":  # no quantiles, mean ± a few sd
         mean, sd = prior.mean(), prior.sd()
-        lo, hi = mean - _CUSTOM_SDS * sd, mean + _CUSTOM_SDS * sd
-    return float(lo), float(hi)
+        return mean - _CUSTOM_SDS * sd, mean + _CUSTOM_SDS * sd
+    tail = 0.5 * (1.0 - coverage)
+    return prior.quantile(tail), prior.quantile(1.0 - tail)
 
 
 def prior_box(

@@ -129,6 +129,33 @@ class Prior:
             return self.mean()
         return 1.0 if self.typical is None else float(self.typical)
 
+    def quantile(self, q: float) -> float:
+        """The prior's ``q`` quantile, ``0 < q < 1`` (custom priors: ``mean + sd·Φ⁻¹(q)``).
+
+        Examples
+        --------
+        >>> from kohpymc import LogUniform
+        >>> float(f"{LogUniform(1e-13, 1e-9).quantile(0.5):.3g}")
+        1e-11
+        """
+        from scipy import stats
+
+        if not 0.0 < q < 1.0:
+            raise ValueError(f"quantile: q must be in (0, 1), got {q!r}")
+        a = self.args
+        if self.kind == "uniform":
+            return a["lower"] + q * (a["upper"] - a["lower"])
+        if self.kind == "loguniform":
+            return a["lower"] * (a["upper"] / a["lower"]) ** q
+        if self.kind == "halfnormal":
+            return float(stats.halfnorm.ppf(q, scale=a["sigma"]))
+        z = float(stats.norm.ppf(q))
+        if self.kind == "normal":
+            return a["mu"] + a["sigma"] * z
+        if self.kind == "lognormal":
+            return math.exp(a["mu"] + a["sigma"] * z)
+        return self.mean() + self.sd() * z
+
     def in_support(self, value: float) -> bool:
         """Whether ``value`` lies in the support of the prior."""
         if not math.isfinite(value):

@@ -302,9 +302,11 @@ def _ridge_members(
         lam, vec = np.linalg.eigh(precision)
         d = np.where(log, np.abs(vec[:, 0]), 0.0)
     pivot = int(np.argmax(d))
-    if ratio[pivot] < min_ratio:
+    if not d[pivot] > 0.0 or ratio[pivot] < min_ratio:
+        # d[pivot] = 0: the flattest direction is another element's alone (an
+        # uninformed discrepancy coefficient), not a ridge of the log-scale elements
         return None
-    members = d >= 0.1 * d[pivot]
+    members = log & (d >= 0.1 * d[pivot])
     if min_ratio < _RIDGE_RATIO:
         # a short ridge: its flattest direction is the pivot's own when the pivot's scale
         # dominates, so the members are the log-scale elements correlated with it too

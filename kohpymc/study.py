@@ -69,6 +69,7 @@ from kohpymc.identifiability import (
     check_formulation,
     fisher_information_check,
 )
+from kohpymc.identifiability.at_mode import ridge_text
 from kohpymc.model import compose_model
 from kohpymc.physics import PhysicsModel
 from kohpymc.progress import LineDisplay, TaskDisplay
@@ -212,7 +213,7 @@ class _Job:
             validation_weights=self.validation_weights,
             random_seed=self.random_seed,
             label=label,
-            check_identifiability=False,
+            check_identifiability="at_mode",  # the prior centre's: _check_identifiability
             **self.settings,
         )
 
@@ -338,10 +339,12 @@ def _check_identifiability(physics, calibration, formulations, say):
                 + (f", weakly: {weak}" if weak else "")
             )
         else:
-            text = "; ".join(report.confounded())
+            text = ridge_text(report)  # with "structural" / "practical" when known
+            kind = {True: ", structurally", False: ", practically (more data would help)"}
             say(
-                f"  {label}: NOT identifiable (rank {report.rank}/{len(report.names)}); "
-                "the confounded combinations follow in an IdentifiabilityWarning"
+                f"  {label}: NOT identifiable{kind.get(report.structural, '')} (rank "
+                f"{report.rank}/{len(report.names)}); the confounded combinations follow in an "
+                "IdentifiabilityWarning"
             )
             warn_user(
                 f"{label} is not identifiable at the prior centre: {text}",

@@ -471,3 +471,112 @@ def test_taylor_check_steps_off_a_removable_singularity_of_the_default_point(sca
     assert report.rank == np.linalg.matrix_rank(fd) == 2
     assert report.identifiable
     assert report.point["ka"] != report.point["ke"]
+
+
+def _cooling(inputs, params):
+    """Lumped cooling: only h / c is informed (multiplicative confounding)."""
+    rate = params["h"] * 0.012 / (0.15 * params["c"])
+    return inputs["T_env"] + (inputs["T0"] - inputs["T_env"]) * np.exp(-rate * inputs["t"])
+
+
+def _cooling_case():
+    from kohpymc import LogUniform
+
+    physics = PhysicsModel(
+        _cooling,
+        {"h": LogUniform(1.0, 100.0), "c": LogUniform(300.0, 3000.0)},
+        inputs=["t", "T0", "T_env"],
+    )
+    t = np.tile(np.arange(0.0, 3601.0, 300.0), 2)
+    T0 = np.repeat([90.0, 150.0], 13)
+    T_env = np.repeat([20.0, 25.0], 13)
+    inputs = {"t": t, "T0": T0, "T_env": T_env}
+    y = _cooling(inputs, {"h": 12.0, "c": 900.0}) + np.random.default_rng(SEED).normal(
+        0.0, 0.3, t.size
+    )
+    return physics, CalibrationData(inputs, y)
+
+
+def test_check_formulation_says_a_physics_only_deficit_is_structural():
+    """h and c enter only as h / c: the deficit persists on a denser design (was None)."""
+    physics, data = _cooling_case()
+    report = check_formulation(physics, data)
+    assert report.rank == 1 and report.non_identifiable_sets == [["h", "c"]]
+    assert report.structural is True
+    # T0 and T_env are collinear on this two-run design: a mixed deficit, still structural
+    # in its physics part
+    mixed = check_formulation(physics, data, InputDependentGaussian(mean=["T0", "T_env"]))
+    assert ["h", "c"] in mixed.non_identifiable_sets and mixed.structural is True
+
+
+def test_study_line_says_structurally():
+    from kohpymc.discrepancy import NoDiscrepancy
+    from kohpymc.study import _check_identifiability
+
+    physics, data = _cooling_case()
+    lines: list[str] = []
+    with pytest.warns(IdentifiabilityWarning, match=r"h/c.*denser design: structural"):
+        _check_identifiability(physics, data, {"M0": NoDiscrepancy()}, lines.append)
+    assert any("M0: NOT identifiable, structurally (rank 1/2)" in line for line in lines)
+
+
+def _paris_crack(inputs, params):
+    """Paris-law crack length (mm): NaN once the crack has run away (large C and m)."""
+    e = 1.0 - params["m"] / 2.0
+    load = (1.12 * inputs["dS"] * np.sqrt(np.pi)) ** params["m"]
+    with np.errstate(invalid="ignore"):
+        return 1e3 * ((1e-3) ** e + e * params["C"] * load * inputs["N"]) ** (1.0 / e)
+
+
+def _crack_case():
+    from kohpymc import LogUniform
+
+    physics = PhysicsModel(
+        _paris_crack,
+        {"C": LogUniform(1e-13, 1e-9), "m": Uniform(2.5, 4.0)},
+        inputs=["N", "dS"],
+        on_nonfinite="reject",
+    )
+    inputs = {"N": np.tile(np.linspace(0.0, 3e5, 9), 2), "dS": np.repeat([100.0, 125.0], 9)}
+    y = _paris_crack(inputs, {"C": 8e-12, "m": 3.1})
+    y = y + np.random.default_rng(SEED).normal(0.0, 0.05, y.size)
+    return physics, CalibrationData(inputs, y)
+
+
+def test_checks_of_a_model_undefined_at_the_prior_centre_run_at_a_finite_point():
+    """C = 1e-11, m = 3.25 (PyMC's start) runs away: the checks failed, or were garbage."""
+    from kohpymc import ConstantBias
+
+    physics, data = _crack_case()
+    report = check_formulation(physics, data, ConstantBias())  # raised "non-finite" before
+    assert report.identifiable and report.rank == 3
+    point = {k: report.point[k] for k in ("C", "m")}
+    assert np.all(np.isfinite(physics.evaluate(data.inputs, point)))
+    # M2 with unknown noise: only sigma_obs² + delta_sd² is informed (before: NaN
+    # information, read as "sigma_obs has no effect on the likelihood")
+    fisher = fisher_information_check(physics, data, IIDGaussian())
+    assert ["sigma_obs", "delta_sd"] in fisher.non_identifiable_sets
+    assert ["sigma_obs"] not in fisher.non_identifiable_sets
+
+
+def test_check_at_mode_only_keeps_the_mode_check():
+    """What run_study passes: the prior centre's check skipped, the mode's kept (was off)."""
+    physics, data = _cooling_case()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cal = calibrate(
+            physics,
+            data,
+            draws=20,
+            tune=20,
+            chains=1,
+            warn=False,
+            random_seed=SEED,
+            check_identifiability="at_mode",
+        )
+    texts = [str(w.message) for w in caught if issubclass(w.category, IdentifiabilityWarning)]
+    assert cal.identifiability is None
+    assert cal.identifiability_at_mode.rank == 1
+    assert cal.identifiability_at_mode.structural is True
+    assert not any("prior centre" in text for text in texts)
+    assert any("posterior mode" in text and "structural" in text for text in texts)

@@ -237,3 +237,55 @@ def test_check_point_of_a_model_non_finite_everywhere_names_the_prior_centre():
     physics = PhysicsModel(lambda x, p: p["a"] * x["t"] / 0.0, {"a": Uniform(1, 2)}, inputs=["t"])
     with np.errstate(all="ignore"), pytest.raises(PhysicsModelError, match=r"a=1\.5\b"):
         physics.regular_point({"t": np.array([1.0, 2.0])})
+
+
+def _paris_crack(inputs, params):
+    """Paris-law crack length (mm) after N cycles: undefined (NaN) past the critical C, m."""
+    e = 1.0 - params["m"] / 2.0
+    base = (1e-3) ** e + e * params["C"] * (1.12 * inputs["dS"] * np.sqrt(np.pi)) ** params[
+        "m"
+    ] * inputs["N"]
+    with np.errstate(invalid="ignore"):
+        return 1e3 * base ** (1.0 / e)
+
+
+def _crack_physics(on_nonfinite):
+    from kohpymc import LogUniform
+
+    priors = {"C": LogUniform(1e-13, 1e-9), "m": Uniform(2.5, 4.0)}
+    return PhysicsModel(_paris_crack, priors, inputs=["N", "dS"], on_nonfinite=on_nonfinite)
+
+
+CRACK_INPUTS = {"N": np.linspace(0.0, 4e5, 9), "dS": np.full(9, 125.0)}
+
+
+def test_check_point_of_a_model_undefined_at_the_prior_centre_says_how_to_reject():
+    """The arithmetic mean of LogUniform(1e-13, 1e-9) is 1.09e-10: the crack has run away."""
+    with pytest.raises(PhysicsModelError, match=r"C=1\.08563e-10.*on_nonfinite = \"reject\""):
+        _crack_physics("raise").regular_point(CRACK_INPUTS)
+
+
+def test_check_point_of_a_rejecting_model_is_a_finite_point_of_the_priors():
+    """With on_nonfinite="reject" the checks look for a finite point (raised before)."""
+    from kohpymc import CalibrationData
+    from kohpymc.checks import check_physics_runs
+
+    physics = _crack_physics("reject")
+    point = physics.regular_point(CRACK_INPUTS)
+    assert np.all(np.isfinite(physics.evaluate(CRACK_INPUTS, point)))
+    assert all(physics.parameters[k].in_support(v) for k, v in point.items())
+    # the prior median (C = 1e-11, m = 3.25) runs away too: a point of the search design
+    assert point["C"] < 1e-11 or point["m"] < 3.25
+    y = physics.evaluate(CRACK_INPUTS, {"C": 8e-12, "m": 3.0})
+    check_physics_runs(physics, CalibrationData(CRACK_INPUTS, y), "calibration")
+
+
+def test_check_point_of_a_rejecting_model_non_finite_everywhere_says_so():
+    physics = PhysicsModel(
+        lambda x, p: p["a"] * x["t"] / 0.0,
+        {"a": Uniform(1, 2)},
+        inputs=["t"],
+        on_nonfinite="reject",
+    )
+    with np.errstate(all="ignore"), pytest.raises(PhysicsModelError, match="no point of the"):
+        physics.regular_point({"t": np.array([1.0, 2.0])})

@@ -81,3 +81,31 @@ def test_log_uniform_density_moments_and_draws_match_scipy():
     assert as_prior({"prior": "loguniform", "lower": 1e6, "upper": 1e10}, name="A") == prior
     with pytest.raises(ValueError, match="'A'.*0 < lower"):
         as_prior({"prior": "loguniform", "lower": 0, "upper": 1}, name="A")
+
+
+@pytest.mark.parametrize(
+    ("prior", "frozen"),
+    [
+        ("uniform", lambda st: st.uniform(loc=2.0, scale=3.0)),
+        ("loguniform", lambda st: st.loguniform(1e-13, 1e-9)),
+        ("normal", lambda st: st.norm(loc=1.0, scale=2.0)),
+        ("lognormal", lambda st: st.lognorm(s=0.5, scale=math.exp(-1.0))),
+        ("halfnormal", lambda st: st.halfnorm(scale=3.0)),
+    ],
+)
+def test_quantiles_match_scipy(prior, frozen):
+    from scipy import stats
+
+    from kohpymc.priors import LogUniform
+
+    made = {
+        "uniform": Uniform(2.0, 5.0),
+        "loguniform": LogUniform(1e-13, 1e-9),
+        "normal": Normal(1.0, 2.0),
+        "lognormal": LogNormal(-1.0, 0.5),
+        "halfnormal": HalfNormal(3.0),
+    }[prior]
+    for q in (0.01, 0.3, 0.5, 0.95):
+        assert made.quantile(q) == pytest.approx(float(frozen(stats).ppf(q)), rel=1e-12)
+    with pytest.raises(ValueError, match="q must be in"):
+        made.quantile(1.0)

@@ -109,3 +109,28 @@ def test_draws_along_a_one_sided_ridge_match_quadrature():
         assert n_eff >= 800, (name, n_eff)
         assert abs(draws.mean() - mean) < 4 * sd / np.sqrt(n_eff), (name, draws.mean(), mean)
         assert abs(draws.std(ddof=1) / sd - 1) < 4 / np.sqrt(2 * n_eff), (name, draws.std(), sd)
+
+
+def test_ridge_members_are_log_scale_elements_only():
+    """Two interval elements on a ridge (correlation 0.999) and an uninformed third element.
+
+    The precision's flattest direction is the third element's alone (sd 1e3): its
+    log-scale part is zero, so every element passed ``d >= 0.1 * d[pivot]`` and became a
+    member, the third one (no bounds: NaN box) too; from_value then gave NaN
+    ("invalid value encountered in logaddexp" on a Paris-law crack study's M3).
+    """
+    from types import SimpleNamespace
+
+    from kohpymc.ridge_curve import _ridge_members
+
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = [[1.0, 0.999], [0.999, 1.0]]
+    cov[2, 2] = 1e6
+    coords = SimpleNamespace(log_scale=np.array([True, True, False]), walls=False, ridge=None)
+    laplace = SimpleNamespace(coordinates=coords, chol=np.linalg.cholesky(cov))
+    assert _ridge_members(laplace) is None
+    # with the third element informed, the ridge is the first two's
+    cov[2, 2] = 1e-2
+    laplace = SimpleNamespace(coordinates=coords, chol=np.linalg.cholesky(cov))
+    pivot, members = _ridge_members(laplace)
+    assert pivot in (0, 1) and members.tolist() == [0, 1]

@@ -4,9 +4,10 @@ At the prior centre a nonlinear model may be locally flat in parameters that the
 inform well near the fit (a threshold beyond the data, a rate so fast that its transient
 is over before the first measurement).  :func:`check_at_point` runs the same check,
 :func:`~kohpymc.identifiability.model_check.model_taylor_check`, at any point of the
-user's parameters; when the deficit there involves physics parameters only, the
+user's parameters; when a confounded set there holds physics parameters only, the
 physics-alone check (:func:`~kohpymc.identifiability.physics_check.taylor_check`) repeats
-it on a denser design to tell a structural deficit from a practical one.
+it on a denser design to tell a structural deficit from a practical one
+(:func:`~kohpymc.identifiability.model_check.mark_structural`).
 :func:`ridge_text` says what the report found: the confounded combinations, or the
 weakly informed direction of a full-rank but ill-conditioned sensitivity matrix.
 """
@@ -16,8 +17,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from kohpymc.identifiability.model_check import model_taylor_check
-from kohpymc.identifiability.physics_check import taylor_check
+from kohpymc.identifiability.model_check import mark_structural, model_taylor_check
 from kohpymc.identifiability.rank import RTOL, IdentifiabilityReport
 
 __all__ = ["check_at_point", "ridge_text"]
@@ -41,8 +41,9 @@ def check_at_point(
         Parameter name -> value in the user's units (e.g. the posterior mode); names
         not given stay at the prior centre.
     physics : PhysicsModel, optional
-        With ``inputs``: when the deficit involves physics parameters only, the check of
-        the physics alone is repeated on a denser design and ``structural`` is set.
+        With ``inputs``: when a confounded set holds physics parameters only, the check
+        of the physics alone is repeated on a denser design and ``structural`` is set
+        (:func:`~kohpymc.identifiability.model_check.mark_structural`).
     inputs : mapping, optional
         The data design (input name -> values).
     rtol : float
@@ -68,14 +69,9 @@ def check_at_point(
     (1, True)
     """
     report = model_taylor_check(built, point=point, rtol=rtol)
-    if report.identifiable or physics is None or inputs is None:
+    if physics is None or inputs is None:
         return report
-    involved = {name for found in report.non_identifiable_sets for name in found}
-    names = list(physics.parameters)
-    if involved and involved <= set(names) and all(n in report.point for n in names):
-        alone = taylor_check([physics], inputs, {n: report.point[n] for n in names}, rtol=rtol)
-        report.structural = alone.structural  # type: ignore[union-attr]
-    return report
+    return mark_structural(report, physics, inputs, rtol=rtol)
 
 
 def ridge_text(report: IdentifiabilityReport) -> str:

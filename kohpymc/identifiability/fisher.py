@@ -19,6 +19,7 @@ from kohpymc.identifiability.model_check import (
     _free_names,
     _jacobians,
     _likelihood_parts,
+    regular,
 )
 from kohpymc.identifiability.rank import IdentifiabilityReport, analyse_matrix
 from kohpymc.model import compose_model
@@ -70,6 +71,13 @@ def fisher_information_check(
     rvs = list(model.free_RVs)
     entries = _free_names(model, rvs, start)
     (mu_val, J), (s_val, dS) = _jacobians(model, [mu, second], rvs, values)
+    if point is None and not _finite(mu_val, J, s_val, dS):
+        # a model undefined at the prior centre (on_nonfinite="reject"): a finite point
+        for name, value in regular(physics, data)().items():
+            values[name] = np.asarray(value, dtype=float).reshape(values[name].shape)
+        (mu_val, J), (s_val, dS) = _jacobians(model, [mu, second], rvs, values)
+    if not _finite(mu_val, J, s_val, dS):
+        raise ValueError("the likelihood's mean or covariance is non-finite at the expansion point")
     n = data.n
     p = len(entries)
     if is_mv:
@@ -135,3 +143,8 @@ def _prior_spreads(model: Any, entries: list, n: int = 256, seed: int = 0) -> np
         spread = (q95 - q05) / 3.29
         out[i] = spread if np.isfinite(spread) and spread > 0 else 1.0
     return out
+
+
+def _finite(*arrays: np.ndarray) -> bool:
+    """Whether every entry of every array is finite."""
+    return all(bool(np.all(np.isfinite(a))) for a in arrays)

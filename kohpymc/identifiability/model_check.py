@@ -11,7 +11,7 @@ are shared with :mod:`kohpymc.identifiability.fisher`.
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -21,7 +21,7 @@ from kohpymc.model import compose_model
 from kohpymc.physics.errors import PhysicsModelError
 from kohpymc.physics.spec import singularity_offsets
 
-__all__ = ["check_formulation", "model_taylor_check"]
+__all__ = ["check_formulation", "mark_structural", "model_taylor_check"]
 
 
 @functools.cache
@@ -190,22 +190,46 @@ def _design_point(model, point, start=None):
     return values
 
 
-def mean_and_jacobian(model, mu, rvs, values, *, default: bool):
+def mean_and_jacobian(model, mu, rvs, values, *, default: bool, fallback=None):
     """``(values, mean, ∂mean/∂rvs)`` at ``values`` (moved off a singularity if ``default``).
 
     At the default point, next to it when the model is singular there
-    (:func:`_off_singularity`); a point the caller chose is used as it is.
+    (:func:`_off_singularity`), else at ``fallback()`` (physics parameter -> value, e.g.
+    :meth:`~kohpymc.PhysicsModel.regular_point` of a model undefined at the prior
+    centre) when given; a point the caller chose is used as it is.
     """
     try:
         ((mu_val, A),) = _jacobians(model, [mu], rvs, values, mode=_one_shot_mode())
     except PhysicsModelError:
-        found = _off_singularity(model, mu, rvs, values) if default else None
+        found = _moved_point(model, mu, rvs, values, fallback) if default else None
         if found is None:
             raise
         return found
     if default and not np.all(np.isfinite(mu_val)):
-        return _off_singularity(model, mu, rvs, values) or (values, mu_val, A)
+        return _moved_point(model, mu, rvs, values, fallback) or (values, mu_val, A)
     return values, mu_val, A
+
+
+def _moved_point(model, mu, rvs, values, fallback):
+    """Off a singularity, else at the ``fallback`` physics point: ``(values, mean, A)``."""
+    found = _off_singularity(model, mu, rvs, values)
+    if found is not None or fallback is None:
+        return found
+    try:
+        physics_point = fallback()
+    except PhysicsModelError:
+        return None
+    moved = dict(values)
+    for name, value in physics_point.items():
+        if name in moved:
+            moved[name] = np.asarray(value, dtype=float).reshape(moved[name].shape)
+    try:
+        ((mu_val, A),) = _jacobians(model, [mu], rvs, moved, mode=_one_shot_mode())
+    except PhysicsModelError:
+        return None
+    if np.all(np.isfinite(mu_val)) and np.all(np.isfinite(A)):
+        return moved, mu_val, A
+    return None
 
 
 def _off_singularity(model, mu, rvs, values):
@@ -266,16 +290,80 @@ def check_formulation(
     True
     """
     built = compose_model(physics, data, discrepancy, marginalize=False)
-    return model_taylor_check(built, point=point, rtol=rtol)
+    report = model_taylor_check(built, point=point, rtol=rtol, fallback=regular(physics, data))
+    return mark_structural(report, physics, data.inputs, rtol=rtol)
+
+
+def regular(physics: Any, data: Any) -> Callable[[], dict[str, float]]:
+    """``physics.regular_point`` on the data's inputs, to call when the default point fails.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> regular(beam.physics_model(), beam.generate_data(seed=1))()
+    {'E': 175.0}
+    """
+    return lambda: physics.regular_point({k: data.inputs[k] for k in physics.inputs})
+
+
+def mark_structural(
+    report: IdentifiabilityReport,
+    physics: Any,
+    inputs: Mapping[str, Any],
+    *,
+    rtol: float = RTOL,
+) -> IdentifiabilityReport:
+    """Set ``report.structural`` from the physics alone on a denser design, where it can.
+
+    When a confounded set holds physics parameters only, the physics-alone check
+    (:func:`~kohpymc.identifiability.physics_check.taylor_check`) is repeated on a
+    design ten times denser inside the input ranges at the report's point.  A deficit
+    that persists there is structural whatever else is confounded (``True``).  That it
+    disappears says "practical" (``False``) only when every confounded set is of physics
+    parameters; otherwise ``structural`` stays ``None``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kohpymc import CalibrationData, PhysicsModel, Uniform
+    >>> x = np.linspace(0.5, 2.0, 8)
+    >>> physics = PhysicsModel(lambda i, p: p["a"] * i["x"] / p["b"],
+    ...                        {"a": Uniform(0.1, 10.0), "b": Uniform(0.1, 10.0)}, inputs=["x"])
+    >>> report = check_formulation(physics, CalibrationData({"x": x}, 3 * x, noise_sd=0.1))
+    >>> report.rank, report.structural
+    (1, True)
+    """
+    from kohpymc.identifiability.physics_check import taylor_check
+
+    if report.identifiable:
+        return report
+    names = set(physics.parameters)
+    sets = [set(found) for found in report.non_identifiable_sets]
+    if not any(found and found <= names for found in sets):
+        return report
+    if not all(n in report.point for n in names):
+        return report
+    point = {n: report.point[n] for n in physics.parameters}
+    alone = taylor_check([physics], {k: inputs[k] for k in physics.inputs}, point, rtol=rtol)
+    persists = bool(not alone.identifiable and alone.structural)
+    if persists or all(found <= names for found in sets):
+        report.structural = persists
+    return report
 
 
 def model_taylor_check(
-    built: Any, *, point: Mapping[str, Any] | str | None = None, rtol: float = RTOL
+    built: Any,
+    *,
+    point: Mapping[str, Any] | str | None = None,
+    rtol: float = RTOL,
+    fallback: Callable[[], Mapping[str, float]] | None = None,
 ) -> IdentifiabilityReport:
     """:func:`check_formulation` on an already built unmarginalized calibration model.
 
     ``built`` is a :class:`~kohpymc.model.CalibrationModel`; the check differentiates
-    the mean its formulation's record gives.
+    the mean its formulation's record gives.  ``fallback`` (see :func:`regular`) gives
+    the physics parameters' values to use when the mean is non-finite at the default
+    point and next to it.
 
     Examples
     --------
@@ -301,7 +389,9 @@ def model_taylor_check(
             f"design has {n} points for {len(entries)} mean parameters: the rank check "
             "needs at least as many points as parameters"
         )
-    values, mu_val, A = mean_and_jacobian(model, mu, rvs, values, default=point is None)
+    values, mu_val, A = mean_and_jacobian(
+        model, mu, rvs, values, default=point is None, fallback=fallback
+    )
     if not np.all(np.isfinite(mu_val)):
         raise ValueError("the model mean is non-finite at the expansion point")
     flat_point = _flat_point(entries, values)

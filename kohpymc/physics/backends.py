@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pytensor.tensor as pt
 
-from kohpymc.physics.errors import PhysicsModelError, format_params
+from kohpymc.physics.errors import NonFiniteOutputError, PhysicsModelError, format_params
 from kohpymc.physics.finite_differences import finite_difference_jacobian
 from kohpymc.physics.ops import _PhysicsOp
 
@@ -217,7 +217,7 @@ class NumpyBackend(Backend):
         out = self.call(model, arrays, n, params)
         if check_finite and not np.all(np.isfinite(out)):
             bad = int(np.sum(~np.isfinite(out)))
-            raise PhysicsModelError(
+            raise NonFiniteOutputError(
                 f"physics function {model.name!r} returned {bad} non-finite value(s) "
                 f"at parameters {format_params(params)}"
             )
@@ -307,7 +307,7 @@ class PytensorBackend(Backend):
                 f"physics function {model.name!r} returned shape {values.shape}, expected ({n},)"
             )
         if not np.all(np.isfinite(values)):
-            raise PhysicsModelError(
+            raise NonFiniteOutputError(
                 f"physics function {model.name!r} returned non-finite values "
                 f"at parameters {format_params(params)}"
             )

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-__all__ = ["PhysicsModelError", "format_params"]
+__all__ = ["NonFiniteOutputError", "PhysicsModelError", "format_params"]
 
 
 class PhysicsModelError(RuntimeError):
     """The physics function failed (raised, returned non-finite values or a wrong shape)."""
+
+
+class NonFiniteOutputError(PhysicsModelError):
+    """The physics function ran but returned NaN or inf (the model is undefined there)."""
 
 
 def format_params(params: Mapping[str, float]) -> str:

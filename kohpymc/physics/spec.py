@@ -14,7 +14,7 @@ import numpy as np
 import pytensor.tensor as pt
 
 from kohpymc.physics.backends import BACKENDS, Backend, call_function
-from kohpymc.physics.errors import PhysicsModelError
+from kohpymc.physics.errors import NonFiniteOutputError, PhysicsModelError
 from kohpymc.physics.finite_differences import default_relative_step, finite_difference_jacobian
 from kohpymc.priors import Prior, as_prior
 
@@ -37,6 +37,19 @@ def singularity_offsets(n: int) -> list[np.ndarray]:
     """
     weights = np.array([(k + 1) / n * (-1) ** k for k in range(n)])
     return [step * weights for step in (1e-3, 1e-2, 1e-1)]
+
+
+#: points of the prior searched for one where a model undefined at the prior centre is finite
+_SEARCH_POINTS = 64
+
+
+def _prior_quantile_points(p: int) -> np.ndarray:
+    """The prior median, then a seeded Sobol design in 5 %–95 % quantile space, nearest first."""
+    from scipy.stats import qmc
+
+    design = 0.05 + 0.9 * qmc.Sobol(p, seed=0).random(_SEARCH_POINTS)
+    design = design[np.argsort(np.max(np.abs(design - 0.5), axis=1), kind="stable")]
+    return np.vstack([np.full(p, 0.5), design])
 
 
 class PhysicsModel:
@@ -70,7 +83,9 @@ class PhysicsModel:
     on_nonfinite : {"raise", "reject"}
         What to do when the model returns NaN/inf during sampling: raise a
         :class:`PhysicsModelError` naming the parameter values, or reject the point
-        (its likelihood becomes zero).  The pre-sampling check always raises.
+        (its likelihood becomes zero).  The pre-sampling check raises when the model is
+        non-finite at the prior centre, unless ``"reject"``: then it looks for a point of
+        the priors where the model is finite (:meth:`regular_point`).
     name : str, optional
         A label used in messages; defaults to the function name.
 
@@ -157,8 +172,11 @@ class PhysicsModel:
         model: ``ka / (ka - ke)`` at the prior centre when ``ka`` and ``ke`` have the same
         prior.  Then each parameter is moved by :func:`singularity_offsets` times its prior
         sd, so parameters with the same prior part, and the first such point (inside the
-        priors) where the model is finite is returned.  When there is none, the error at
-        ``point`` is raised.
+        priors) where the model is finite is returned.  A model that returns NaN/inf
+        there with ``on_nonfinite="reject"`` (undefined in part of its prior box) gets the
+        first finite point of :func:`_prior_quantile_points` instead.  When there is none,
+        the error at ``point`` is raised (for a non-finite model with
+        ``on_nonfinite="raise"``, saying how to declare it undefined in part of the box).
 
         Examples
         --------
@@ -193,7 +211,41 @@ class PhysicsModel:
             except PhysicsModelError:
                 continue
             return moved
+        if isinstance(first, NonFiniteOutputError):
+            return self._finite_prior_point(inputs, point, first)
         raise first
+
+    def _finite_prior_point(
+        self, inputs: Mapping[str, Any], point: dict[str, float], error: NonFiniteOutputError
+    ) -> dict[str, float]:
+        """A point inside the priors where a model non-finite at ``point`` is finite.
+
+        With ``on_nonfinite="raise"`` the error says how to declare a model undefined in
+        part of its prior box.  With ``"reject"`` the prior median comes first, then
+        the points of a seeded Sobol design in prior-quantile space (5 %–95 %), nearest
+        the median first; the first finite one is returned.
+        """
+        if self.on_nonfinite == "raise":
+            raise NonFiniteOutputError(
+                f"{error}. If the model is undefined in part of the prior box, pass "
+                "on_nonfinite='reject' (in a study file [physics] on_nonfinite = \"reject\"); "
+                "otherwise check the priors and units"
+            ) from error
+        for q in _prior_quantile_points(len(self.parameters)):
+            moved = {
+                k: prior.quantile(float(u))
+                for (k, prior), u in zip(self.parameters.items(), q, strict=True)
+            }
+            try:
+                self.evaluate(inputs, moved)
+            except PhysicsModelError:
+                continue
+            return moved
+        raise NonFiniteOutputError(
+            f"{error}; the model is non-finite at the prior centre, the prior median and "
+            f"{_SEARCH_POINTS} points across the priors' 5 %–95 % quantiles: no point of the "
+            "prior box where it is defined was found (check the priors and units)"
+        ) from error
 
     def _as_inputs(self, inputs: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], int]:
         missing = [k for k in self.inputs if k not in inputs]

@@ -345,6 +345,7 @@ def mark_structural(
         return report
     point = {n: report.point[n] for n in physics.parameters}
     alone = taylor_check([physics], {k: inputs[k] for k in physics.inputs}, point, rtol=rtol)
+    assert isinstance(alone, IdentifiabilityReport)  # one point gives one report
     persists = bool(not alone.identifiable and alone.structural)
     if persists or all(found <= names for found in sets):
         report.structural = persists

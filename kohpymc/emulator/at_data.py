@@ -17,7 +17,7 @@ subclass :class:`~kohpymc.emulator.functional_at_data.CurvesAtData`, which
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -92,6 +92,11 @@ class EmulatorsAtData:
         Output -> its emulator; all fitted to the same runs, on the same box.
     data : dict of str to CalibrationData
         Output -> its calibration data (the outputs checked at the data).
+    predict_rows : numpy.ndarray, optional
+        More input rows (columns: the simulator's inputs) where every θ of a check or
+        refinement round runs besides the calibration rows: the validation rows
+        (:meth:`also_at`), so that the study's predictions there rest on runs at the
+        refined θ, not on the first design's few (one simulator call per θ either way).
 
     Examples
     --------
@@ -106,6 +111,7 @@ class EmulatorsAtData:
     simulator: Any
     emulators: dict[str, Emulator]
     data: dict[str, CalibrationData]
+    predict_rows: np.ndarray | None = None
 
     @classmethod
     def of(cls, emulator: Any, data: CalibrationData) -> EmulatorsAtData:
@@ -177,9 +183,37 @@ class EmulatorsAtData:
         names = tuple(self.inputs)
         return np.unique(np.vstack([d.matrix(names) for d in self.data.values()]), axis=0)
 
+    def also_at(self, data: Any) -> EmulatorsAtData:
+        """The same, each θ of a round also run at the input rows of ``data``.
+
+        ``data``: a ``CalibrationData`` or ``MultiOutputData`` (e.g. the validation data;
+        None: unchanged).  The check at the data still scores the calibration rows only.
+
+        Examples
+        --------
+        >>> from kohpymc.emulator import emulate
+        >>> from kohpymc.examples import beam
+        >>> data, new = beam.generate_data(seed=1), beam.generate_data((3.5,), seed=2)
+        >>> target = EmulatorsAtData.of(emulate(beam.physics_model(), data, runs=10), data)
+        >>> len(target.design_rows()), len(target.also_at(new).design_rows())
+        (20, 40)
+        """
+        if data is None:
+            return self
+        names = tuple(self.inputs)
+        sets = [data[k] for k in data.outputs] if hasattr(data, "outputs") else [data]
+        rows = np.vstack([d.matrix(names) for d in sets])
+        return replace(self, predict_rows=np.unique(rows, axis=0))
+
+    def design_rows(self) -> np.ndarray:
+        """The distinct input rows a round runs each θ at: calibration and ``predict_rows``."""
+        if self.predict_rows is None:
+            return self.rows()
+        return np.unique(np.vstack([self.rows(), self.predict_rows]), axis=0)
+
     def design(self, thetas: pd.DataFrame) -> pd.DataFrame:
-        """Each θ (a row of ``thetas``) at every distinct calibration input row."""
-        X = self.rows()
+        """Each θ (a row of ``thetas``) at every row of :meth:`design_rows`."""
+        X = self.design_rows()
         values = thetas[self.parameters].to_numpy(float)
         blocks = [np.column_stack([X, np.tile(theta, (len(X), 1))]) for theta in values]
         return pd.DataFrame(np.vstack(blocks), columns=[*self.inputs, *self.parameters])
@@ -264,7 +298,7 @@ class EmulatorsAtData:
         emulators = {
             k: refit(em, self.output_runs(runs, k), seed=seed) for k, em in self.emulators.items()
         }
-        return EmulatorsAtData(self.simulator, emulators, self.data)
+        return replace(self, emulators=emulators)
 
     def linearised(
         self, name: str, theta: Mapping[str, float]

@@ -286,7 +286,8 @@ def refine_emulators_at_data(
     target : EmulatorsAtData
         The simulator, its emulators and their data.
     rounds, new_runs, max_runs, spread, cache, seed, workers, scheduler :
-        As for :func:`refine_at_data` (``m`` counts the distinct rows of all outputs).
+        As for :func:`refine_at_data` (``m`` counts the distinct rows of all outputs and
+        ``target.predict_rows``, where each θ runs as well).
     first : EmulatorCheck or OutputsCheck, optional
         The check of the emulators already made (else made here).
 
@@ -310,7 +311,7 @@ def refine_emulators_at_data(
     where = {"cache": cache, "workers": workers, "scheduler": scheduler}
     check = first or check_target_at_data(target, **where)
     result = Refinement(target, [check])
-    m = len(target.rows())
+    m = len(target.design_rows())
     per_round = new_runs if new_runs is not None else max(1, target.n_runs // 2)
     n_local = max(len(target.parameters) + 1, int(round(per_round / m)))
     budget = max_runs if max_runs is not None else rounds * (n_local + 1) * m

@@ -155,7 +155,33 @@ class SimulatorRuns:
             return ""
         total = len(self.failed) + len(self.points)
         first = str(self.failed["error"].iloc[0])
-        return f"{len(self.failed)} of {total} simulator runs failed (first: {first})"
+        where = self._failed_region()
+        return f"{len(self.failed)} of {total} simulator runs failed{where} (first: {first})"
+
+    def _failed_region(self) -> str:
+        """Where the failed runs lie (``""`` when the failures are spread out).
+
+        Each parameter whose failed values span less than half the range of all runs'
+        values is named with that span.
+
+        Examples
+        --------
+        >>> points = pd.DataFrame({"x": [0.0, 1.0], "k": [0.1, 0.5], "output": [1.0, 2.0]})
+        >>> failed = pd.DataFrame({"x": [0.5, 0.7], "k": [0.9, 1.0], "error": ["NaN", "NaN"]})
+        >>> SimulatorRuns(points, failed, ("x",), ("k",))._failed_region()
+        ' where k in [0.9, 1] (all runs: [0.1, 1])'
+        """
+        named = []
+        for name in self.parameters:
+            bad = self.failed[name].to_numpy(float)
+            every = np.concatenate([bad, self.points[name].to_numpy(float)])
+            span = every.max() - every.min()
+            if span > 0 and bad.max() - bad.min() < 0.5 * span:
+                named.append(
+                    f"{name} in [{bad.min():.4g}, {bad.max():.4g}] "
+                    f"(all runs: [{every.min():.4g}, {every.max():.4g}])"
+                )
+        return f" where {', '.join(named)}" if named else ""
 
     @property
     def X(self) -> np.ndarray:

@@ -248,7 +248,9 @@ def study_physics(
         Where the simulator runs go.
     validation : CalibrationData, optional
         The study's validation data: an ``EmulatorWarning`` names every input whose
-        validation values lie outside the design box (predictions there extrapolate).
+        validation values lie outside the design box (predictions there extrapolate),
+        and the refinement rounds run each θ at its rows too
+        (:meth:`~kohpymc.emulator.at_data.EmulatorsAtData.also_at`).
 
     Returns
     -------
@@ -273,7 +275,7 @@ def study_physics(
         )  # fmt: skip
     folder = Path(out_dir) / "emulator"
     key = (
-        rounds_key(settings, physics, calibration, formulations, sampling)
+        rounds_key(settings, physics, calibration, formulations, sampling, validation)
         if settings.sequential > 0 or settings.refine_at_data > 0
         else ""
     )
@@ -284,7 +286,7 @@ def study_physics(
             physics, calibration, cache=folder / "runs", workers=workers, scheduler=scheduler,
             **options,
         )  # fmt: skip
-        return EmulatorsAtData.of(emulator, calibration)
+        return EmulatorsAtData.of(emulator, calibration).also_at(validation)
 
     def sequential(target: EmulatorsAtData, last_check: Any) -> EmulatorsAtData:
         reason = rounds_not_needed(settings, last_check)
@@ -523,10 +525,12 @@ def rounds_key(
     calibration: Any,
     formulations: Mapping[str, Discrepancy] | None = None,
     sampling: Mapping[str, Any] | None = None,
+    validation: Any = None,
 ) -> str:
     """What the rounds' result depends on: settings, simulator, data (sequential: sampler).
 
-    The key of ``rounds.json`` (:func:`study_emulators`).
+    The key of ``rounds.json`` (:func:`study_emulators`).  ``validation``: the data whose
+    rows the refinement rounds also run at (none: the key of a study without them).
 
     Refinement rounds alone do not sample, so the formulation and the sampler settings
     enter the key only with sequential rounds.  A simulator with several outputs (and
@@ -550,6 +554,12 @@ def rounds_key(
         ),
         "version": kohpymc_version(),
     }
+    if validation is not None:
+        parts["validation"] = (
+            {k: data_fingerprint(validation[k]) for k in validation.outputs}
+            if outputs
+            else data_fingerprint(validation)
+        )
     if settings.sequential > 0:
         parts["formulation"] = formulation_fingerprint(_round_formulation(settings, formulations))
         parts["sampling"] = _calibrate_settings(sampling or {})

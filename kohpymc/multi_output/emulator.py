@@ -206,7 +206,8 @@ def study_outputs_physics(
     workers, scheduler :
         Where the simulator runs go.
     validation : MultiOutputData, optional
-        An ``EmulatorWarning`` names each output's validation inputs outside the box.
+        An ``EmulatorWarning`` names each output's validation inputs outside the box;
+        the refinement rounds run each θ at the validation rows too.
 
     Returns
     -------
@@ -234,14 +235,18 @@ def study_outputs_physics(
             "emulator takes runs = N (sequential = 0)"
         )
     folder = Path(out_dir) / "emulator"
-    key = rounds_key(settings, physics, calibration) if settings.refine_at_data > 0 else ""
+    key = (
+        rounds_key(settings, physics, calibration, validation=validation)
+        if settings.refine_at_data > 0
+        else ""
+    )
 
     def first() -> EmulatorsAtData:
         emulators = emulate_outputs(
             physics, calibration, cache=folder / "runs", workers=workers, scheduler=scheduler,
             **settings.design_options(),
         )  # fmt: skip
-        return EmulatorsAtData.of_outputs(physics, emulators, calibration)
+        return EmulatorsAtData.of_outputs(physics, emulators, calibration).also_at(validation)
 
     emulators = study_emulators(
         settings, physics, folder, first, key=key, workers=workers, scheduler=scheduler

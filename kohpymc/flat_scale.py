@@ -94,8 +94,7 @@ def flat_scale_masks(space: ValueSpace, seed: int) -> tuple[np.ndarray, np.ndarr
     >>> log.tolist(), own.tolist()
     ([True, False], [False, True])
     """
-    kinds = np.array(space.transforms)
-    interval = (kinds == "interval") & np.isfinite(space.lower) & np.isfinite(space.upper)
+    interval = space.bounded_intervals()
     if not interval.any():
         return interval, interval
     median_v, _ = prior_scales(space, seed)

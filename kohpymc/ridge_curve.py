@@ -314,12 +314,6 @@ def _ridge_members(
     return pivot, np.flatnonzero(members)
 
 
-def _interval(space: ValueSpace) -> np.ndarray:
-    """Mask of the interval elements with finite bounds."""
-    kinds = np.array(space.transforms)
-    return (kinds == "interval") & np.isfinite(space.lower) & np.isfinite(space.upper)
-
-
 def _soft_box(
     space: ValueSpace, laplace: Reparameterization, members: np.ndarray, *, own: bool = False
 ):
@@ -328,7 +322,7 @@ def _soft_box(
     With ``own`` the members keep PyMC's coordinates (the logit of their own units).
     """
     coords = laplace.coordinates
-    interval = _interval(space)
+    interval = space.bounded_intervals()
     on_ridge = np.zeros(space.ndim, bool)
     on_ridge[members] = True
     log_scale = np.zeros(space.ndim, bool) if own else on_ridge
@@ -694,7 +688,7 @@ def ridge_curve_plan(
     'ridge-curve-soft-box'
     """
     value_sd = laplace.value_sd
-    candidates = _interval(space) if own else None
+    candidates = space.bounded_intervals() if own else None
     found = _ridge_members(laplace, candidates, min_ratio) if value_sd is not None else None
     if found is None or value_sd is None:
         return None

@@ -170,6 +170,21 @@ class ValueSpace:
             start += size
         return out
 
+    def bounded_intervals(self) -> np.ndarray:
+        """Mask of the flat elements sampled through an interval transform with finite bounds.
+
+        Examples
+        --------
+        >>> import pymc as pm
+        >>> with pm.Model() as model:
+        ...     a = pm.Uniform("a", 0.0, 2.0)
+        ...     b = pm.HalfNormal("b")
+        >>> value_space(model).bounded_intervals().tolist()
+        [True, False]
+        """
+        kinds = np.array(self.transforms)
+        return (kinds == "interval") & np.isfinite(self.lower) & np.isfinite(self.upper)
+
     def join(self, point: dict[str, Any]) -> np.ndarray:
         """A point ``{value-variable name: array}`` as one flat vector."""
         return np.concatenate([np.ravel(np.asarray(point[name], float)) for name in self.names])

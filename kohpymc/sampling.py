@@ -48,7 +48,7 @@ from kohpymc.prior_bounds import hits_in_draws, warn_hits
 from kohpymc.progress import report_note, report_phase
 from kohpymc.reparameterization import Coordinates, Reparameterization, VarianceShare, plan
 from kohpymc.scale_funnel import scale_funnel_plan
-from kohpymc.second_run import plan_second_run, smallest_ess
+from kohpymc.second_run import mixing, plan_second_run
 from kohpymc.value_space import (
     ValueSpace,
     nudged,
@@ -300,7 +300,7 @@ def sample_posterior(
         begin = time.perf_counter()
         idata = _run_nuts(model, name, run, failures, report)
         fixed = requested_target_accept is not None
-        idata = _second_run(model, name, run, idata, (begin, fixed), failures, report)
+        idata = _second_run(model, name, run, idata, failures, report, began=begin, fixed=fixed)
         report.timings["sampling"] = time.perf_counter() - start - sum(report.timings.values())
         _report_rate(settings, report.timings["sampling"])
         _add_observed_data(idata, model)
@@ -391,17 +391,18 @@ def _second_run(
     name: str,
     run: _NutsRun,
     first: az.InferenceData,
-    began_fixed: tuple[float, bool],
     failures: list[str],
     report: SamplingReport,
+    *,
+    began: float,
+    fixed: bool,
 ) -> az.InferenceData:
     """The draws of ``run``, or of a second run when the first's chains show trouble.
 
-    :func:`kohpymc.second_run.plan_second_run` decides (``began_fixed``: when the first
-    run began, whether the caller set its target); the second run's draws are kept and
-    both runs are recorded in ``report.second_run``.
+    :func:`kohpymc.second_run.plan_second_run` decides (``began``: when the first run
+    began; ``fixed``: whether the caller set its target); the second run's draws are kept
+    (``failures`` then its failed evaluations) and both runs are in ``report.second_run``.
     """
-    began, fixed = began_fixed
     first_setup = {k: report.timings.get(k, 0.0) for k in _RUN_SETUP}
     seconds = time.perf_counter() - began - sum(first_setup.values())
     space, reparam, settings, target_accept, progressbar, kwargs = run
@@ -413,27 +414,23 @@ def _second_run(
     if change is None:
         return first
     report_phase(f"sampling again ({'; '.join(change.reasons)})")
-    again: list[str] = []
+    failures.clear()  # the second run's draws are the result
     changed = {**settings, "draws": change.draws}
     second = _run_nuts(
         model, name, (space, reparam, changed, change.target_accept, progressbar, dict(kwargs)),
-        again, report,
+        failures, report,
     )  # fmt: skip
     report.second_run = {
         "reasons": change.reasons,
         "target_accept": [target_accept, change.target_accept],
         "draws": [settings["draws"], change.draws],
         "divergences": [n_divergences(first) or 0, n_divergences(second) or 0],
-        "smallest_ess_bulk": [
-            round(smallest_ess(first, names)),
-            round(smallest_ess(second, names)),
-        ],
+        "smallest_ess_bulk": [round(change.first_ess), round(mixing(second, names)[0])],
         "first_sampling_s": round(seconds, 3),
     }
     for key, value in first_setup.items():  # both runs' set-up, not counted as sampling
         report.timings[key] = report.timings.get(key, 0.0) + value
     report.target_accept = change.target_accept
-    failures[:] = again
     return second
 
 

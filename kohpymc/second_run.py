@@ -26,8 +26,7 @@ from dataclasses import dataclass
 import arviz as az
 import numpy as np
 
-from kohpymc.diagnostics import ESS_MIN, n_divergences, rhat_limit
-from kohpymc.warning_filters import single_chain_notes_hidden
+from kohpymc.diagnostics import ESS_MIN, n_divergences, rhat_limit, sampler_diagnostics
 
 __all__ = [
     "MAX_DRAWS_FACTOR",
@@ -35,8 +34,8 @@ __all__ = [
     "RETRY_TARGET_ACCEPT",
     "SecondRun",
     "ess_wanted",
+    "mixing",
     "plan_second_run",
-    "smallest_ess",
 ]
 
 #: NUTS target acceptance of the second run after divergent transitions.  A few
@@ -67,11 +66,14 @@ class SecondRun:
         Kept draws per chain (the tuning steps stay).
     reasons : list of str
         The first run's trouble, in words.
+    first_ess : float
+        The first run's smallest bulk ESS over the judged parameters.
     """
 
     target_accept: float
     draws: int
     reasons: list[str]
+    first_ess: float
 
 
 def ess_wanted(chains: int, draws: int) -> float:
@@ -131,8 +133,9 @@ def plan_second_run(
     if divergent and not target_fixed and target_accept < RETRY_TARGET_ACCEPT:
         new_target = RETRY_TARGET_ACCEPT
         reasons.append(f"{divergent} divergent transition(s) at target_accept {target_accept}")
-    factor, mixing = _draws_factor(idata, names, draws)
-    reasons += mixing
+    ess, rhat, rhat_max = mixing(idata, names)
+    factor, slow = _draws_factor(ess, rhat, rhat_max, ess_wanted(_chains(idata), draws))
+    reasons += slow
     if not reasons:
         return None
     steps = _STEPS_AT_RETRY if new_target > target_accept else 1.0
@@ -142,64 +145,65 @@ def plan_second_run(
         return None
     if factor == 1 and new_target == target_accept:
         return None
-    return SecondRun(new_target, draws * factor, reasons)
+    return SecondRun(new_target, draws * factor, reasons, ess)
 
 
-def _draws_factor(
-    idata: az.InferenceData, names: Sequence[str], draws: int
-) -> tuple[int, list[str]]:
+def _draws_factor(ess: float, rhat: float, rhat_max: float, wanted: float) -> tuple[int, list[str]]:
     """How many times the draws slow mixing calls for (1: none), and why."""
-    posterior = idata["posterior"]
-    chains = int(posterior.sizes.get("chain", 1))
-    wanted = ess_wanted(chains, draws)
-    smallest = smallest_ess(idata, names)
     reasons = []
     factor = 1
-    if smallest < wanted:
-        reasons.append(f"bulk ESS {smallest:.0f} below {wanted:.0f}")
-        factor = math.ceil(1.25 * wanted / max(smallest, 1.0))
-    worst, limit = _worst_rhat(idata, names)
-    if chains >= 2 and worst > limit:
-        reasons.append(f"r_hat {worst:.4f} above {limit:.4f}")
+    if ess < wanted:
+        reasons.append(f"bulk ESS {ess:.0f} below {wanted:.0f}")
+        factor = math.ceil(1.25 * wanted / max(ess, 1.0))
+    if rhat > rhat_max:
+        reasons.append(f"r_hat {rhat:.4f} above {rhat_max:.4f}")
     if not reasons:
         return 1, []
     return min(max(factor, 2), MAX_DRAWS_FACTOR), reasons
 
 
-def smallest_ess(idata: az.InferenceData, names: Sequence[str]) -> float:
-    """The smallest bulk ESS over the elements of ``names`` (inf when none is drawn).
+def mixing(idata: az.InferenceData, names: Sequence[str]) -> tuple[float, float, float]:
+    """Smallest bulk ESS and largest r̂ over the elements of ``names``, and that r̂'s limit.
+
+    From :func:`~kohpymc.diagnostics.sampler_diagnostics`; the limit is
+    :func:`~kohpymc.diagnostics.rhat_limit` of the worst element's draws (``inf``, 1, 1
+    when none of ``names`` is drawn; the limit is infinite with one chain).
 
     Examples
     --------
     >>> rng = np.random.default_rng(2)
-    >>> bool(smallest_ess(az.from_dict(posterior={"a": rng.normal(size=(2, 500))}), ["a"]) > 500)
-    True
+    >>> ess, rhat, limit = mixing(az.from_dict(posterior={"a": rng.normal(size=(2, 500))}),
+    ...                           ["a"])
+    >>> bool(ess > 500), bool(rhat < limit)
+    (True, True)
     """
-    posterior = idata["posterior"][[n for n in names if n in idata["posterior"]]]
-    with single_chain_notes_hidden():
-        ess = az.ess(posterior, method="bulk")
-    values = [float(np.nanmin(ess[n].values)) for n in ess.data_vars]
-    finite = [v for v in values if np.isfinite(v)]
-    return min(finite) if finite else float("inf")
-
-
-def _worst_rhat(idata: az.InferenceData, names: Sequence[str]) -> tuple[float, float]:
-    """The largest r̂ over ``names`` and the limit it is judged against."""
     posterior = idata["posterior"]
     present = [n for n in names if n in posterior]
-    scalars = [
-        np.asarray(posterior[n].values).reshape(
-            posterior.sizes["chain"], posterior.sizes["draw"], -1
-        )
+    if not present:
+        return math.inf, 1.0, 1.0
+    table = sampler_diagnostics(idata, present)
+    rhats = table["r_hat"].to_numpy(float)
+    worst = int(np.nanargmax(rhats)) if np.isfinite(rhats).any() else 0
+    if _chains(idata) < 2:
+        return float(table["ess_bulk"].min()), float(rhats[worst]), math.inf
+    # one (chain, draw) array per element, in the table's row order
+    columns = [
+        column
         for n in present
+        for column in np.moveaxis(
+            posterior[n]
+            .transpose("chain", "draw", ...)
+            .values.reshape(posterior.sizes["chain"], posterior.sizes["draw"], -1),
+            2,
+            0,
+        )
     ]
-    columns = [s[:, :, k] for s in scalars for k in range(s.shape[2])]
-    if not columns:
-        return 1.0, 1.0
-    with single_chain_notes_hidden():
-        rhats = [float(az.rhat(c)) for c in columns]
-    worst = int(np.nanargmax(rhats)) if np.any(np.isfinite(rhats)) else 0
-    return rhats[worst], rhat_limit(columns[worst], parameters=len(columns))
+    limit = rhat_limit(columns[worst], parameters=len(columns))
+    return float(table["ess_bulk"].min()), float(rhats[worst]), limit
+
+
+def _chains(idata: az.InferenceData) -> int:
+    return int(idata["posterior"].sizes.get("chain", 1))
 
 
 def _projected(seconds: float, tune: int, draws: int, factor: int, steps: float) -> float:

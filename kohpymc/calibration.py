@@ -387,6 +387,7 @@ def calibrate(
     ]
     _record_provenance(idata, physics, data, discrepancy, sampling, presampling)
     idata.attrs["sampler_problems"] = json.dumps(problems)  # as the docs say, in memory too
+    idata.attrs[PHYSICS_PROBLEMS] = json.dumps(_posterior_problems(physics, data, idata, warn))
     if problems and warn:
         warn_user(
             f"{discrepancy.label} calibration of {physics.name!r}: " + "; ".join(problems),
@@ -396,6 +397,34 @@ def calibrate(
         physics, data, discrepancy, built, idata, problems, report, noise_sd_prior,
         presampling.report,
     )  # fmt: skip
+
+
+#: attribute of a calibration's InferenceData: the physics model's problems at the
+#: posterior (a surrogate scored against its simulator there; JSON list of str)
+PHYSICS_PROBLEMS = "physics_problems"
+
+
+def physics_problems(idata: az.InferenceData) -> list[str]:
+    """The physics model's problems at the posterior recorded by :func:`calibrate`.
+
+    Examples
+    --------
+    >>> physics_problems(az.InferenceData())
+    []
+    """
+    return list(json.loads(idata.attrs.get(PHYSICS_PROBLEMS, "[]")))
+
+
+def _posterior_problems(
+    physics: PhysicsModel, data: CalibrationData, idata: az.InferenceData, warn: bool
+) -> list[str]:
+    """:meth:`~kohpymc.PhysicsModel.posterior_problems` at the posterior mean of θ."""
+    posterior = idata.posterior
+    names = list(physics.parameters)
+    mean = {k: float(posterior[k].mean()) for k in names}
+    sd = {k: float(posterior[k].std()) for k in names}
+    label = f"{idata.attrs.get('formulation', 'the')}'s posterior"
+    return physics.posterior_problems(data, mean, sd, label=label, warn=warn)
 
 
 @one_blas_thread()

@@ -151,7 +151,7 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
     """The study's physics replaced by its emulator (``[emulator]``; runs cached in out)."""
     from kohpymc.emulator.study import study_physics
 
-    sampling = {k: kwargs[k] for k in ("draws", "tune", "chains", "random_seed") if k in kwargs}
+    sampling = _round_sampling(kwargs)
     physics = study_physics(
         spec.emulator,
         kwargs["physics"],
@@ -171,6 +171,67 @@ def _emulated_physics(spec: Any, kwargs: dict, out: Path) -> Any:
     _say_refinement(spec.emulator, out / "emulator")
     _say_skipped_rounds(out / "emulator")
     return physics
+
+
+def _posterior_rounds(spec: Any, kwargs: dict, out: Path, result: Any, run: Any) -> Any:
+    """``[emulator] refine_at_posterior``: runs where the emulator is unfit, study again.
+
+    A formulation whose posterior mean the emulator missed (its ``physics_problems``)
+    gets runs at its posterior (:func:`kohpymc.emulator.study.posterior_round`); the
+    study then runs again through the refitted emulator, and the record says how far
+    each posterior moved.  ``kwargs["physics"]`` becomes the refitted emulator.
+    """
+    from kohpymc.calibration import physics_problems
+    from kohpymc.emulator.posterior_rounds import posterior_moves
+    from kohpymc.emulator.study import posterior_round
+
+    while True:
+        unfit = {k: idata for k, idata in result.results.items() if physics_problems(idata)}
+        if not unfit:
+            return result
+        refined = posterior_round(
+            spec.emulator, kwargs["physics"], kwargs["calibration"], unfit, out,
+            formulations=kwargs["formulations"], sampling=_round_sampling(kwargs),
+            workers=kwargs.get("workers", 1), scheduler=kwargs.get("scheduler"),
+            validation=kwargs["validation"],
+        )  # fmt: skip
+        if refined is None:
+            return result
+        kwargs["physics"], record = refined
+        last = record.rounds[-1]
+        print(
+            f"emulator unfit where the posterior of {', '.join(unfit)} lies: "
+            f"{last['runs_added']} runs added there ({last['runs']} in all); calibrating again"
+        )
+        before = result.results
+        result = run()
+        params = list(kwargs["physics"].parameters)
+        last["moved"] = posterior_moves(before, result.results, params)
+        last["still_unfit"] = {
+            k: physics_problems(idata) for k, idata in result.results.items()
+            if physics_problems(idata)
+        }  # fmt: skip
+        record.write(out / "emulator")
+        _say_moves(last["moved"], out / "emulator")
+
+
+def _say_moves(moved: dict[str, dict[str, float]], folder: Path) -> None:
+    """One line: how far each formulation's posterior mean moved after a posterior round."""
+    from kohpymc.emulator.posterior_rounds import POSTERIOR_RECORD
+
+    parts = [
+        f"{label} " + ", ".join(f"{k} {v:+.2f}" for k, v in moves.items())
+        for label, moves in sorted(moved.items())
+    ]
+    print(
+        f"after the round at the posteriors the posterior means moved (in their sds): "
+        f"{'; '.join(parts)} ({folder}/{POSTERIOR_RECORD})"
+    )
+
+
+def _round_sampling(kwargs: dict) -> dict:
+    """The sampler settings the emulator's rounds are keyed on."""
+    return {k: kwargs[k] for k in ("draws", "tune", "chains", "random_seed") if k in kwargs}
 
 
 def _say_skipped_rounds(folder: Path) -> None:
@@ -378,10 +439,9 @@ def _study(args: argparse.Namespace) -> int:
         f"{spec.validation.n} validation rows, formulations {', '.join(spec.formulations)}"
     )
     display = task_display(sys.stdout, quiet=args.quiet)
-    try:
-        if spec.emulator is not None:
-            kwargs["physics"] = _emulated_physics(spec, kwargs, out)
-        result = run_study(
+
+    def run() -> Any:
+        return run_study(
             **kwargs,
             out_dir=out,
             figures=not args.no_figures,
@@ -390,6 +450,13 @@ def _study(args: argparse.Namespace) -> int:
             progressbar=args.progressbar,
             fresh=args.fresh,
         )
+
+    try:
+        if spec.emulator is not None:
+            kwargs["physics"] = _emulated_physics(spec, kwargs, out)
+        result = run()
+        if spec.emulator is not None:
+            result = _posterior_rounds(spec, kwargs, out, result, run)
     except StudyStepError as err:
         print(f"error: {err}", file=sys.stderr)
         kept = ", ".join(f"{k}.nc" for k in err.result.results) if err.result else "nothing"

@@ -49,7 +49,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from kohpymc.calibration import Calibration
+from kohpymc.calibration import PHYSICS_PROBLEMS, Calibration, physics_problems
 from kohpymc.checks import check_execution, check_validation_data
 from kohpymc.combination import combine_posteriors, loo_weights, reliability_weights
 from kohpymc.data import CalibrationData
@@ -278,6 +278,7 @@ _CALIBRATION_ATTRS = (
     "reparameterization",
     "compile_mode",
     "wall_time_s",
+    PHYSICS_PROBLEMS,
 )
 
 
@@ -641,6 +642,7 @@ def _save(folder, job, label, disc, scored, seconds, error, status="done") -> No
         wall_time_s=round(float(seconds), 2),
         validation_noise=scored.noise,
         sampler_problems=list(cal.problems),
+        physics_problems=physics_problems(cal.idata),
     )
 
 
@@ -786,7 +788,8 @@ def _row(label, scored: Scored, results, identifiability) -> dict[str, Any]:
     row["divergences"] = None if divergences is None else int(divergences)
     row["validation_noise"] = describe_noise(scored.noise)
     row["identifiable"] = identifiability.get(label, {}).get("identifiable")
-    row["status"] = "ok" if not cal.problems else "; ".join(cal.problems)
+    problems = [*cal.problems, *physics_problems(cal.idata)]
+    row["status"] = "ok" if not problems else "; ".join(problems)
     return row
 
 

@@ -288,3 +288,25 @@ def test_on_nonfinite_is_read_and_checked(tmp_path, write_study):
     bad = write_study(tmp_path, **{'output = "u"': 'output = "u"\non_nonfinite = "skip"'})
     with pytest.raises(StudyConfigError, match=r"\[physics\.on_nonfinite\].*'skip'"):
         load_study(bad)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("-1", r"\[emulator\.refine_at_posterior\] must be an integer >= 0, got -1"),
+        ("1.5", r"\[emulator\.refine_at_posterior\] must be an integer >= 0, got 1\.5"),
+    ],
+)
+def test_emulator_refine_at_posterior_is_a_count_of_rounds(tmp_path, write_study, value, message):
+    """``[emulator] refine_at_posterior``: 1 by default, 0 turns the rounds off, anything
+    else but a count is an error naming the file and the key."""
+    text = write_study(tmp_path).read_text()
+    assert (
+        load_study(write_study(tmp_path, text + "\n[emulator]\n")).emulator.refine_at_posterior == 1
+    )
+    off = load_study(write_study(tmp_path, text + "\n[emulator]\nrefine_at_posterior = 0\n"))
+    assert off.emulator.refine_at_posterior == 0
+    path = write_study(tmp_path, text + f"\n[emulator]\nrefine_at_posterior = {value}\n")
+    with pytest.raises(StudyConfigError, match=message) as info:
+        load_study(path)
+    assert str(path) in str(info.value)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -105,6 +107,8 @@ def test_cached_runs_are_not_repeated_and_an_extension_runs_only_new_points(tmp_
 
 
 _SOLVER_FILE = """
+import json
+
 import numpy as np
 
 DRAG = {drag}
@@ -483,7 +487,10 @@ def test_a_near_exact_emulator_gives_the_direct_posterior(direct_posterior):
     import kohpymc as kp
 
     em, _, data, _ = _emulator(150, kernel="se")  # relative LOO error 0.013, held-out 0.002
-    emulated = _posterior(kp.calibrate(em.physics_model(), data, **_SAMPLING))
+    calibration = kp.calibrate(em.physics_model(), data, **_SAMPLING)
+    emulated = _posterior(calibration)
+    # scored against the simulator at the posterior mean, it passes
+    assert json.loads(calibration.idata.attrs["physics_problems"]) == []
     widening = posterior_widening(em, data)  # predicted before sampling, linearised
     for name, (mean, sd) in direct_posterior.items():
         assert abs(emulated[name][0] - mean) < 0.1 * sd, (name, emulated[name], mean, sd)
@@ -1408,6 +1415,8 @@ def test_the_study_report_says_what_the_refinement_did(tmp_path, capsys):
 # ------------------------------------------------------- an unseen study through the CLI
 
 _ISOTHERM = '''"""Langmuir isotherm: q = q_max K c / (1 + K c); c mg/L, K L/mg, q mg/g."""
+import json
+
 import numpy as np
 
 
@@ -1478,6 +1487,9 @@ def test_an_unseen_study_through_the_emulator_gives_the_direct_posterior(tmp_pat
         path = _isotherm_study(tmp_path / label, emulator)
         assert main(["study", str(path), "--out", str(tmp_path / label / "out"), *args]) == 0
         posteriors[label] = az.from_netcdf(tmp_path / label / "out" / "M0.nc").posterior
+        # the emulator, scored at the posterior mean against the simulator, passes there
+        table = pd.read_csv(tmp_path / label / "out" / "table.csv", index_col=0)
+        assert table.loc["M0", "status"] == "ok", table.loc["M0", "status"]
     direct, emulated = posteriors["direct"], posteriors["emulated"]
     for name in ("K", "q_max", "sigma_obs"):
         mean, sd = float(direct[name].mean()), float(direct[name].std())

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -701,6 +702,8 @@ class EmulatedPhysics(PhysicsModel):
     ) -> None:
         self.emulator = emulator
         self.covariance = covariance
+        #: folder of cached simulator runs for :meth:`posterior_problems` (None: no cache)
+        self.runs_cache: Path | None = None
         source = emulator.physics
         super().__init__(
             self._emulated,
@@ -765,3 +768,33 @@ class EmulatedPhysics(PhysicsModel):
         if self.covariance == "diagonal":
             return None
         return self.emulator.covariance_tensor(theta, X)
+
+    def posterior_problems(
+        self,
+        data: Any,
+        mean: Mapping[str, float],
+        sd: Mapping[str, float],
+        *,
+        label: str = "the posterior",
+        warn: bool = True,
+    ) -> list[str]:
+        """The emulator scored against one simulator run at a posterior mean.
+
+        :func:`~kohpymc.emulator.posterior_check.check_at_posterior` (the run cached in
+        :attr:`runs_cache` when set, as a study sets it); an :class:`EmulatorWarning`
+        with ``warn`` when it finds problems.
+        """
+        from kohpymc.emulator.posterior_check import check_at_posterior
+
+        check = check_at_posterior(
+            self.emulator, data, mean, sd, label=label, cache=self.runs_cache
+        )
+        if check.problems and warn:
+            warn_user(
+                f"emulator of {self.emulator.physics.name!r} ({self.emulator.n_runs} "
+                f"{getattr(self.emulator, 'runs_noun', 'runs')}) is "
+                f"not fit where {label} lies: {'; '.join(check.problems)}; add runs there "
+                "([emulator] sequential rounds with that formulation, or more runs)",
+                EmulatorWarning,
+            )
+        return list(check.problems)

@@ -10,6 +10,8 @@
     #                           # while its check at the data fails (0: none)
     # refine_runs = 300         # most runs those rounds add (default: room for every
     #                           # round, each θ̂ and p + 1 θ around it at the data's rows)
+    # refine_at_posterior = 1   # rounds of runs added at the posteriors of formulations
+    #                           # where the emulator is unfit, then calibrated again
     # kernel = "matern52"       # or "se"
     # new_runs = 100            # runs added per round (default runs // 2)
     # tolerance = 0.1           # stop when posterior means move less (in posterior sds)
@@ -66,6 +68,7 @@ from kohpymc.emulator.checking import (
 )
 from kohpymc.emulator.design import DESIGNS
 from kohpymc.emulator.gp import KERNELS, EmulatedPhysics, Emulator, EmulatorWarning
+from kohpymc.emulator.posterior_rounds import PosteriorRounds, refine_at_posteriors
 from kohpymc.emulator.refinement import Refinement, refine_emulators_at_data
 from kohpymc.emulator.runs import run_design
 from kohpymc.emulator.sequential import emulate, emulator_box, fit_emulator, sequential_design
@@ -129,6 +132,7 @@ class EmulatorSettings:
     refine_at_data: int = 2
     refine_runs: int | None = None
     functional: tuple[str, ...] = ()
+    refine_at_posterior: int = 1
 
     def design_options(self) -> dict[str, Any]:
         """The keywords of :func:`~kohpymc.emulator.emulate` these settings fix.
@@ -160,7 +164,7 @@ class EmulatorSettings:
         values = dict(table)
         minimums = (
             ("runs", 2), ("sequential", 0), ("new_runs", 1), ("seed", 0),
-            ("refine_at_data", 0), ("refine_runs", 1),
+            ("refine_at_data", 0), ("refine_runs", 1), ("refine_at_posterior", 0),
         )  # fmt: skip
         for key, minimum in minimums:
             if key in values:
@@ -183,6 +187,7 @@ class EmulatorSettings:
         if "functional" in values:
             values["functional"] = _functional_inputs(values)
             values["refine_at_data"] = 0  # no refinement rounds for curves
+            values["refine_at_posterior"] = 0
         return cls(**values)
 
 
@@ -200,13 +205,13 @@ def _functional_inputs(values: Mapping[str, Any]) -> tuple[str, ...]:
             "must be a list of the distinct physics inputs a run's curve spans "
             f'(e.g. ["t"]), got {names!r}',
         )
-    for key in ("refine_at_data", "refine_runs"):
+    for key in ("refine_at_data", "refine_runs", "refine_at_posterior"):
         if values.get(key):
             raise _bad(
                 key,
-                f"is {values[key]!r}, but refinement rounds at the data are for the scalar "
-                "emulator; a functional one (functional = [...]) adds runs by sequential "
-                "rounds only (sequential = N)",
+                f"is {values[key]!r}, but refinement rounds (at the data or at the "
+                "posteriors) are for the scalar emulator; a functional one (functional = "
+                "[...]) adds runs by sequential rounds only (sequential = N)",
             )
     return tuple(names)
 
@@ -274,11 +279,7 @@ def study_physics(
             sampling=sampling, workers=workers, scheduler=scheduler, validation=validation,
         )  # fmt: skip
     folder = Path(out_dir) / "emulator"
-    key = (
-        rounds_key(settings, physics, calibration, formulations, sampling, validation)
-        if settings.sequential > 0 or settings.refine_at_data > 0
-        else ""
-    )
+    key = _study_key(settings, physics, calibration, formulations, sampling, validation)
 
     def first() -> EmulatorsAtData:
         options = settings.design_options()
@@ -308,7 +309,79 @@ def study_physics(
     write_emulator(folder, emulator)
     if validation is not None:
         warn_if_extrapolating(emulator, validation, "validation")
-    return emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+    emulated = emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
+    emulated.runs_cache = folder / "runs"  # the checks at each posterior run into the cache
+    return emulated
+
+
+def _study_key(
+    settings: EmulatorSettings,
+    physics: PhysicsModel,
+    calibration: CalibrationData,
+    formulations: Mapping[str, Discrepancy] | None,
+    sampling: Mapping[str, Any] | None,
+    validation: CalibrationData | None,
+) -> str:
+    """The study's :func:`rounds_key`, or empty when no rounds can add runs."""
+    rounds = (settings.sequential, settings.refine_at_data, settings.refine_at_posterior)
+    if not any(rounds):
+        return ""
+    return rounds_key(settings, physics, calibration, formulations, sampling, validation)
+
+
+def posterior_round(
+    settings: EmulatorSettings,
+    physics: EmulatedPhysics,
+    calibration: CalibrationData,
+    unfit: Mapping[str, Any],
+    out_dir: str | Path,
+    *,
+    formulations: Mapping[str, Discrepancy] | None = None,
+    sampling: Mapping[str, Any] | None = None,
+    workers: int = 1,
+    scheduler: Any = None,
+    validation: CalibrationData | None = None,
+) -> tuple[EmulatedPhysics, PosteriorRounds] | None:
+    """One round at the posteriors where the emulator is unfit: the refitted emulator.
+
+    ``unfit``: label -> the formulation's InferenceData (its ``physics_problems`` not
+    empty).  None when the study's ``refine_at_posterior`` rounds have all run (as
+    recorded in ``refine_at_posterior.json`` under the study's key, so a rerun adds
+    none).  Else runs at each posterior
+    (:func:`~kohpymc.emulator.posterior_rounds.refine_at_posteriors`, ``new_runs`` per
+    posterior), the emulator refitted; ``rounds.json`` then holds its design (a rerun
+    restores it), and ``emulator.json``, ``runs.csv`` and the round's record are written.
+    Returns the refitted emulator as physics and the record (the caller adds what the
+    next calibrations showed and writes it again).  Other arguments as for
+    :func:`study_physics`.
+    """
+    from kohpymc.calibration import physics_problems
+
+    folder = Path(out_dir) / "emulator"
+    source = physics.emulator.physics
+    key = _study_key(settings, source, calibration, formulations, sampling, validation)
+    record = PosteriorRounds.read(folder, key)
+    if not key or record.done >= settings.refine_at_posterior:
+        return None
+    emulator, thetas = refine_at_posteriors(
+        physics.emulator, calibration, unfit, validation=validation, new_runs=settings.new_runs,
+        cache=folder / "runs", seed=settings.seed + record.done, workers=workers,
+        scheduler=scheduler,
+    )  # fmt: skip
+    _write_rounds_record(folder, key, {SINGLE: emulator})
+    write_emulator(folder, emulator)
+    record.rounds.append(
+        {
+            "unfit": {label: physics_problems(idata) for label, idata in unfit.items()},
+            "thetas": thetas.to_dict(orient="records"),
+            "runs_added": int(emulator.n_runs - physics.emulator.n_runs),
+            "runs": int(emulator.n_runs),
+        }
+    )
+    record.write(folder)
+    refined = emulator.physics_model(covariance=settings.covariance)
+    refined.runs_cache = folder / "runs"
+    return refined, record
 
 
 def study_emulators(

@@ -390,6 +390,31 @@ class PhysicsModel:
         """
         return None
 
+    def posterior_problems(
+        self,
+        data: Any,
+        mean: Mapping[str, float],
+        sd: Mapping[str, float],
+        *,
+        label: str = "the posterior",
+        warn: bool = True,
+    ) -> list[str]:
+        """Why this model may be unfit where a posterior lies (none for an exact model).
+
+        A surrogate of the physics (an emulator) scores itself against the simulator at
+        the posterior ``mean`` of θ (``sd`` its posterior sds) on the ``data``'s rows,
+        and warns (with ``warn``) when it is unfit there.  :func:`kohpymc.calibrate`
+        records the problems in ``idata.attrs["physics_problems"]``, and
+        :func:`kohpymc.run_study` reports them in the formulation's status.
+
+        Examples
+        --------
+        >>> from kohpymc.examples import beam
+        >>> beam.physics_model().posterior_problems(None, {"E": 200.0}, {"E": 5.0})
+        []
+        """
+        return []
+
     def __repr__(self) -> str:
         return (
             f"PhysicsModel({self.name!r}, inputs={list(self.inputs)}, "

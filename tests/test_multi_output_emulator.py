@@ -415,7 +415,8 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
     before = _calls(tmp_path)
     assert main(args) == 0
     first = capsys.readouterr().out
-    assert _calls(tmp_path) - before == checks + 30 + 1  # + the check at the data
+    # + the check at the data, + each output's emulator scored at the joint posterior mean
+    assert _calls(tmp_path) - before == checks + 30 + 1 + 2
     assert "30 runs (30 simulated, 0 from" in first
     for k in ("level", "rate"):
         check = json.loads((out / "emulator" / k / "check.json").read_text())
@@ -428,6 +429,7 @@ def test_a_study_file_with_an_emulator_runs_through_the_cli_and_resumes_without_
     assert len(list((out / "emulator" / "runs").glob("*.json"))) == 30 + 20
     table = pd.read_csv(out / "table.csv")
     assert set(table["output"]) == {"level", "rate", "combined"}
+    assert "physics_problems" in table.columns
     middle = _calls(tmp_path)
     assert main(args) == 0
     second = capsys.readouterr().out

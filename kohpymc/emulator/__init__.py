@@ -16,7 +16,11 @@
   (one per output) with their calibration data, as the check at the data sees them;
 * :mod:`~kohpymc.emulator.refinement`: :func:`refine_at_data` (add runs around the
   emulator's best fit until :func:`check_at_data` passes; no sampling), and
-  :func:`refine_emulators_at_data` for several outputs.
+  :func:`refine_emulators_at_data` for several outputs;
+* :mod:`~kohpymc.emulator.posterior_check`: :func:`check_at_posterior`, the emulator
+  scored against one simulator run at a formulation's posterior mean;
+* :mod:`~kohpymc.emulator.posterior_rounds`: :func:`refine_at_posteriors` (runs at the
+  posteriors where that check failed, the emulator refitted).
 """
 
 from kohpymc.emulator.at_data import EmulatorsAtData
@@ -43,6 +47,8 @@ from kohpymc.emulator.functional import (
     run_curves,
 )
 from kohpymc.emulator.gp import EmulatedPhysics, Emulator, GPHyperparameters
+from kohpymc.emulator.posterior_check import check_at_posterior
+from kohpymc.emulator.posterior_rounds import refine_at_posteriors
 from kohpymc.emulator.refinement import (
     Refinement,
     local_design,
@@ -62,6 +68,7 @@ __all__ = [
     "EmulatorCheck",
     "EmulatorWarning",
     "check_at_data",
+    "check_at_posterior",
     "check_emulator",
     "check_emulators_at_data",
     "EmulatorsAtData",
@@ -89,5 +96,6 @@ __all__ = [
     "Refinement",
     "local_design",
     "refine_at_data",
+    "refine_at_posteriors",
     "refine_emulators_at_data",
 ]

@@ -794,7 +794,7 @@ class EmulatedPhysics(PhysicsModel):
                 f"emulator of {self.emulator.physics.name!r} ({self.emulator.n_runs} "
                 f"{getattr(self.emulator, 'runs_noun', 'runs')}) is "
                 f"not fit where {label} lies: {'; '.join(check.problems)}; add runs there "
-                "([emulator] sequential rounds with that formulation, or more runs)",
+                "(refine_at_posteriors; in a study, [emulator] refine_at_posterior rounds)",
                 EmulatorWarning,
             )
         return list(check.problems)

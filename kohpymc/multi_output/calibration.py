@@ -19,7 +19,7 @@ from typing import Any, Literal
 import arviz as az
 import numpy as np
 
-from kohpymc.calibration import _attach_input_coords
+from kohpymc.calibration import PHYSICS_PROBLEMS, _attach_input_coords
 from kohpymc.checks import check_compile_mode, resolve_sampler
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.identifiability import IdentifiabilityReport, IdentifiabilityWarning
@@ -273,6 +273,8 @@ def calibrate_outputs(
     problems = _annotate(idata, built, physics, data, sampling)
     if problems and warn:
         _warn_problems(data, problems)
+    outputs_problems = _outputs_physics_problems(physics, data, idata, warn)
+    idata.attrs[PHYSICS_PROBLEMS] = json.dumps(outputs_problems)
     return MultiOutputCalibration(
         physics, data, discrepancy, built, idata, problems, report, noise_sd_prior
     )
@@ -301,6 +303,27 @@ def _default_target_accept(built: MultiOutputModel, discrepancy: Any) -> float:
     accepts = [p.formulation.default_target_accept for p in built.parts.values()
                if p.formulation is not None]  # fmt: skip
     return max(accepts, default=getattr(discrepancy, "default_target_accept", 0.9))
+
+
+def _outputs_physics_problems(
+    physics: MultiOutputPhysics, data: MultiOutputData, idata: az.InferenceData, warn: bool
+) -> list[str]:
+    """Every output's :meth:`~kohpymc.PhysicsModel.posterior_problems` at the joint mean.
+
+    An emulated output is scored against the simulator at the posterior mean of θ on its
+    own calibration rows; its problems are named by output.
+    """
+    posterior = idata.posterior
+    names = list(physics.parameter_names)
+    mean = {k: float(posterior[k].mean()) for k in names}
+    sd = {k: float(posterior[k].std()) for k in names}
+    return [
+        f"{name}: {problem}"
+        for name in data.outputs
+        for problem in physics.output(name).posterior_problems(
+            data[name], mean, sd, label="the joint posterior", warn=warn
+        )
+    ]
 
 
 def _warn_problems(data: MultiOutputData, problems: list[str]) -> None:

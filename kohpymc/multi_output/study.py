@@ -36,6 +36,7 @@ from typing import Any
 import arviz as az
 import pandas as pd
 
+from kohpymc.calibration import physics_problems
 from kohpymc.checks import check_execution
 from kohpymc.combination import combine_posteriors, reliability_weights
 from kohpymc.execution import run_tasks, runs_remotely
@@ -118,7 +119,9 @@ class MultiOutputStudyResult:
             for name in self.calibrations[label].physics.parameter_names:
                 frame[f"{name} mean"] = float(post[name].mean())
                 frame[f"{name} sd"] = float(post[name].std())
-            frame["sampler_problems"] = "; ".join(self.calibrations[label].problems) or "none"
+            cal = self.calibrations[label]
+            frame["sampler_problems"] = "; ".join(cal.problems) or "none"
+            frame["physics_problems"] = "; ".join(physics_problems(cal.idata)) or "none"
             frames.append(frame.assign(formulation=label).reset_index())
         if not frames:
             raise ValueError(f"no formulation finished; failures: {self.failures}")

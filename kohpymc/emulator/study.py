@@ -369,6 +369,9 @@ def posterior_round(
         scheduler=scheduler,
     )  # fmt: skip
     _write_rounds_record(folder, key, {SINGLE: emulator})
+    # fitted again from the record, as a rerun will restore it: the same posteriors reused
+    record_file = read_rounds_record(folder, key) or {}
+    emulator = _refitted(record_file, folder, settings, source, workers, scheduler)[SINGLE]
     write_emulator(folder, emulator)
     record.rounds.append(
         {
@@ -701,6 +704,20 @@ def _restored_rounds(
     record = read_rounds_record(folder, key)
     if record is None:
         return None
+    emulators = _refitted(record, folder, settings, simulator, workers, scheduler)
+    warn_recorded(folder, EmulatorsAtData(simulator, emulators, {}))
+    return emulators
+
+
+def _refitted(
+    record: Mapping[str, Any],
+    folder: Path,
+    settings: EmulatorSettings,
+    simulator: Any,
+    workers: int,
+    scheduler: Any,
+) -> dict[str, Emulator]:
+    """Output -> its emulator fitted to the design of a ``rounds.json`` record (cached runs)."""
     design = pd.DataFrame(record["design"], columns=record["columns"])
     runs = run_design(
         simulator, design, cache=folder / "runs", workers=workers, scheduler=scheduler
@@ -720,7 +737,6 @@ def _restored_rounds(
         )  # fmt: skip
         for k, model in models.items()
     }
-    warn_recorded(folder, EmulatorsAtData(simulator, emulators, {}))
     return emulators
 
 

@@ -419,12 +419,52 @@ def _posterior_problems(
     physics: PhysicsModel, data: CalibrationData, idata: az.InferenceData, warn: bool
 ) -> list[str]:
     """:meth:`~kohpymc.PhysicsModel.posterior_problems` at the posterior mean of θ."""
-    posterior = idata.posterior
-    names = list(physics.parameters)
-    mean = {k: float(posterior[k].mean()) for k in names}
-    sd = {k: float(posterior[k].std()) for k in names}
+    mean, sd = posterior_moments(idata, list(physics.parameters))
     label = f"{idata.attrs.get('formulation', 'the')}'s posterior"
-    return physics.posterior_problems(data, mean, sd, label=label, warn=warn)
+    return problems_at_posterior(physics, data, mean, sd, label=label, warn=warn)
+
+
+def posterior_moments(
+    idata: az.InferenceData, names: list[str]
+) -> tuple[dict[str, float], dict[str, float]]:
+    """Posterior mean and sd of each of ``names``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> idata = az.from_dict(posterior={"E": np.array([[1.0, 3.0]])})
+    >>> posterior_moments(idata, ["E"])
+    ({'E': 2.0}, {'E': 1.0})
+    """
+    posterior = idata.posterior
+    mean = {k: float(posterior[k].mean()) for k in names}
+    return mean, {k: float(posterior[k].std()) for k in names}
+
+
+def problems_at_posterior(
+    physics: PhysicsModel,
+    data: Any,
+    mean: dict[str, float],
+    sd: dict[str, float],
+    *,
+    label: str,
+    warn: bool,
+) -> list[str]:
+    """``physics.posterior_problems``; a failure of the check itself is a problem too.
+
+    The draws were sampled already: an error in the check must not lose them.
+
+    Examples
+    --------
+    >>> from kohpymc.examples import beam
+    >>> problems_at_posterior(beam.physics_model(), None, {"E": 200.0}, {"E": 5.0},
+    ...                       label="M0's posterior", warn=False)
+    []
+    """
+    try:
+        return physics.posterior_problems(data, mean, sd, label=label, warn=warn)
+    except Exception as err:  # noqa: BLE001 - the draws are kept; the failure is reported
+        return [f"the check of the physics at the mean of {label} failed: {err!r}"]
 
 
 @one_blas_thread()

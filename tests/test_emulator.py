@@ -1462,6 +1462,23 @@ def _isotherm_study(folder, emulator=""):
     return folder / "study.toml"
 
 
+#: the isotherm studies' sampler settings (command line)
+_ISOTHERM_ARGS = ["--no-figures", "--quiet", "--chains", "2", "--seed", "11", "--draws", "1000"]
+_ISOTHERM_ARGS += ["--tune", "1000"]
+
+
+def _isotherm_m0(folder, emulator=""):
+    """Write and run an isotherm study (``kohpymc study``); M0's posterior and the table."""
+    import arviz as az
+
+    from kohpymc.cli import main
+
+    path = _isotherm_study(folder, emulator)
+    assert main(["study", str(path), "--out", str(folder / "out"), *_ISOTHERM_ARGS]) == 0
+    table = pd.read_csv(folder / "out" / "table.csv", index_col=0)
+    return az.from_netcdf(folder / "out" / "M0.nc").posterior, table
+
+
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::kohpymc.emulator.EmulatorWarning")
 def test_an_unseen_study_through_the_emulator_gives_the_direct_posterior(tmp_path):
@@ -1473,22 +1490,13 @@ def test_an_unseen_study_through_the_emulator_gives_the_direct_posterior(tmp_pat
     check at the data failed, one refinement round added 72 runs and it passed with a
     predicted move of 0.0032 sds, so the sequential rounds were skipped; before that
     skip, one round added 54 runs).  Slow: 2.4 min at load 7-11."""
-    import arviz as az
-
-    from kohpymc.cli import main
-
-    args = ["--no-figures", "--quiet", "--chains", "2", "--seed", "11"]
-    args += ["--draws", "1000", "--tune", "1000"]
     posteriors = {}
     for label, emulator in (
         ("direct", ""),
         ("emulated", "\n[emulator]\nruns = 40\nsequential = 2\n"),
     ):
-        path = _isotherm_study(tmp_path / label, emulator)
-        assert main(["study", str(path), "--out", str(tmp_path / label / "out"), *args]) == 0
-        posteriors[label] = az.from_netcdf(tmp_path / label / "out" / "M0.nc").posterior
+        posteriors[label], table = _isotherm_m0(tmp_path / label, emulator)
         # the emulator, scored at the posterior mean against the simulator, passes there
-        table = pd.read_csv(tmp_path / label / "out" / "table.csv", index_col=0)
         assert table.loc["M0", "status"] == "ok", table.loc["M0", "status"]
     direct, emulated = posteriors["direct"], posteriors["emulated"]
     for name in ("K", "q_max", "sigma_obs"):
@@ -1510,22 +1518,14 @@ def test_a_study_adds_runs_where_a_posterior_finds_the_emulator_unfit(tmp_path, 
     −10.6 → +0.43 direct sds, the status naming a predicted bias of K −0.27 and q_max
     +0.32 of M0's sds; 55 s at load 3).  A rerun restores the refitted
     emulator and reuses the posterior without another round or simulator run."""
-    import arviz as az
-
     from kohpymc.cli import main
 
-    args = ["--no-figures", "--quiet", "--chains", "2", "--seed", "11"]
-    args += ["--draws", "1000", "--tune", "1000"]
-    posteriors = {}
-    tables = {}
+    posteriors, tables = {}, {}
     for label, emulator in (
         ("direct", ""),
         ("emulated", "\n[emulator]\nruns = 10\nrefine_at_data = 0\n"),
     ):
-        path = _isotherm_study(tmp_path / label, emulator)
-        assert main(["study", str(path), "--out", str(tmp_path / label / "out"), *args]) == 0
-        posteriors[label] = az.from_netcdf(tmp_path / label / "out" / "M0.nc").posterior
-        tables[label] = pd.read_csv(tmp_path / label / "out" / "table.csv", index_col=0)
+        posteriors[label], tables[label] = _isotherm_m0(tmp_path / label, emulator)
     said = capsys.readouterr().out
     assert "emulator unfit where the posterior of M0 lies: 156 runs added there" in said
     folder = tmp_path / "emulated" / "out" / "emulator"
@@ -1543,7 +1543,8 @@ def test_a_study_adds_runs_where_a_posterior_finds_the_emulator_unfit(tmp_path, 
             assert "at the mean of M0's posterior" in status, (name, after, mean, sd, status)
     runs = sorted((folder / "runs").iterdir())
     path = tmp_path / "emulated" / "study.toml"
-    assert main(["study", str(path), "--out", str(tmp_path / "emulated" / "out"), *args]) == 0
+    out = tmp_path / "emulated" / "out"
+    assert main(["study", str(path), "--out", str(out), *_ISOTHERM_ARGS]) == 0
     assert "emulator unfit" not in capsys.readouterr().out
     assert sorted((folder / "runs").iterdir()) == runs
     manifest = json.loads((tmp_path / "emulated" / "out" / "study.json").read_text())

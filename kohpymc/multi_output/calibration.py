@@ -19,7 +19,12 @@ from typing import Any, Literal
 import arviz as az
 import numpy as np
 
-from kohpymc.calibration import PHYSICS_PROBLEMS, _attach_input_coords
+from kohpymc.calibration import (
+    PHYSICS_PROBLEMS,
+    _attach_input_coords,
+    posterior_moments,
+    problems_at_posterior,
+)
 from kohpymc.checks import check_compile_mode, resolve_sampler
 from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
 from kohpymc.identifiability import IdentifiabilityReport, IdentifiabilityWarning
@@ -313,15 +318,12 @@ def _outputs_physics_problems(
     An emulated output is scored against the simulator at the posterior mean of θ on its
     own calibration rows; its problems are named by output.
     """
-    posterior = idata.posterior
-    names = list(physics.parameter_names)
-    mean = {k: float(posterior[k].mean()) for k in names}
-    sd = {k: float(posterior[k].std()) for k in names}
+    mean, sd = posterior_moments(idata, list(physics.parameter_names))
     return [
         f"{name}: {problem}"
         for name in data.outputs
-        for problem in physics.output(name).posterior_problems(
-            data[name], mean, sd, label="the joint posterior", warn=warn
+        for problem in problems_at_posterior(
+            physics.output(name), data[name], mean, sd, label="the joint posterior", warn=warn
         )
     ]
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import arviz as az
 import numpy as np
@@ -209,3 +210,25 @@ def _chains(idata: az.InferenceData) -> int:
 def _projected(seconds: float, tune: int, draws: int, factor: int, steps: float) -> float:
     """Sampling seconds of a run with ``factor`` times the draws and ``steps`` the steps."""
     return seconds * steps * (tune + factor * draws) / max(tune + draws, 1)
+
+
+def remaining_after(record: dict[str, Any]) -> str:
+    """The note a report of trouble adds when a second run already ran.
+
+    ``record`` is ``SamplingReport.second_run``; the note tells the reader the retry
+    ran and did not clear the trouble.
+
+    Examples
+    --------
+    >>> note = remaining_after({"reasons": ["7 divergences"], "target_accept": [0.95, 0.99],
+    ...                         "draws": [1000, 1000], "divergences": [7, 4],
+    ...                         "smallest_ess_bulk": [900, 1200]})
+    >>> note.split(": ")[1]
+    'divergences 7 -> 4, smallest bulk ESS 900 -> 1200'
+    """
+    (ta0, ta1), (d0, d1) = record["target_accept"], record["draws"]
+    (v0, v1), (e0, e1) = record["divergences"], record["smallest_ess_bulk"]
+    return (
+        f"after a second run ({'; '.join(record['reasons'])}; target_accept {ta0} -> {ta1}, "
+        f"draws {d0} -> {d1}): divergences {v0} -> {v1}, smallest bulk ESS {e0} -> {e1}"
+    )

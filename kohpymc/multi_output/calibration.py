@@ -47,6 +47,7 @@ from kohpymc.multi_output.model import (
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.predictive import sample_predictions
 from kohpymc.sampling import SamplingReport, one_blas_thread, sample_posterior
+from kohpymc.second_run import remaining_after
 from kohpymc.warning_filters import pymc_info_hidden, warn_user
 
 __all__ = [
@@ -350,6 +351,8 @@ def _annotate(
         coords = {variable(name, k): v for k, v in data[name].inputs.items()}
         _attach_input_coords(idata, obs_dim(name), coords)
     problems = convergence_problems(idata)  # SMC: r̂ between its independent runs
+    if problems and sampling.second_run:
+        problems.append(remaining_after(sampling.second_run))
     problems += list(sampling.reparameterization.get("warnings", []))
     idata.attrs.update(
         {

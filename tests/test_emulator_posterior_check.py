@@ -95,3 +95,19 @@ def test_a_simulator_failing_at_the_posterior_mean_is_a_problem_not_an_error():
 def test_an_exact_physics_model_has_no_posterior_problems():
     physics, data = _setup()
     assert physics.posterior_problems(data, {"A": 1.2, "k": 0.8}, {"A": 0.1, "k": 0.1}) == []
+
+
+def test_an_unknown_noise_sd_moved_by_the_emulator_is_flagged():
+    """Noise sd unknown: a 5-run emulator (sd 1.3 at the rows against noise 0.02) moves
+    the noise sd's best fit by -0.9 of its sds (scored against the simulator's own
+    residuals at the posterior mean), a 60-run one by -0.01.  With the noise sd given,
+    nothing is judged."""
+    physics, data = _setup()
+    unknown = kp.CalibrationData(data.inputs, data.y)
+    mean, sd = {"A": 1.2, "k": 0.8}, {"A": 0.05, "k": 0.05}
+    poor = check_at_posterior(emulate(physics, unknown, runs=5, seed=1), unknown, mean, sd)
+    good = check_at_posterior(emulate(physics, unknown, runs=60, seed=1), unknown, mean, sd)
+    known = check_at_posterior(emulate(physics, data, runs=5, seed=1), data, mean, sd)
+    assert poor.noise_shift < -0.5 and any("noise sd's best fit" in p for p in poor.problems)
+    assert abs(good.noise_shift) <= 0.5 and not any("noise sd" in p for p in good.problems)
+    assert known.noise_shift is None

@@ -439,7 +439,7 @@ def posterior_moments(
     >>> posterior_moments(idata, ["E"])
     ({'E': 2.0}, {'E': 1.0})
     """
-    posterior = idata.posterior
+    posterior = idata["posterior"]
     mean = {k: float(posterior[k].mean()) for k in names}
     return mean, {k: float(posterior[k].std()) for k in names}
 

@@ -382,7 +382,7 @@ def posterior_round(
         }
     )
     record.write(folder)
-    refined = emulator.physics_model(covariance=settings.covariance)
+    refined = emulator.physics_model(covariance=settings.covariance)  # type: ignore[arg-type]
     refined.runs_cache = folder / "runs"
     return refined, record
 

@@ -1029,7 +1029,9 @@ def test_thermistor_ridge_has_no_wall_within_three_sds():
     if "bound-ridge" in chosen.kind:
         assert np.all(drops < 9.0), (chosen.kind, drops)
         return
-    assert chosen.kind == "ridge-curve-own-units-soft-box", chosen.kind
+    # its pivot warped to normal quantiles since the affine pivot's axis fits badly
+    # (Gaussian score 0.53 -> 0.038)
+    assert chosen.kind == "ridge-curve-own-units-soft-box-warped", chosen.kind
     assert np.all(drops[1:] < 9.0), drops
     base, _ = chosen.logp_dlogp(space, np.zeros(chosen.ndim), safe=True)
     for side, at in enumerate((-3.0, 3.0)):

@@ -3,6 +3,7 @@
 import arviz as az
 import numpy as np
 import pymc as pm
+import pytest
 from scipy import stats
 from scipy.special import expit, logit
 
@@ -134,3 +135,24 @@ def test_ridge_members_are_log_scale_elements_only():
     laplace = SimpleNamespace(coordinates=coords, chol=np.linalg.cholesky(cov))
     pivot, members = _ridge_members(laplace)
     assert pivot in (0, 1) and members.tolist() == [0, 1]
+
+
+@pytest.mark.slow
+def test_thermistor_gp_pivot_is_warped_past_its_wall():
+    """Steinhart–Hart under a stationary GP discrepancy (M4): the ridge is led by C in its
+    own units, and below C ≈ −10⁻⁷, where the GP must take up the physics' misfit, the
+    posterior ends in a wall (affine pivot: log density 20.6 down at −2, 2.4 at +2; a
+    Gaussian's 2.0; bent on top, 85 divergent transitions in 4 × 1000 draws).  Warped to
+    its marginal's quantiles, the pivot's axis drops within 0.5 of a Gaussian's at ±2 and
+    within 1.5 at ±4 (measured 2.0 and 8.0 on both sides; 21 divergences)."""
+    from kohpymc.discrepancy import GaussianProcess
+    from kohpymc.model import compose_model
+    from kohpymc.reparameterization import _axis_drops
+    from tests.test_reparameterization import _thermistor_case
+
+    physics, data = _thermistor_case()
+    space = value_space(compose_model(physics, data, GaussianProcess(["R"])).model)
+    chosen = plan(space, seed=3)
+    assert chosen.kind == "ridge-curve-own-units-soft-box-warped", chosen.reason
+    np.testing.assert_allclose(_axis_drops(space, chosen, 2.0)[0], 2.0, atol=0.5)
+    np.testing.assert_allclose(_axis_drops(space, chosen, 4.0)[0], 8.0, atol=1.5)

@@ -90,6 +90,7 @@ def test_a_simulator_failing_at_the_posterior_mean_is_a_problem_not_an_error():
     check = check_at_posterior(em, data, {"A": 1.2, "k": 2.8}, {"A": 0.1, "k": 0.1})
     assert not check.fit
     assert check.problems[0].startswith("the simulator failed at the mean of the posterior")
+    assert "on 40 of 40 calibration rows (first: NonFiniteOutputError" in check.problems[0]
 
 
 def test_an_exact_physics_model_has_no_posterior_problems():

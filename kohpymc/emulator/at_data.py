@@ -80,6 +80,19 @@ def linearisation(
     return J, float(noise), cov
 
 
+class SimulatorFailedAt(RuntimeError):
+    """The simulator failed at a θ where a check needed its outputs.
+
+    ``where`` says on how many of the rows (or curves), ``first`` is the first error; the
+    message is that of the check at the data.
+    """
+
+    def __init__(self, message: str, where: str, first: str) -> None:
+        super().__init__(message)
+        self.where = where
+        self.first = first
+
+
 @dataclass(frozen=True)
 class EmulatorsAtData:
     """A simulator, one emulator per output and each output's calibration data.
@@ -246,7 +259,7 @@ class EmulatorsAtData:
         runs = self.run(design, cache=cache, workers=workers, scheduler=scheduler)
         if len(runs.failed):
             failed = runs.failed
-            raise RuntimeError(self._failed_at(theta, failed, len(failed) + len(runs.points)))
+            raise self._failed_at(theta, failed, len(failed) + len(runs.points))
         columns = [*self.inputs, *self.parameters]
         simulated = {}
         for k, data in self.data.items():
@@ -265,17 +278,20 @@ class EmulatorsAtData:
     def _failed_at(
         self, theta: Mapping[str, float], failed: pd.DataFrame, total: int,
         what: str = "calibration rows",
-    ) -> str:  # fmt: skip
+    ) -> SimulatorFailedAt:  # fmt: skip
         """Why the check at the data cannot go on: the simulator fails at the best fit."""
         point = ", ".join(f"{k}={v:.6g}" for k, v in theta.items())
         design_failed, design_total = self._design_failures()
-        return (
+        first = str(failed["error"].iloc[0])
+        return SimulatorFailedAt(
             f"check at the data: the simulator failed at the emulator's best fit to the data "
             f"{{{point}}} on {len(failed)} of {total} {what} (first: "
             f"{failed['error'].iloc[0]}); {design_failed} of the emulator's {design_total} "
             "design runs failed too. The emulator has no run where the data lie, so a "
             "calibration through it would rest on none: make the simulator run there, or "
-            "narrow the parameters' prior box to where it runs"
+            "narrow the parameters' prior box to where it runs",
+            f"{len(failed)} of {total} {what}",
+            first,
         )
 
     def predicted_at(self, name: str, theta: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:

@@ -97,7 +97,7 @@ class CurvesAtData(EmulatorsAtData):
         )  # fmt: skip
         if len(runs.failed):
             total = len(runs.failed) + runs.n_runs
-            raise RuntimeError(self._failed_at(theta, runs.failed, total, "curves"))
+            raise self._failed_at(theta, runs.failed, total, "curves")
         return {SINGLE: emulator.at_rows(runs, data.inputs)}
 
     def linearised(

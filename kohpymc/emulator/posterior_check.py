@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from kohpymc.data import CalibrationData
-from kohpymc.emulator.at_data import SINGLE, EmulatorsAtData
+from kohpymc.emulator.at_data import SINGLE, EmulatorsAtData, SimulatorFailedAt
 from kohpymc.emulator.checking import (
     MAX_NOISE_SHIFT,
     EmulatorCheck,
@@ -108,9 +108,12 @@ def check_at_posterior(
     kind = f"at the mean of {label}"
     try:
         simulated = target.simulated_at(theta, cache=cache, workers=workers, scheduler=scheduler)
-    except RuntimeError as err:
+    except SimulatorFailedAt as err:
         empty = np.empty(0)
-        failed = f"the simulator failed at the mean of {label} ({_format(theta)}): {err}"
+        failed = (
+            f"the simulator failed at the mean of {label} ({_format(theta)}) on {err.where} "
+            f"(first: {err.first}): the emulator there rests on no run"
+        )
         return EmulatorCheck(kind, empty, empty, empty, level, problems=[failed], point=theta)
     predicted, variance = target.predicted_at(SINGLE, theta)
     check = EmulatorCheck(kind, simulated[SINGLE], predicted, np.sqrt(variance), level, point=theta)

@@ -26,7 +26,7 @@ import numpy as np
 
 from kohpymc.checks import check_compile_mode, resolve_sampler
 from kohpymc.data import CalibrationData
-from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
+from kohpymc.diagnostics import SamplerTroubleWarning
 from kohpymc.discrepancy.base import Discrepancy
 from kohpymc.discrepancy.none import NoDiscrepancy
 from kohpymc.identifiability import (
@@ -42,7 +42,7 @@ from kohpymc.predictive import sample_predictions
 from kohpymc.presampling import SLOW_SAMPLING_S, PreSampling
 from kohpymc.priors import Prior
 from kohpymc.sampling import one_blas_thread, sample_posterior
-from kohpymc.second_run import remaining_after
+from kohpymc.second_run import run_problems
 from kohpymc.warning_filters import pymc_info_hidden, warn_user
 
 __all__ = ["Calibration", "calibrate", "predict"]
@@ -381,10 +381,7 @@ def calibrate(
     )
     _add_log_likelihood(idata, built, plain)
     _attach_input_coords(idata, OBS_DIM, data.inputs)
-    problems = convergence_problems(idata)  # SMC: r̂ between its independent runs
-    if problems and sampling.second_run:
-        problems.append(remaining_after(sampling.second_run))
-    problems += [
+    problems = run_problems(idata, sampling.second_run) + [
         _explained(text, presampling.explaining(report))
         for text in sampling.reparameterization.get("warnings", [])
     ]

@@ -27,7 +27,13 @@ from typing import Any
 import arviz as az
 import numpy as np
 
-from kohpymc.diagnostics import ESS_MIN, n_divergences, rhat_limit, sampler_diagnostics
+from kohpymc.diagnostics import (
+    ESS_MIN,
+    convergence_problems,
+    n_divergences,
+    rhat_limit,
+    sampler_diagnostics,
+)
 
 __all__ = [
     "MAX_DRAWS_FACTOR",
@@ -232,3 +238,22 @@ def remaining_after(record: dict[str, Any]) -> str:
         f"after a second run ({'; '.join(record['reasons'])}; target_accept {ta0} -> {ta1}, "
         f"draws {d0} -> {d1}): divergences {v0} -> {v1}, smallest bulk ESS {e0} -> {e1}"
     )
+
+
+def run_problems(idata: az.InferenceData, record: dict[str, Any]) -> list[str]:
+    """A run's convergence problems, with a note when a second run did not clear them.
+
+    :func:`~kohpymc.diagnostics.convergence_problems`, then :func:`remaining_after` when
+    ``record`` (``SamplingReport.second_run``) says a second run ran.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> draws = np.random.default_rng(0).normal(size=(4, 1000))
+    >>> run_problems(az.from_dict(posterior={"E": draws}), {})
+    []
+    """
+    problems = convergence_problems(idata)  # SMC: r̂ between its independent runs
+    if problems and record:
+        problems.append(remaining_after(record))
+    return problems

@@ -26,7 +26,7 @@ from kohpymc.calibration import (
     problems_at_posterior,
 )
 from kohpymc.checks import check_compile_mode, resolve_sampler
-from kohpymc.diagnostics import SamplerTroubleWarning, convergence_problems
+from kohpymc.diagnostics import SamplerTroubleWarning
 from kohpymc.identifiability import IdentifiabilityReport, IdentifiabilityWarning
 from kohpymc.identifiability.model_check import (
     _design_point,
@@ -47,7 +47,7 @@ from kohpymc.multi_output.model import (
 from kohpymc.multi_output.physics import MultiOutputPhysics
 from kohpymc.predictive import sample_predictions
 from kohpymc.sampling import SamplingReport, one_blas_thread, sample_posterior
-from kohpymc.second_run import remaining_after
+from kohpymc.second_run import run_problems
 from kohpymc.warning_filters import pymc_info_hidden, warn_user
 
 __all__ = [
@@ -350,9 +350,7 @@ def _annotate(
     for name in data.outputs:  # every output's rows: coordinates <output>::<input>
         coords = {variable(name, k): v for k, v in data[name].inputs.items()}
         _attach_input_coords(idata, obs_dim(name), coords)
-    problems = convergence_problems(idata)  # SMC: r̂ between its independent runs
-    if problems and sampling.second_run:
-        problems.append(remaining_after(sampling.second_run))
+    problems = run_problems(idata, sampling.second_run)
     problems += list(sampling.reparameterization.get("warnings", []))
     idata.attrs.update(
         {

@@ -47,7 +47,7 @@ STAGES: tuple[tuple[str, str, str], ...] = (
     ("kohpymc.sampling", "_run_nutpie", "sampling (nutpie)"),
     ("kohpymc.sampling", "_run_pymc", "sampling (pymc)"),
     ("kohpymc.calibration", "_add_log_likelihood", "log-likelihood"),
-    ("kohpymc.calibration", "convergence_problems", "convergence checks"),
+    ("kohpymc.calibration", "run_problems", "convergence checks"),
     ("kohpymc.validation", "predict", "predict at validation"),
     ("pymc.sampling.forward", "compile_forward_sampling_function", "predict: compile"),
     ("kohpymc.validation", "validation_metrics", "validation metrics"),
